@@ -1,0 +1,400 @@
+"""Logical scenario spaces: named parameters with distributions, discretised into concrete values.
+
+A *logical scenario* is a set of parameters with ranges or distributions (the paper's Table I).
+Discretising it with a seed draws each parameter's concrete value set once, as the original code
+did (draws rounded to 3 decimals, then kept for the whole run). A *concrete scenario* is one value
+per parameter, addressed by an integer index vector ``(P,)`` into those value sets. The space is
+their Cartesian product, enumerated in C order (the last parameter varies fastest).
+
+Everything here is host-side setup except :meth:`Space.decode`, :meth:`Space.unravel` and
+:meth:`Space.ravel`, which are vectorised jnp code usable under ``jit``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import zlib
+from pathlib import Path
+from typing import Any, Iterator
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxfalsify import weather
+
+# Scenario parameters the simulator understands: unit, default, allowed domain, integer-valued.
+# A space need not declare all of them; undeclared ones take the default.
+KNOWN_PARAMETERS: dict[str, dict[str, Any]] = {
+    "ego_offset": dict(unit="m", default=5.0, domain=(0.0, 50.0), integer=False,
+                       doc="how far behind its base start the ego starts"),
+    "ped_accel": dict(unit="m/s per step", default=0.0, domain=(0.0, 1.0), integer=False,
+                      doc="pedestrian speed increment per 0.1 s step (the original's 'acceleration')"),
+    "ped_speed": dict(unit="m/s", default=1.46, domain=(0.0, 5.0), integer=False,
+                      doc="pedestrian nominal walking speed"),
+    "ped_offset": dict(unit="m", default=3.5, domain=(0.0, 20.0), integer=False,
+                       doc="pedestrian start distance behind the kerb, minus 1 m"),
+    "weather": dict(unit="preset", default=0.0, domain=(0.0, weather.N_PRESETS - 1.0),
+                    integer=True, doc="CARLA weather preset index (name-sorted)"),
+    "ped_speed_change": dict(unit="m/s", default=0.0, domain=(-3.0, 3.0), integer=False,
+                             doc="speed change during a 5-step window (extended space)"),
+    "ped_change_step": dict(unit="step", default=0.0, domain=(0.0, 299.0), integer=True,
+                            doc="first step of the speed-change window (extended space)"),
+}
+
+DISTRIBUTIONS = ("uniform", "normal", "integers", "values")
+_PARAM_KEYS = {"unit", "distribution", "low", "high", "mean", "sd", "samples", "values", "decimals"}
+_TOP_KEYS = {"name", "description", "parameters"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Parameter:
+    """One logical-scenario parameter.
+
+    Attributes:
+      name: a key of ``KNOWN_PARAMETERS``.
+      distribution: ``uniform`` (low, high), ``normal`` (mean, sd), ``integers`` (low, high,
+        inclusive, drawn without replacement) or ``values`` (explicit list).
+      args: the distribution's arguments, or the explicit values.
+      samples: how many concrete values to draw.
+      decimals: rounding of continuous draws (the original rounds to 3).
+    """
+
+    name: str
+    distribution: str
+    args: tuple[float, ...]
+    samples: int
+    decimals: int = 3
+
+    @property
+    def unit(self) -> str:
+        return KNOWN_PARAMETERS[self.name]["unit"]
+
+    def discretise(self, seed: int) -> np.ndarray:
+        """Concrete value set ``(samples,)`` float64, sorted ascending; deterministic in seed."""
+        rng = np.random.default_rng([int(seed), zlib.crc32(self.name.encode())])
+        d, a, n = self.distribution, self.args, self.samples
+        if d == "values":
+            out = np.asarray(a, dtype=np.float64)
+        elif d == "uniform":
+            out = np.round(rng.uniform(a[0], a[1], n), self.decimals)
+        elif d == "normal":
+            out = np.round(rng.normal(a[0], a[1], n), self.decimals)
+        else:  # integers, inclusive, without replacement
+            out = rng.choice(np.arange(int(a[0]), int(a[1]) + 1), size=n, replace=False)
+            out = out.astype(np.float64)
+        return np.sort(out)
+
+    def describe(self) -> dict[str, Any]:
+        """TOML-ready description (the inverse of parsing)."""
+        d: dict[str, Any] = {"unit": self.unit, "distribution": self.distribution}
+        if self.distribution == "values":
+            d["values"] = list(self.args)
+        else:
+            keys = ("mean", "sd") if self.distribution == "normal" else ("low", "high")
+            d.update(zip(keys, self.args))
+            d["samples"] = self.samples
+            if self.distribution != "integers":
+                d["decimals"] = self.decimals
+        return d
+
+
+def uniform(name: str, low: float, high: float, samples: int, decimals: int = 3) -> Parameter:
+    return make_parameter(name, "uniform", (low, high), samples, decimals)
+
+
+def normal(name: str, mean: float, sd: float, samples: int, decimals: int = 3) -> Parameter:
+    return make_parameter(name, "normal", (mean, sd), samples, decimals)
+
+
+def integers(name: str, low: int, high: int, samples: int) -> Parameter:
+    return make_parameter(name, "integers", (low, high), samples)
+
+
+def values(name: str, vals: list[float]) -> Parameter:
+    return make_parameter(name, "values", tuple(vals), len(vals))
+
+
+def make_parameter(name: str, distribution: str, args: tuple, samples: int,
+                   decimals: int = 3, where: str = "") -> Parameter:
+    """Validated :class:`Parameter`; raises ``ValueError`` naming the offending key."""
+    key = where or f"parameters.{name}"
+    if name not in KNOWN_PARAMETERS:
+        raise ValueError(f"{key}: unknown parameter '{name}' "
+                         f"(known: {', '.join(KNOWN_PARAMETERS)})")
+    if distribution not in DISTRIBUTIONS:
+        raise ValueError(f"{key}.distribution: unknown distribution '{distribution}' "
+                         f"(one of {', '.join(DISTRIBUTIONS)})")
+    for i, a in enumerate(args):
+        if isinstance(a, bool) or not isinstance(a, (int, float)):
+            raise ValueError(f"{key}: argument {a!r} is not a number")
+        if not math.isfinite(a):
+            raise ValueError(f"{key}: argument {a!r} is not finite")
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples <= 0:
+        raise ValueError(f"{key}.samples must be a positive integer (got {samples!r})")
+    if isinstance(decimals, bool) or not isinstance(decimals, int) or not 0 <= decimals <= 9:
+        raise ValueError(f"{key}.decimals must be an integer in 0..9 (got {decimals!r})")
+    if distribution == "values":
+        if len(args) == 0:
+            raise ValueError(f"{key}.values is empty")
+        if len(set(args)) != len(args):
+            raise ValueError(f"{key}.values has duplicates: {list(args)}")
+    elif distribution == "normal":
+        if args[1] <= 0:
+            raise ValueError(f"{key}.sd must be > 0 (got {args[1]})")
+    else:
+        low, high = args
+        if not low < high:
+            raise ValueError(f"{key}: empty or inverted range low={low} high={high}")
+        if distribution == "integers":
+            if low != int(low) or high != int(high):
+                raise ValueError(f"{key}: integers needs integer low/high (got {low}, {high})")
+            if samples > int(high) - int(low) + 1:
+                raise ValueError(f"{key}.samples={samples} exceeds the {int(high) - int(low) + 1} "
+                                 f"integers in [{int(low)}, {int(high)}]")
+    return Parameter(name, distribution, tuple(float(a) for a in args), int(samples), decimals)
+
+
+@dataclasses.dataclass(frozen=True)
+class Space:
+    """A discretised logical scenario: the product of per-parameter value sets.
+
+    Hashable, so it can be a static argument or closed over by jitted functions.
+
+    Attributes:
+      name: the built-in name or the TOML file's path/name.
+      seed: the discretisation seed.
+      parameters: the declared parameters, in enumeration order.
+      table: per-parameter concrete values, as tuples of floats (use :attr:`values`).
+    """
+
+    name: str
+    seed: int
+    parameters: tuple[Parameter, ...]
+    table: tuple[tuple[float, ...], ...]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters)
+
+    @property
+    def units(self) -> tuple[str, ...]:
+        return tuple(p.unit for p in self.parameters)
+
+    @property
+    def values(self) -> list[np.ndarray]:
+        """Per-parameter concrete values, float32 arrays ``(n_p,)``."""
+        return [np.asarray(v, dtype=np.float32) for v in self.table]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """Number of values per parameter ``(P,)``."""
+        return tuple(len(v) for v in self.table)
+
+    @property
+    def size(self) -> int:
+        """Number of concrete scenarios."""
+        return math.prod(self.shape)
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Continuous relaxation of the index space: ``(low, high)`` float32 ``(P,)``.
+
+        Index ``i`` of parameter ``p`` is the point ``i``; a strategy working in this box rounds
+        to the nearest integer (``jnp.rint``) and clips to ``[0, n_p - 1]``.
+        """
+        return np.zeros(len(self.shape), np.float32), np.asarray(self.shape, np.float32) - 1
+
+    @property
+    def value_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Smallest and largest concrete value per parameter, float32 ``(P,)``."""
+        return (np.asarray([min(v) for v in self.table], np.float32),
+                np.asarray([max(v) for v in self.table], np.float32))
+
+    def _padded(self) -> jnp.ndarray:
+        width = max(self.shape)
+        return jnp.asarray([list(v) + [v[-1]] * (width - len(v)) for v in self.table],
+                           dtype=jnp.float32)
+
+    def decode(self, indices) -> dict[str, jnp.ndarray]:
+        """Index vectors ``(..., P)`` int -> ``{name: values (...)}`` float32 (jit-safe)."""
+        idx = jnp.asarray(indices)
+        picked = jnp.take_along_axis(
+            jnp.broadcast_to(self._padded(), idx.shape[:-1] + self._padded().shape),
+            idx[..., None], axis=-1)[..., 0]
+        return {n: picked[..., p] for p, n in enumerate(self.names)}
+
+    def scenario(self, indices) -> dict[str, jnp.ndarray]:
+        """Like :meth:`decode`, with undeclared known parameters filled by their defaults."""
+        out = self.decode(indices)
+        shape = jnp.shape(indices)[:-1]
+        for n, spec in KNOWN_PARAMETERS.items():
+            if n not in out:
+                out[n] = jnp.full(shape, spec["default"], jnp.float32)
+        return out
+
+    def unravel(self, flat) -> jnp.ndarray:
+        """Flat scenario numbers ``(...)`` -> index vectors ``(..., P)`` int32 (C order)."""
+        flat = jnp.asarray(flat, jnp.int32)
+        out = []
+        for n in reversed(self.shape):
+            out.append(flat % n)
+            flat = flat // n
+        return jnp.stack(out[::-1], axis=-1)
+
+    def ravel(self, indices) -> jnp.ndarray:
+        """Index vectors ``(..., P)`` -> flat scenario numbers ``(...)`` int32."""
+        idx = jnp.asarray(indices, jnp.int32)
+        flat = jnp.zeros(idx.shape[:-1], jnp.int32)
+        for p, n in enumerate(self.shape):
+            flat = flat * n + idx[..., p]
+        return flat
+
+    def nearest(self, scenario: dict[str, float]) -> np.ndarray:
+        """Index vector ``(P,)`` of the concrete values nearest to ``scenario`` (host-side)."""
+        return np.asarray([int(np.argmin(np.abs(np.asarray(v) - float(scenario[n]))))
+                           for n, v in zip(self.names, self.table)], np.int32)
+
+    def chunks(self, chunk_size: int, start: int = 0) -> Iterator[tuple[int, int]]:
+        """``(begin, end)`` flat ranges covering ``[start, size)`` in steps of chunk_size."""
+        if chunk_size <= 0:
+            raise ValueError(f"chunk_size must be positive (got {chunk_size})")
+        for b in range(start, self.size, chunk_size):
+            yield b, min(b + chunk_size, self.size)
+
+    def describe(self) -> dict[str, Any]:
+        """TOML-ready description; ``space_from_dict(describe())`` rebuilds the same space."""
+        return {"name": self.name,
+                "parameters": {p.name: p.describe() for p in self.parameters}}
+
+
+def build(name: str, parameters: list[Parameter], seed: int) -> Space:
+    """Discretise parameters into a :class:`Space`, checking each value's domain."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer (got {seed!r})")
+    if not parameters:
+        raise ValueError(f"space '{name}': no parameters declared")
+    names = [p.name for p in parameters]
+    dup = {n for n in names if names.count(n) > 1}
+    if dup:
+        raise ValueError(f"space '{name}': parameter declared twice: {sorted(dup)}")
+    table = []
+    for p in parameters:
+        vals = p.discretise(int(seed))
+        spec = KNOWN_PARAMETERS[p.name]
+        lo, hi = spec["domain"]
+        bad = vals[(vals < lo) | (vals > hi) | ~np.isfinite(vals)]
+        if bad.size:
+            raise ValueError(f"parameters.{p.name}: value {bad[0]:g} outside the allowed "
+                             f"[{lo:g}, {hi:g}] {spec['unit']}; narrow the distribution")
+        if spec["integer"] and np.any(vals != np.round(vals)):
+            raise ValueError(f"parameters.{p.name}: values must be integers "
+                             f"(got {vals[vals != np.round(vals)][0]:g})")
+        table.append(tuple(float(v) for v in vals))
+    space = Space(name, int(seed), tuple(parameters), tuple(table))
+    if space.size >= 2**31:
+        raise ValueError(f"space '{name}' has {space.size} scenarios; at most 2**31 - 1 supported")
+    return space
+
+
+def _paper_parameters() -> list[Parameter]:
+    # Table I of the paper, as the original code discretised it (facts.md).
+    return [
+        integers("ego_offset", 1, 10, 10),
+        uniform("ped_accel", 0.0, 0.1, 10),
+        normal("ped_speed", 1.46, 0.24, 25),
+        values("ped_offset", [3.0, 3.5, 4.0, 4.5]),
+        integers("weather", 0, 14, 10),
+    ]
+
+
+BUILTIN = {
+    "paper": _paper_parameters,
+    "paper-extended": lambda: _paper_parameters() + [
+        values("ped_speed_change", [0.5, -0.5, 0.75, -0.75]),
+        values("ped_change_step", [20, 30, 40, 50, 60]),
+    ],
+}
+
+
+def parse_parameter(name: str, spec: Any, where: str) -> Parameter:
+    """Validate one TOML parameter table into a :class:`Parameter`."""
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where}: expected a table, got {type(spec).__name__}")
+    unknown = set(spec) - _PARAM_KEYS
+    if unknown:
+        raise ValueError(f"{where}: unknown key '{sorted(unknown)[0]}' "
+                         f"(allowed: {', '.join(sorted(_PARAM_KEYS))})")
+    if name not in KNOWN_PARAMETERS:
+        raise ValueError(f"{where}: unknown parameter '{name}' "
+                         f"(known: {', '.join(KNOWN_PARAMETERS)})")
+    unit = spec.get("unit", KNOWN_PARAMETERS[name]["unit"])
+    if unit != KNOWN_PARAMETERS[name]["unit"]:
+        raise ValueError(f"{where}.unit: '{name}' is in {KNOWN_PARAMETERS[name]['unit']!r}, "
+                         f"not {unit!r}")
+    if "values" in spec:
+        dist = spec.get("distribution", "values")
+        if dist != "values":
+            raise ValueError(f"{where}: 'values' given with distribution '{dist}'")
+        vals = spec["values"]
+        if not isinstance(vals, list):
+            raise ValueError(f"{where}.values must be a list (got {vals!r})")
+        if "samples" in spec and spec["samples"] != len(vals):
+            raise ValueError(f"{where}.samples={spec['samples']!r} disagrees with "
+                             f"{len(vals)} values")
+        return make_parameter(name, "values", tuple(vals), len(vals), where=where)
+    if "distribution" not in spec:
+        raise ValueError(f"{where}: needs 'distribution' ({', '.join(DISTRIBUTIONS)}) or 'values'")
+    dist = spec["distribution"]
+    need = {"uniform": ("low", "high"), "normal": ("mean", "sd"),
+            "integers": ("low", "high")}.get(dist)
+    if need is None:
+        raise ValueError(f"{where}.distribution: unknown distribution {dist!r} "
+                         f"(one of {', '.join(DISTRIBUTIONS)})")
+    for k in need + ("samples",):
+        if k not in spec:
+            raise ValueError(f"{where}.{k} is missing (distribution '{dist}' needs "
+                             f"{', '.join(need)}, samples)")
+    extra = (set(spec) & {"low", "high", "mean", "sd"}) - set(need)
+    if extra:
+        raise ValueError(f"{where}.{sorted(extra)[0]} does not apply to distribution '{dist}'")
+    return make_parameter(name, dist, tuple(spec[k] for k in need), spec["samples"],
+                          spec.get("decimals", 3), where=where)
+
+
+def space_from_dict(doc: dict[str, Any], seed: int = 0, default_name: str = "custom") -> Space:
+    """Build a space from a parsed TOML document (see README, 'Your own logical scenario')."""
+    unknown = set(doc) - _TOP_KEYS
+    if unknown:
+        raise ValueError(f"unknown top-level key '{sorted(unknown)[0]}' "
+                         f"(allowed: {', '.join(sorted(_TOP_KEYS))})")
+    params = doc.get("parameters")
+    if not isinstance(params, dict) or not params:
+        raise ValueError("'parameters' table is missing or empty")
+    parsed = [parse_parameter(n, s, f"parameters.{n}") for n, s in params.items()]
+    return build(str(doc.get("name", default_name)), parsed, seed)
+
+
+def space(name_or_path: str | Path | Space, seed: int = 0) -> Space:
+    """A built-in space by name (``paper``, ``paper-extended``) or a user TOML file.
+
+    Raises ``ValueError`` with a one-line message naming the bad key or value.
+    """
+    if isinstance(name_or_path, Space):
+        return name_or_path
+    key = str(name_or_path)
+    if key in BUILTIN:
+        return build(key, BUILTIN[key](), seed)
+    path = Path(key)
+    if path.suffix != ".toml" or not path.is_file():
+        raise ValueError(f"unknown space '{key}': not a built-in ({', '.join(BUILTIN)}) "
+                         f"nor an existing .toml file")
+    try:
+        doc = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{path}: malformed TOML: {e}") from None
+    try:
+        return space_from_dict(doc, seed, default_name=path.stem)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
