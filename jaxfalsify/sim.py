@@ -58,6 +58,17 @@ class World:
     max_brake: float = 9.0  # m/s^2, vehicle limit on the SUT's command
     epsilon: float = 1.0  # m, the STL requirement's clash distance (paper Eq. 1)
 
+    def __post_init__(self):
+        if not isinstance(self.horizon, int) or self.horizon < 2:
+            raise ValueError(f"world.horizon must be an integer >= 2 steps (got {self.horizon!r})")
+        for name in ("dt", "lane_width", "ego_length", "ego_width", "ped_length", "ped_width",
+                     "max_accel", "max_brake", "epsilon"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                raise ValueError(f"world.{name} must be a positive number (got {v!r})")
+        if self.lanes_right < 1 or self.lanes_left < 0:
+            raise ValueError("world needs lanes_right >= 1 and lanes_left >= 0")
+
     @property
     def ego_y(self) -> float:
         return -self.lane_width / 2.0
@@ -126,7 +137,8 @@ def ped_profile_constants(ped_speed, ped_accel):
     """(start speed [m/s], number of growth steps) of the original code's profile."""
     start = ped_speed - 5.0 * ped_accel
     pos = ped_accel > 0
-    # first n with start + n*accel > speed + 0.25, i.e. n > 0.25/accel + 5 (ties -> next n)
+    # first n with start + n*accel > speed + 0.25, i.e. n > 0.25/accel + 5; 'exceeds' means by
+    # more than 1e-4 of a step, so exact ties of 3-decimal inputs do not hang on float rounding
     n_grow = jnp.where(pos, jnp.floor(0.25 / jnp.where(pos, ped_accel, 1.0) + 5.0 + 1e-4) + 1.0,
                        0.0)
     return start, n_grow

@@ -93,7 +93,8 @@ class Parameter:
             d["values"] = list(self.args)
         else:
             keys = ("mean", "sd") if self.distribution == "normal" else ("low", "high")
-            d.update(zip(keys, self.args))
+            args = [int(a) for a in self.args] if self.distribution == "integers" else self.args
+            d.update(zip(keys, args))
             d["samples"] = self.samples
             if self.distribution != "integers":
                 d["decimals"] = self.decimals
@@ -131,13 +132,13 @@ def make_parameter(name: str, distribution: str, args: tuple, samples: int,
             raise ValueError(f"{key}: argument {a!r} is not a number")
         if not math.isfinite(a):
             raise ValueError(f"{key}: argument {a!r} is not finite")
+    if distribution == "values" and len(args) == 0:
+        raise ValueError(f"{key}.values is empty")
     if isinstance(samples, bool) or not isinstance(samples, int) or samples <= 0:
         raise ValueError(f"{key}.samples must be a positive integer (got {samples!r})")
     if isinstance(decimals, bool) or not isinstance(decimals, int) or not 0 <= decimals <= 9:
         raise ValueError(f"{key}.decimals must be an integer in 0..9 (got {decimals!r})")
     if distribution == "values":
-        if len(args) == 0:
-            raise ValueError(f"{key}.values is empty")
         if len(set(args)) != len(args):
             raise ValueError(f"{key}.values has duplicates: {list(args)}")
     elif distribution == "normal":

@@ -1,0 +1,246 @@
+"""The crossing simulator: calibration to the paper, kinematics, closed forms, API contracts."""
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import random_scenarios
+
+import jaxfalsify as jf
+from jaxfalsify import reward, sim
+from jaxfalsify.sut import SUT, SUTS, sensor_capability
+
+W = jf.WORLD
+
+
+# ------------------------------------------------------------------ calibration (Table II)
+def test_challenging_scenario_collides_with_high_risk_second_half(table_ii):
+    _, traj, out = table_ii
+    assert bool(out.collision[0])
+    assert float(out.high_risk_share_second_half[0]) > 0.95
+    assert float(out.min_distance[0]) == 0.0 and float(out.robustness[0]) < 0
+    assert float(out.reward[0]) > 0.25  # collision bonus dominates
+
+
+def test_non_challenging_scenario_stops_clear_then_resumes(table_ii):
+    _, traj, out = table_ii
+    assert not bool(out.collision[1])
+    assert float(out.high_risk_share_second_half[1]) < 0.15
+    valid = np.asarray(traj.valid[1])
+    speed = np.asarray(traj.ego_speed[1])[valid]
+    x = np.asarray(traj.ego_x[1])[valid]
+    stopped = np.nonzero((speed == 0.0) & (np.arange(valid.sum()) > 0))[0]
+    assert stopped.size > 0, "the ego never stopped for the pedestrian"
+    # stopped short of the crosswalk with the pedestrian clear of the clash distance
+    assert x[stopped[0]] + W.ego_length / 2 < W.crosswalk_x - W.ped_length / 2
+    assert float(out.min_distance[1]) > W.epsilon
+    # ... then resumed cruising: the episode ended by distance travelled, not at the horizon
+    assert int(out.steps[1]) < W.horizon and x[-1] >= W.end_x
+    assert speed[-1] > 5.0
+
+
+def test_paper_collision_set_is_neither_empty_nor_most(paper_sweep):
+    rate = paper_sweep["collision"].mean()
+    assert 0.01 < rate < 0.5
+
+
+def test_weather_is_a_distractor_for_carla_tm_but_not_for_sensor_aeb():
+    sc = random_scenarios(64, seed=3)
+    per_weather = []
+    for w in (0, 6):
+        sc["weather"] = np.full(64, float(w))
+        per_weather.append((jf.evaluate(sc), jf.evaluate(sc, sut="sensor-aeb")))
+    (tm0, aeb0), (tm6, aeb6) = per_weather
+    np.testing.assert_array_equal(np.asarray(tm0.reward), np.asarray(tm6.reward))
+    assert np.any(np.asarray(aeb0.steps) != np.asarray(aeb6.steps))
+
+
+def test_sensor_aeb_degrades_in_rain_and_low_sun():
+    p = SUTS["sensor-aeb"].params
+    clear_r, clear_lat, clear_dec = map(float, sensor_capability(0, p))  # ClearNoon
+    rain_r, rain_lat, rain_dec = map(float, sensor_capability(6, p))  # HardRainSunset
+    sun_r, _, _ = map(float, sensor_capability(1, p))  # ClearSunset (glare)
+    assert rain_r < sun_r < clear_r and rain_lat > clear_lat and rain_dec < clear_dec
+    assert clear_dec == pytest.approx(p.mu_dry * 9.81)
+
+
+# ------------------------------------------------------------------ kinematics
+@pytest.fixture(scope="module")
+def random_traj():
+    sc = random_scenarios(200, seed=1, extended=True)
+    return sc, jf.simulate(sc), jf.evaluate(sc)
+
+
+def test_kinematic_invariants(random_traj):
+    sc, tr, _ = random_traj
+    v = np.asarray(tr.ego_speed, np.float64)
+    x = np.asarray(tr.ego_x, np.float64)
+    valid = np.asarray(tr.valid)
+    both = valid[:, :-1] & valid[:, 1:]
+    dx = np.diff(x, axis=1)
+    trap = (v[:, :-1] + v[:, 1:]) / 2 * W.dt
+    moving_on = both & (v[:, 1:] > 0)
+    # positions integrate speeds (exactly, for constant acceleration over a step)
+    np.testing.assert_allclose(dx[moving_on], trap[moving_on], atol=2e-5)
+    # a stop inside a step covers at most the trapezoid
+    assert np.all(dx[both] <= trap[both] + 2e-5)
+    assert np.all(v >= 0)
+    a = np.asarray(tr.ego_accel)[valid]
+    tm = SUTS["carla-tm"].params
+    assert a.min() >= -tm.full_brake - 1e-3  # never beyond the SUT's full brake
+    assert a.max() <= tm.cruise.accel_max + 1e-3
+    # the ego never accelerates while braking
+    braking = np.asarray(tr.braking)[:, :-1] & both
+    assert np.all(np.asarray(tr.ego_accel)[:, :-1][braking] <= 1e-6)
+    # the pedestrian walks its profile speed, never negative
+    py = np.asarray(tr.ped_y, np.float64)
+    ps = np.asarray(tr.ped_speed, np.float64)
+    np.testing.assert_allclose(np.diff(py, axis=1)[both], ps[:, :-1][both] * W.dt, atol=2e-5)
+    assert np.all(ps >= 0)
+
+
+def test_pedestrian_profile_matches_a_step_by_step_loop():
+    speed, accel = 1.237, 0.007
+    expected, v = [], speed - 5 * accel
+    for k in range(120):
+        if k >= 5 and v <= speed + 0.25:
+            v += accel
+        expected.append(v)
+    got = sim.ped_speed_profile(jnp.arange(120.0), speed, accel)
+    np.testing.assert_allclose(np.asarray(got), expected, atol=1e-5)
+    # speed-change window: 5 steps of start + change from the given step
+    got = np.asarray(sim.ped_speed_profile(jnp.arange(60.0), 1.4, 0.0, -0.5, 20.0))
+    np.testing.assert_allclose(got[20:25], 0.9, atol=1e-6)
+    np.testing.assert_allclose(got[[19, 25]], 1.4, atol=1e-6)
+
+
+def test_collision_implies_clash_distance_and_robustness_sign(random_traj):
+    _, tr, out = random_traj
+    col = np.asarray(out.collision)
+    assert col.any() and (~col).any()
+    assert np.all(np.asarray(out.min_distance)[col] == 0.0)
+    rob = np.asarray(out.robustness)
+    violated = np.asarray(out.min_distance) < W.epsilon
+    np.testing.assert_array_equal(rob < 0, violated)
+    np.testing.assert_allclose(np.asarray(out.reward),
+                               np.asarray(out.reward_rss + out.reward_distance
+                                          + out.reward_collision), atol=1e-7)
+
+
+def test_evaluate_equals_reduction_of_simulate(random_traj):
+    _, tr, out = random_traj
+    valid = np.asarray(tr.valid)
+    n = valid.sum(1)
+    d = np.where(valid, np.asarray(tr.distance), np.inf)
+    hr = np.asarray(tr.high_risk)
+    np.testing.assert_array_equal(np.asarray(out.steps), n)
+    np.testing.assert_array_equal(np.asarray(out.high_risk_steps), hr.sum(1))
+    np.testing.assert_array_equal(np.asarray(out.min_distance), d.min(1))
+    final = np.asarray(tr.distance)[np.arange(len(n)), n - 1]
+    np.testing.assert_array_equal(np.asarray(out.final_distance), final)
+    np.testing.assert_array_equal(np.asarray(out.collision), np.asarray(tr.collided).any(1))
+    second = np.array([hr[i, n[i] // 2:n[i]].mean() for i in range(len(n))])
+    np.testing.assert_allclose(np.asarray(out.high_risk_share_second_half), second, atol=1e-6)
+    ttc = np.where(valid, np.asarray(tr.ttc), np.inf).min(1)
+    np.testing.assert_array_equal(np.asarray(out.min_ttc), ttc)
+    total, *_ = reward.paper_reward(hr.sum(1), n, final, np.asarray(tr.collided).any(1))
+    np.testing.assert_allclose(np.asarray(out.reward), np.asarray(total), atol=1e-7)
+
+
+# ------------------------------------------------------------------ closed forms (sut=none)
+def _none_closed_form(ego_offset, ped_speed, ped_offset):
+    """Exact discrete-time positions of the 'none' autopilot (P controller, clipped) and of a
+    constant-speed pedestrian; returns the first collision time or None."""
+    p = SUTS["none"].params
+    dt, k = W.dt, np.arange(W.horizon, dtype=np.float64)
+    k1 = np.ceil((p.cruise_speed - p.accel_max / p.gain) / (p.accel_max * dt) + 1e-12)
+    r = 1 - p.gain * dt
+    e1 = p.cruise_speed - p.accel_max * k1 * dt
+    x1 = -ego_offset + p.accel_max * (k1 * dt) ** 2 / 2
+    m = k - k1
+    x_late = x1 + dt * (m * p.cruise_speed - e1 * (1 + r) * (1 - r**m) / (2 * (1 - r)))
+    x = np.where(k <= k1, -ego_offset + p.accel_max * (k * dt) ** 2 / 2, x_late)
+    y = W.road_right - (ped_offset + 1) + ped_speed * k * dt
+    overlap = ((np.abs(W.crosswalk_x - x) <= (W.ego_length + W.ped_length) / 2)
+               & (np.abs(y - W.ego_y) <= (W.ego_width + W.ped_width) / 2))
+    ended = np.concatenate([[False], np.cumsum(x >= W.end_x)[:-1] > 0])
+    hits = np.nonzero(overlap & ~ended)[0]
+    return None if hits.size == 0 else hits[0] * dt
+
+
+def test_constant_speed_crossing_collision_time_matches_closed_form():
+    rng = np.random.default_rng(7)
+    sc = dict(ego_offset=rng.uniform(1, 10, 300), ped_speed=rng.uniform(0.6, 2.5, 300),
+              ped_offset=rng.uniform(3, 4.5, 300), ped_accel=np.zeros(300))
+    out = jf.evaluate(sc, sut="none")
+    expected = [_none_closed_form(*a) for a in zip(sc["ego_offset"], sc["ped_speed"],
+                                                    sc["ped_offset"])]
+    hit = np.array([e is not None for e in expected])
+    assert 10 < hit.sum() < 290  # both outcomes are exercised
+    np.testing.assert_array_equal(np.asarray(out.collision), hit)
+    got = np.asarray(out.collision_time)[hit]
+    np.testing.assert_allclose(got, [e for e in expected if e is not None], atol=1e-5)
+
+
+def test_user_sut_constant_acceleration_closed_form():
+    """A user-supplied SUT (a bare act function): x(t) = x0 + a t^2 / 2 exactly."""
+    def constant_accel(obs, state, params):
+        return jnp.float32(2.0), state
+
+    sc = dict(ego_offset=4.0, ped_speed=1.3, ped_offset=3.5, ped_accel=0.0)
+    tr = jf.simulate(sc, sut=constant_accel)
+    n = int(np.asarray(tr.valid).sum())
+    t = np.asarray(tr.t)[:n]
+    np.testing.assert_allclose(np.asarray(tr.ego_x)[:n], -4.0 + t**2, atol=1e-4)
+
+
+# ------------------------------------------------------------------ API contracts
+def test_batched_equals_unbatched_and_shapes(table_ii):
+    sc, traj, out = table_ii
+    one = jf.evaluate({k: float(v[0]) for k, v in sc.items()})
+    assert np.asarray(one.reward).shape == ()
+    assert float(one.reward) == float(out.reward[0])
+    assert traj.distance.shape == (2, W.horizon)
+    grid = jf.evaluate({k: np.broadcast_to(v, (3, 2)) for k, v in sc.items()})
+    assert grid.reward.shape == (3, 2)
+    np.testing.assert_array_equal(np.asarray(grid.reward[2]), np.asarray(out.reward))
+
+
+def test_chunked_evaluation_is_identical(random_traj):
+    sc, _, out = random_traj
+    chunked = jf.evaluate(sc, chunk_size=37)
+    for f in dataclasses.fields(out):
+        np.testing.assert_array_equal(np.asarray(getattr(chunked, f.name)),
+                                      np.asarray(getattr(out, f.name)), err_msg=f.name)
+
+
+def test_jitted_evaluate_traces_once():
+    sc = random_scenarios(50, seed=11)
+    jf.evaluate(sc)
+    before = sim._jit_batch._cache_size()
+    for seed in (12, 13):
+        jf.evaluate(random_scenarios(50, seed=seed))
+    assert sim._jit_batch._cache_size() == before
+
+
+def test_nan_command_is_flagged_not_a_collision():
+    def nan_sut(obs, state, params):
+        return jnp.where(obs.t > 1.0, jnp.nan, 1.0), state
+
+    out = jf.evaluate(random_scenarios(8, seed=2), sut=nan_sut)
+    assert np.all(np.asarray(out.nonfinite)) and not np.any(np.asarray(out.collision))
+    assert np.all(np.isnan(np.asarray(out.reward)))
+
+
+def test_bad_scenarios_raise_one_line_errors():
+    with pytest.raises(ValueError, match="unknown scenario parameter 'ped_sped'"):
+        jf.evaluate({"ped_sped": 1.0})
+    with pytest.raises(ValueError, match="incompatible shapes"):
+        jf.evaluate({"ped_speed": np.ones(3), "ego_offset": np.ones(4)})
+    with pytest.raises(ValueError, match="unknown SUT 'tesla'"):
+        jf.evaluate({"ped_speed": 1.0}, sut="tesla")
+    with pytest.raises(ValueError, match="chunk_size"):
+        jf.evaluate({"ped_speed": 1.0}, chunk_size=0)
+    with pytest.raises(ValueError, match="horizon"):
+        jf.evaluate({"ped_speed": 1.0}, world=dataclasses.replace(W, horizon=0))

@@ -1,0 +1,151 @@
+"""Logical scenario spaces: built-ins (Table I), index <-> value maps, TOML, and bad input."""
+
+import itertools
+
+import jax
+import numpy as np
+import pytest
+
+import jaxfalsify as jf
+from jaxfalsify.space import space_from_dict
+
+
+@pytest.fixture(scope="module")
+def paper():
+    return jf.space("paper", seed=0)
+
+
+def test_paper_space_is_table_one(paper):
+    assert paper.names == ("ego_offset", "ped_accel", "ped_speed", "ped_offset", "weather")
+    assert paper.shape == (10, 10, 25, 4, 10)
+    assert paper.size == 100_000
+    v = dict(zip(paper.names, paper.values))
+    np.testing.assert_array_equal(v["ego_offset"], np.arange(1, 11))
+    np.testing.assert_array_equal(v["ped_offset"], [3.0, 3.5, 4.0, 4.5])
+    assert np.all((v["ped_accel"] >= 0) & (v["ped_accel"] <= 0.1))
+    w = v["weather"]
+    assert len(set(w.tolist())) == 10 and np.all(w == np.round(w)) and w.min() >= 0 and w.max() <= 14
+    for name in ("ped_accel", "ped_speed"):  # rounded to 3 decimals as the original
+        np.testing.assert_allclose(v[name], np.round(v[name].astype(np.float64), 3), atol=1e-6)
+    # 25 draws of N(1.46, 0.24): a loose check that the distribution was used
+    assert 1.2 < v["ped_speed"].mean() < 1.7
+
+
+def test_paper_extended_size():
+    sp = jf.space("paper-extended")
+    assert sp.size == 2_000_000
+    assert sp.names[-2:] == ("ped_speed_change", "ped_change_step")
+
+
+def test_seed_determinism_and_dependence():
+    a, b, c = jf.space("paper", seed=1), jf.space("paper", seed=1), jf.space("paper", seed=2)
+    assert a.table == b.table
+    assert a.table != c.table
+
+
+def test_ravel_unravel_match_numpy(paper):
+    flat = np.random.default_rng(0).integers(0, paper.size, 1000)
+    idx = np.asarray(jax.jit(paper.unravel)(flat))
+    np.testing.assert_array_equal(idx, np.stack(np.unravel_index(flat, paper.shape), -1))
+    np.testing.assert_array_equal(np.asarray(paper.ravel(idx)), flat)
+
+
+def test_decode_matches_indexing_batched_and_unbatched(paper):
+    idx = np.array([[3, 1, 24, 2, 9], [0, 0, 0, 0, 0]])
+    dec = jax.jit(paper.decode)(idx)
+    for p, name in enumerate(paper.names):
+        np.testing.assert_array_equal(np.asarray(dec[name]), paper.values[p][idx[:, p]])
+    one = paper.decode(idx[0])
+    assert {k: float(v) for k, v in one.items()} == {k: float(v[0]) for k, v in dec.items()}
+
+
+def test_enumeration_in_chunks_covers_space_once(paper):
+    spans = list(paper.chunks(30_000))
+    assert spans[0] == (0, 30_000) and spans[-1] == (90_000, 100_000)
+    assert sum(e - b for b, e in spans) == paper.size
+
+
+def test_bounds_and_nearest(paper):
+    lo, hi = paper.bounds
+    np.testing.assert_array_equal(lo, 0)
+    np.testing.assert_array_equal(hi, np.array(paper.shape) - 1)
+    idx = np.array([4, 7, 11, 1, 3])
+    vals = {k: float(v) for k, v in paper.decode(idx).items()}
+    back = paper.decode(paper.nearest(vals))  # duplicate draws may map to the first copy
+    assert {k: float(v) for k, v in back.items()} == vals
+
+
+def test_toml_space(tmp_path):
+    f = tmp_path / "mine.toml"
+    f.write_text("""
+name = "mine"
+[parameters.ego_offset]
+distribution = "uniform"
+low = 2
+high = 6
+samples = 3
+[parameters.ped_speed]
+values = [1.0, 1.5]
+[parameters.weather]
+distribution = "integers"
+low = 0
+high = 14
+samples = 2
+""")
+    sp = jf.space(f, seed=5)
+    assert sp.name == "mine" and sp.shape == (3, 2, 2) and sp.size == 12
+    sc = sp.scenario(np.zeros(3, np.int32))
+    assert float(sc["ped_offset"]) == 3.5  # undeclared -> default
+    # the written description rebuilds the same space
+    assert space_from_dict(sp.describe(), seed=5).table == sp.table
+
+
+BAD = [
+    ({"parameters": {"ego_speed": {"values": [1]}}}, "ego_speed"),
+    ({"parameters": {"ped_speed": {"distribution": "gamma", "low": 0, "high": 1,
+                                   "samples": 2}}}, "gamma"),
+    ({"parameters": {"ped_speed": {"distribution": "uniform", "low": 2, "high": 1,
+                                   "samples": 2}}}, "inverted"),
+    ({"parameters": {"ped_speed": {"distribution": "uniform", "low": 1, "high": 1,
+                                   "samples": 2}}}, "empty or inverted"),
+    ({"parameters": {"ped_speed": {"distribution": "uniform", "low": 0, "high": 1,
+                                   "samples": 0}}}, "samples"),
+    ({"parameters": {"ped_speed": {"distribution": "uniform", "low": 0, "high": 1,
+                                   "samples": -3}}}, "samples"),
+    ({"parameters": {"ped_speed": {"distribution": "normal", "mean": float("nan"), "sd": 1,
+                                   "samples": 2}}}, "not finite"),
+    ({"parameters": {"ped_speed": {"distribution": "normal", "mean": 1.4, "sd": 0,
+                                   "samples": 2}}}, "sd"),
+    ({"parameters": {"ped_speed": {"values": []}}}, "empty"),
+    ({"parameters": {"ped_speed": {"values": [1, 1]}}}, "duplicates"),
+    ({"parameters": {"ped_speed": {"values": [1, "x"]}}}, "'x'"),
+    ({"parameters": {"ped_speed": {"distribution": "uniform", "low": 0, "samples": 2}}},
+     "parameters.ped_speed.high"),
+    ({"parameters": {"ped_speed": {"values": [1], "colour": "red"}}}, "colour"),
+    ({"parameters": {"ped_speed": {"values": [9.0]}}}, "outside"),
+    ({"parameters": {"weather": {"values": [1.5]}}}, "integers"),
+    ({"parameters": {"weather": {"distribution": "integers", "low": 0, "high": 3,
+                                 "samples": 5}}}, "exceeds"),
+    ({"parameters": {"ped_speed": {"unit": "km/h", "values": [1]}}}, "km/h"),
+    ({"parameters": {}}, "parameters"),
+    ({"params": {}}, "params"),
+]
+
+
+@pytest.mark.parametrize("doc, needle", BAD)
+def test_bad_space_gives_one_line_error_naming_the_key(doc, needle):
+    with pytest.raises(ValueError) as e:
+        space_from_dict(doc)
+    msg = str(e.value)
+    assert needle in msg and "\n" not in msg
+
+
+def test_malformed_toml_and_unknown_names(tmp_path):
+    f = tmp_path / "bad.toml"
+    f.write_text("[parameters.ped_speed\nvalues = [1]")
+    with pytest.raises(ValueError, match="malformed TOML"):
+        jf.space(f)
+    with pytest.raises(ValueError, match="unknown space 'nope'"):
+        jf.space("nope")
+    with pytest.raises(ValueError, match="seed"):
+        jf.space("paper", seed=-1)

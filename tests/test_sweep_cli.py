@@ -1,0 +1,137 @@
+"""Exhaustive sweep and the command line: files, schema, determinism, bad input."""
+
+import json
+import os
+import subprocess
+import sys
+import tomllib
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+import jaxfalsify as jf
+from jaxfalsify.cli import main
+from jaxfalsify.sweep import sweep_arrays
+
+SMALL = """
+name = "small"
+[parameters.ego_offset]
+values = [7, 8, 9]
+[parameters.ped_accel]
+values = [0.007, 0.076]
+[parameters.ped_speed]
+distribution = "normal"
+mean = 1.46
+sd = 0.24
+samples = 5
+[parameters.ped_offset]
+values = [3.5, 4.0]
+[parameters.weather]
+values = [0, 8]
+"""
+
+
+@pytest.fixture(scope="module")
+def small_space(tmp_path_factory):
+    f = tmp_path_factory.mktemp("space") / "small.toml"
+    f.write_text(SMALL)
+    return f
+
+
+def test_sweep_arrays_equal_direct_evaluation(small_space):
+    sp = jf.space(small_space)
+    rows = sweep_arrays(sp, chunk=7)  # several chunks, a padded last one
+    assert len(rows["scenario"]) == sp.size == 120
+    idx = np.stack(np.unravel_index(np.arange(sp.size), sp.shape), -1)
+    direct = jf.evaluate(sp.scenario(idx))
+    np.testing.assert_array_equal(rows["reward"], np.asarray(direct.reward))
+    np.testing.assert_array_equal(rows["collision"], np.asarray(direct.collision))
+    for p, name in enumerate(sp.names):
+        np.testing.assert_array_equal(rows[f"{name}_idx"], idx[:, p])
+    # chunk size does not change a single bit
+    other = sweep_arrays(sp, chunk=64)
+    for k in rows:
+        np.testing.assert_array_equal(rows[k], other[k], err_msg=k)
+
+
+def test_cli_sweep_writes_parquet_summary_config(small_space, tmp_path, capsys):
+    out = tmp_path / "sw"
+    assert main(["sweep", "--space", str(small_space), "--out", str(out), "--quiet",
+                 "--chunk", "50"]) == 0
+    table = pq.read_table(out / "sweep.parquet").to_pydict()
+    sp = jf.space(small_space)
+    assert len(table["scenario"]) == sp.size
+    assert table["scenario"] == list(range(sp.size))
+    expected = sweep_arrays(sp)
+    np.testing.assert_array_equal(np.asarray(table["reward"], np.float32), expected["reward"])
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_scenarios"] == sp.size
+    assert summary["n_collisions"] == int(expected["collision"].sum())
+    assert summary["collision_rate"] == pytest.approx(expected["collision"].mean())
+    r = np.where(np.isnan(expected["reward"]), -np.inf, expected["reward"])
+    assert summary["global_max_reward"] == pytest.approx(float(r.max()))
+    best = summary["global_max_scenario"]
+    assert best["scenario"] == int(np.argmax(r))
+    assert summary["wall_seconds"] > 0 and "jax" in summary["versions"]
+    config = tomllib.loads((out / "config.toml").read_text())
+    assert config["sut"] == "carla-tm" and config["space"]["name"] == "small"
+    assert not [p for p in os.listdir(out) if p.startswith(".")]  # no temporary leftovers
+    # a second sweep into the same folder is refused, --force overwrites
+    mtime = (out / "sweep.parquet").stat().st_mtime_ns
+    assert main(["sweep", "--space", str(small_space), "--out", str(out), "--quiet"]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert (out / "sweep.parquet").stat().st_mtime_ns == mtime
+    assert main(["sweep", "--space", str(small_space), "--out", str(out), "--quiet",
+                 "--force"]) == 0
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["sweep", "--space", "nope"], "unknown space 'nope'"),
+    (["sweep", "--sut", "tesla"], "unknown SUT 'tesla'"),
+    (["sweep", "--chunk", "0"], "--chunk must be positive"),
+    (["sweep", "--chunk", "x"], "--chunk must be an integer"),
+    (["sweep", "--seed", "-2"], "--seed"),
+    (["sweep", "--bogus"], "--bogus"),
+    (["simulate", "ped_speed=abc"], "ped_speed='abc'"),
+    (["simulate", "speed=1"], "unknown parameter 'speed'"),
+    (["simulate", "ped_speed=nan"], "not finite"),
+])
+def test_cli_bad_input_one_line_exit_2(argv, needle, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "sweeps").exists()  # nothing written
+
+
+def test_cli_bad_space_file_names_key(tmp_path, capsys):
+    f = tmp_path / "bad.toml"
+    f.write_text("[parameters.ped_speed]\ndistribution = 'uniform'\nlow = 2\nhigh = 1\nsamples = 3\n")
+    assert main(["sweep", "--space", str(f), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "parameters.ped_speed" in err and "inverted" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_unwritable_out(tmp_path, capsys):
+    if os.geteuid() == 0:
+        pytest.skip("root can write anywhere")
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    assert main(["sweep", "--out", str(ro / "x"), "--quiet"]) == 2
+    assert "not writable" in capsys.readouterr().err
+
+
+def test_console_script_exit_code(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "jaxfalsify.cli", "sweep", "--sut", "x"],
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.startswith("jaxfalsify: error:")
+
+
+def test_cli_simulate_prints_outcome(capsys):
+    assert main(["simulate", "ego_offset=9", "ped_accel=0.007", "ped_speed=1.237",
+                 "ped_offset=3.5", "weather=8"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["collision"] is True and out["reward"] > 0.25
