@@ -1,4 +1,5 @@
-"""Command line: ``jaxfalsify sweep`` (exhaustive ground truth) and ``jaxfalsify simulate``.
+"""Command line: ``jaxfalsify run`` (the main job: a falsification campaign), ``compare``,
+``sweep`` (exhaustive ground truth) and ``simulate`` (one concrete scenario).
 
 Bad input prints one line ``jaxfalsify: error: ...`` naming the offending flag or key and exits
 with code 2, before anything is written.
@@ -7,10 +8,13 @@ with code 2, before anything is written.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
 from pathlib import Path
+
+import numpy as np
 
 
 class _Parser(argparse.ArgumentParser):
@@ -50,6 +54,38 @@ def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="jaxfalsify", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
+    r = sub.add_parser("run", help="falsification campaign (the main job); no arguments: the "
+                       "paper space, carla-tm, reinforce/default, seed 0, 4000 evaluations")
+    r.add_argument("--config", type=Path, help="a run's config.toml to repeat; flags override it")
+    r.add_argument("--space", help="built-in name or TOML file (default paper)")
+    r.add_argument("--space-seed", type=_seed, dest="space_seed",
+                   help="discretisation seed of the space (default 0)")
+    r.add_argument("--sut", help=f"system under test: {', '.join(SUTS)} (default carla-tm)")
+    r.add_argument("--strategy", help="random, grid, cem, anneal, cmaes, reinforce "
+                   "(default reinforce)")
+    r.add_argument("--preset", help="reinforce preset: paper or default (default default)")
+    r.add_argument("--episodes", type=_positive_int("--episodes"),
+                   help="budget in evaluated scenarios (default 4000, the paper's)")
+    r.add_argument("--batch", type=_positive_int("--batch"), help="scenarios per update")
+    r.add_argument("--seed", type=_seed, help="search seed (default 0)")
+    r.add_argument("--out", type=Path, help="run folder (default runs/<timestamp>-<strategy>)")
+    r.add_argument("--force", action="store_true", help="overwrite an existing run folder")
+    r.add_argument("--quiet", action="store_true", help="no progress bar or report")
+
+    c = sub.add_parser("compare", help="all strategies x seeds vs the exhaustive sweep")
+    c.add_argument("--strategies", default="reinforce,random,cem,anneal,cmaes")
+    c.add_argument("--seeds", type=_positive_int("--seeds"), default=10)
+    c.add_argument("--budget", type=_positive_int("--budget"), default=4000)
+    c.add_argument("--space", default="paper")
+    c.add_argument("--space-seed", type=_seed, default=0, dest="space_seed")
+    c.add_argument("--sut", default="carla-tm")
+    c.add_argument("--preset", default="default", help="reinforce preset (default default)")
+    c.add_argument("--sweep", type=Path, help="sweep folder to use as ground truth (default "
+                   "sweeps/<space>-<sut>-s<space-seed>, run if missing)")
+    c.add_argument("--out", type=Path, help="folder for compare.json/.md "
+                   "(default runs/compare-<timestamp>)")
+    c.add_argument("--force", action="store_true")
+
     s = sub.add_parser("sweep", help="evaluate every concrete scenario of a space")
     s.add_argument("--space", default="paper", help="built-in name (paper, paper-extended) or a "
                    "TOML file (default: paper)")
@@ -58,8 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default carla-tm)")
     s.add_argument("--out", type=Path, default=None,
                    help="output folder (default sweeps/<space>-<sut>-s<seed>)")
-    s.add_argument("--chunk", type=_positive_int("--chunk"), default=1 << 16,
-                   help="scenarios per compiled batch (default 65536)")
+    s.add_argument("--chunk", type=_positive_int("--chunk"), default=1 << 17,
+                   help="most scenarios per compiled batch (default 131072)")
     s.add_argument("--force", action="store_true", help="overwrite an existing sweep in --out")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -110,6 +146,91 @@ def cmd_sweep(args) -> int:
     return 0
 
 
+def cmd_run(args) -> int:
+    from tqdm import tqdm
+
+    from jaxfalsify import campaign
+    from jaxfalsify.runs import RunConfig, closing_report, config_from_toml, default_run_dir, \
+        write_run
+
+    try:
+        base = config_from_toml(args.config) if args.config else RunConfig()
+        flags = {k: getattr(args, k) for k in ("space", "space_seed", "sut", "strategy",
+                                               "preset", "episodes", "batch", "seed")
+                 if getattr(args, k) is not None}
+        if "space" in flags and args.config:
+            flags.setdefault("space_seed", base.space_seed)
+        rc = dataclasses.replace(base, **flags)
+        if rc.strategy != "reinforce" and "preset" in flags:
+            raise ValueError(f"--preset applies to strategy 'reinforce', not '{rc.strategy}'")
+        sp, sut, strat, plan = rc.build()
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    rc = rc.resolved()
+    out = args.out or default_run_dir(rc.strategy)
+    _check_out(out, "summary.json", args.force)
+    bar = tqdm(total=plan.budget, unit="eval", disable=args.quiet,
+               desc=f"{rc.strategy}{'/' + rc.preset if rc.preset else ''} on {sp.name}")
+
+    def progress(done, records):
+        last = records[-1]
+        r = np.where(np.isnan(last["reward"]), -np.inf, last["reward"])
+        progress.best = max(progress.best, float(r.max()))
+        progress.collisions += int(np.sum(last["collision"]))
+        bar.set_postfix(best=f"{progress.best:.4f}", collisions=progress.collisions)
+        bar.update(done - bar.n)
+
+    progress.best, progress.collisions = -np.inf, 0
+    try:
+        res = campaign.run(sp, sut, strat, plan, rc.seed, progress=progress)
+    finally:
+        bar.close()
+    summary = write_run(out, res, rc)
+    if not args.quiet:
+        print(closing_report(res, summary))
+    print(f"wrote {out}/ (config.toml, episodes.parquet, summary.json, critical.csv)")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    import time
+
+    from jaxfalsify import compare
+    from jaxfalsify.config import jsonable, write_atomic
+    from jaxfalsify.runs import RunConfig
+    from jaxfalsify.search import STRATEGIES
+
+    names = [s.strip() for s in args.strategies.split(",") if s.strip()]
+    bad = [n for n in names if n not in STRATEGIES]
+    if bad or not names:
+        raise UsageError(f"--strategies: unknown strategy '{bad[0] if bad else ''}' "
+                         f"(from {', '.join(STRATEGIES)})")
+    base = RunConfig(space=args.space, space_seed=args.space_seed, sut=args.sut,
+                     preset=args.preset, episodes=args.budget)
+    try:
+        base.build()
+        from jaxfalsify.reinforce import get_preset
+        get_preset(args.preset)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    out = args.out or Path("runs") / f"compare-{time.strftime('%Y%m%d-%H%M%S')}"
+    _check_out(out, "compare.json", args.force)
+    result = compare.run_compare(names, args.seeds, args.budget, base, args.sweep,
+                                 progress=lambda row: print(f"  {row['strategy']}: done in "
+                                                            f"{row['wall_seconds']:.1f} s",
+                                                            flush=True))
+    table = compare.table_markdown(result)
+    print(f"{result['space']} space, {result['sut']}, budget {args.budget}, {args.seeds} seeds; "
+          f"global max reward {result['global_max_reward']:.4f}, "
+          f"{result['all_critical']} critical of {result['n_scenarios']} scenarios")
+    print(table)
+    out.mkdir(parents=True, exist_ok=True)
+    write_atomic(out / "compare.json", json.dumps(jsonable(result), indent=2) + "\n")
+    write_atomic(out / "compare.md", table + "\n")
+    print(f"wrote {out}/compare.json, compare.md")
+    return 0
+
+
 def cmd_simulate(args) -> int:
     import numpy as np
 
@@ -142,7 +263,8 @@ def main(argv=None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
-        handler = {"sweep": cmd_sweep, "simulate": cmd_simulate}[args.command]
+        handler = {"run": cmd_run, "compare": cmd_compare, "sweep": cmd_sweep,
+                   "simulate": cmd_simulate}[args.command]
         return handler(args)
     except UsageError as e:
         print(f"jaxfalsify: error: {e}", file=sys.stderr)

@@ -29,15 +29,40 @@ from jaxfalsify.space import Space
 OUTCOME_FIELDS = tuple(f.name for f in dataclasses.fields(sim.Outcome))
 
 
-@partial(jax.jit, static_argnames=("space", "sut", "world", "chunk"))
+DEFAULT_CHUNK = 1 << 17
+
+
+def batch_sharding():
+    """A ``NamedSharding`` splitting the batch axis over all local devices (None for one)."""
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    devices = jax.local_devices()
+    if len(devices) == 1:
+        return None
+    return NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))
+
+
+def plan_chunks(size: int, chunk: int = DEFAULT_CHUNK) -> int:
+    """Balanced chunk size: as few chunks as ``chunk`` allows, equal sizes, a multiple of the
+    local device count (so the batch shards evenly)."""
+    n_dev = jax.local_device_count()
+    n_chunks = max(1, -(-size // chunk))
+    per = -(-size // n_chunks)
+    return -(-per // n_dev) * n_dev
+
+
+@partial(jax.jit, static_argnames=("space", "sut", "world", "chunk", "sharding"))
 def evaluate_chunk(start, *, space: Space, sut: sut_lib.SUT, world: sim.World = sim.WORLD,
-                   chunk: int = 1 << 16):
+                   chunk: int = DEFAULT_CHUNK, sharding=None):
     """Outcomes of the concrete scenarios numbered ``[start, start + chunk)`` (clamped to the
     space; rows past its end repeat the last scenario and must be dropped by the caller).
+    With a ``sharding`` (see :func:`batch_sharding`) the batch is split over devices.
 
     Returns ``(indices (chunk, P) int32, Outcome with (chunk,) fields)``.
     """
     flat = jnp.minimum(start + jnp.arange(chunk, dtype=jnp.int32), space.size - 1)
+    if sharding is not None:
+        flat = jax.lax.with_sharding_constraint(flat, sharding)
     idx = space.unravel(flat)
     out, _ = sim.batch_rollout(space.scenario(idx), sut, world, False)
     return idx, out
@@ -57,12 +82,14 @@ def chunk_table(space: Space, begin: int, idx: np.ndarray, out) -> dict[str, np.
 
 
 def iter_sweep(space: Space, sut: sut_lib.SUT, world: sim.World = sim.WORLD,
-               chunk: int = 1 << 16, start: int = 0):
+               chunk: int = DEFAULT_CHUNK, start: int = 0):
     """Yield ``(begin, end, columns)`` for consecutive chunks of the space (host-side loop; each
-    chunk is one call of the same compiled function)."""
-    chunk = int(min(chunk, max(space.size, 1)))
+    chunk is one call of the same compiled function, sharded over the local devices)."""
+    chunk = plan_chunks(space.size, chunk)
+    sharding = batch_sharding()
     for b, e in space.chunks(chunk, start):
-        idx, out = evaluate_chunk(jnp.int32(b), space=space, sut=sut, world=world, chunk=chunk)
+        idx, out = evaluate_chunk(jnp.int32(b), space=space, sut=sut, world=world, chunk=chunk,
+                                  sharding=sharding)
         idx = np.asarray(idx)[: e - b]
         yield b, e, chunk_table(space, b, idx, out)
 
@@ -89,7 +116,7 @@ class Reducer:
 
 
 def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = sim.WORLD,
-              chunk: int = 1 << 16, progress: Callable[[int], None] | None = None,
+              chunk: int = DEFAULT_CHUNK, progress: Callable[[int], None] | None = None,
               extra_config: dict | None = None) -> dict:
     """Sweep the whole space, stream rows to ``out_dir/sweep.parquet``; returns the summary."""
     import pyarrow as pa
@@ -127,7 +154,8 @@ def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = 
         "global_max_reward": red.best_reward,
         "global_max_scenario": _scenario_of(space, red.best_row),
         "wall_seconds": wall, "compile_seconds": compile_s,
-        "chunk": chunk, "versions": cfg.versions(),
+        "chunk": plan_chunks(space.size, chunk), "devices": jax.local_device_count(),
+        "versions": cfg.versions(),
     }
     config = {"command": "sweep", "space": space.describe(), "seed": space.seed,
               "sut": sut.name, "chunk": chunk, **(extra_config or {})}
@@ -147,7 +175,7 @@ def _scenario_of(space: Space, row: dict | None) -> dict | None:
 
 
 def sweep_arrays(space: Space, sut="carla-tm", world: sim.World = sim.WORLD,
-                 chunk: int = 1 << 16) -> dict[str, np.ndarray]:
+                 chunk: int = DEFAULT_CHUNK) -> dict[str, np.ndarray]:
     """The whole sweep in memory (small spaces, tests, ground truth for comparisons)."""
     parts = [cols for _, _, cols in iter_sweep(space, sut_lib.get(sut), world, chunk)]
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

@@ -1,0 +1,226 @@
+"""A falsification campaign: a search strategy against a SUT over a space, for a budget.
+
+``make_campaign`` builds, PureJaxRL-style, pure functions whose whole loop (ask -> simulate the
+batch -> tell, ``lax.scan`` over updates) is one jit-compiled call; the host calls it once per
+chunk of updates so a progress bar can move, and collects every evaluated scenario. ``vmap``
+over keys runs many seeds at once (``run_seeds``).
+
+Evaluations are numbered from 1 in the order they were asked. A budget that is not a multiple
+of the batch is honoured by giving the overflow of the last batch a reward of -inf (it teaches
+nothing and is not recorded).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from functools import partial
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxfalsify import search, sim
+from jaxfalsify import sut as sut_lib
+from jaxfalsify.space import Space
+
+RECORD_FIELDS = ("reward", "reward_rss", "reward_distance", "reward_collision", "collision",
+                 "min_distance", "final_distance", "high_risk_share",
+                 "high_risk_share_second_half", "robustness", "nonfinite")
+
+
+class Plan(NamedTuple):
+    batch: int
+    n_updates: int
+    updates_per_chunk: int
+    budget: int
+
+    @property
+    def n_chunks(self) -> int:
+        return self.n_updates // self.updates_per_chunk
+
+
+def plan(budget: int, batch: int, chunks_target: int = 20) -> Plan:
+    """Updates needed for the budget, and a chunking of them (a divisor) for progress."""
+    if budget <= 0:
+        raise ValueError(f"budget (--episodes) must be positive (got {budget})")
+    n_updates = -(-budget // batch)
+    per = max(1, n_updates // chunks_target)
+    while n_updates % per:
+        per -= 1
+    return Plan(batch, n_updates, per, budget)
+
+
+def make_campaign(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan,
+                  world: sim.World = sim.WORLD):
+    """Returns ``(init(key) -> carry, run_chunk(carry) -> (carry, records))``, both pure.
+
+    ``records`` hold, per update of the chunk, the batch's ``indices (U, B, P)`` and each of
+    ``RECORD_FIELDS`` ``(U, B)``.
+    """
+
+    def init(key):
+        k_init, k_run = jax.random.split(key)
+        return {"state": strategy.init(k_init), "key": k_run, "update": jnp.int32(0)}
+
+    def one_update(carry, _):
+        key, k_ask = jax.random.split(carry["key"])
+        idx, state = strategy.ask(k_ask, carry["state"])
+        out, _ = sim.batch_rollout(space.scenario(idx), sut, world, False)
+        evaluation = carry["update"] * p.batch + jnp.arange(p.batch)
+        in_budget = evaluation < p.budget
+        r = jnp.where(jnp.isnan(out.reward) | ~in_budget, -jnp.inf, out.reward)
+        state = strategy.tell(state, idx, r)
+        rec = {"indices": idx, **{f: getattr(out, f) for f in RECORD_FIELDS}}
+        return {"state": state, "key": key, "update": carry["update"] + 1}, rec
+
+    def run_chunk(carry):
+        return jax.lax.scan(one_update, carry, None, length=p.updates_per_chunk)
+
+    return init, run_chunk
+
+
+@dataclasses.dataclass
+class Result:
+    """Every evaluated scenario of a campaign, host-side, in evaluation order (1..budget)."""
+
+    space: Space
+    batch: int
+    indices: np.ndarray  # (N, P) int32
+    fields: dict[str, np.ndarray]  # RECORD_FIELDS -> (N,)
+    compile_seconds: float
+    wall_seconds: float
+
+    @property
+    def n(self) -> int:
+        return len(self.indices)
+
+    @property
+    def evaluation(self) -> np.ndarray:
+        return np.arange(1, self.n + 1)
+
+    @property
+    def update(self) -> np.ndarray:
+        return (self.evaluation - 1) // self.batch
+
+    def ranked_reward(self) -> np.ndarray:
+        r = self.fields["reward"].astype(np.float64)
+        return np.where(np.isnan(r), -np.inf, r)
+
+
+def collect(records: list[dict], space: Space, p: Plan, compile_s: float, wall_s: float,
+            seed_axis: int | None = None) -> Result | list[Result]:
+    """Flatten chunk records ``(U, B, ...)`` (or ``(S, U, B, ...)``) into Result(s)."""
+    host = [jax.tree.map(np.asarray, r) for r in records]
+    cat = {k: np.concatenate([h[k] for h in host], axis=0 if seed_axis is None else 1)
+           for k in host[0]}
+    if seed_axis is None:
+        return _one(cat, space, p, compile_s, wall_s)
+    n_seeds = cat["reward"].shape[0]
+    return [_one({k: v[s] for k, v in cat.items()}, space, p, compile_s, wall_s)
+            for s in range(n_seeds)]
+
+
+def _one(cat, space, p, compile_s, wall_s) -> Result:
+    P = len(space.shape)
+    idx = cat["indices"].reshape(-1, P)[: p.budget]
+    fields = {f: cat[f].reshape(-1)[: p.budget] for f in RECORD_FIELDS}
+    return Result(space, p.batch, idx.astype(np.int32), fields, compile_s, wall_s)
+
+
+def run(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan, seed: int,
+        world: sim.World = sim.WORLD, progress: Callable[[int, Result | None], None] | None = None
+        ) -> Result:
+    """One seed, chunk by chunk on the host (progress callback after each chunk)."""
+    import time
+
+    init, run_chunk = make_campaign(space, sut, strategy, p, world)
+    step = jax.jit(run_chunk)
+    t0 = time.perf_counter()
+    carry = jax.jit(init)(jax.random.key(seed))
+    records, compile_s = [], 0.0
+    for c in range(p.n_chunks):
+        carry, rec = step(carry)
+        records.append(jax.tree.map(np.asarray, rec))
+        if c == 0:
+            compile_s = time.perf_counter() - t0
+        if progress:
+            progress(min((c + 1) * p.updates_per_chunk * p.batch, p.budget), records)
+    wall = time.perf_counter() - t0
+    return collect(records, space, p, compile_s, wall)
+
+
+def run_seeds(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan,
+              seeds: list[int], world: sim.World = sim.WORLD) -> list[Result]:
+    """Many seeds at once: the campaign vmapped over keys, one compiled function."""
+    import time
+
+    init, run_chunk = make_campaign(space, sut, strategy, p, world)
+    step = jax.jit(jax.vmap(run_chunk))
+    t0 = time.perf_counter()
+    carry = jax.jit(jax.vmap(init))(jnp.stack([jax.random.key(s) for s in seeds]))
+    records, compile_s = [], 0.0
+    for c in range(p.n_chunks):
+        carry, rec = step(carry)
+        records.append(jax.tree.map(np.asarray, rec))
+        if c == 0:
+            compile_s = time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    return collect(records, space, p, compile_s, wall, seed_axis=0)
+
+
+# ----------------------------------------------------------------------------- summaries
+def first_collision_evaluation(res: Result) -> int | None:
+    hits = np.nonzero(res.fields["collision"] & ~res.fields["nonfinite"])[0]
+    return int(hits[0]) + 1 if hits.size else None
+
+
+def convergence_evaluation(res: Result) -> int:
+    """First evaluation after which the running best stays within 1 % of its final value."""
+    best = np.maximum.accumulate(res.ranked_reward())
+    final = best[-1]
+    if not np.isfinite(final):
+        return res.n
+    ok = best >= final - 0.01 * abs(final)
+    return int(np.argmax(ok)) + 1
+
+
+def best_index(res: Result) -> int:
+    return int(np.argmax(res.ranked_reward()))  # the first evaluation reaching the maximum
+
+
+def distinct_critical(res: Result) -> list[dict]:
+    """Distinct collision scenarios found, ranked by reward (then by first evaluation)."""
+    col = res.fields["collision"] & ~res.fields["nonfinite"]
+    seen: dict[tuple, dict] = {}
+    for i in np.nonzero(col)[0]:
+        key = tuple(int(v) for v in res.indices[i])
+        if key in seen:
+            seen[key]["times_evaluated"] += 1
+        else:
+            seen[key] = {"indices": key, "first_evaluation": int(i) + 1, "times_evaluated": 1,
+                         **{f: res.fields[f][i].item() for f in RECORD_FIELDS}}
+    return sorted(seen.values(), key=lambda d: (-d["reward"], d["first_evaluation"]))
+
+
+def scenario_values(space: Space, indices) -> dict[str, float]:
+    return {n: float(space.values[p][int(indices[p])]) for p, n in enumerate(space.names)}
+
+
+def typical_non_critical(res: Result) -> int | None:
+    """The non-colliding evaluation with the median reward (a 'typical' one, paper Table II)."""
+    ok = ~res.fields["collision"] & ~res.fields["nonfinite"]
+    idx = np.nonzero(ok)[0]
+    if idx.size == 0:
+        return None
+    r = res.fields["reward"][idx]
+    return int(idx[np.argsort(r, kind="stable")[len(idx) // 2]])
+
+
+def seconds_to_str(s: float) -> str:
+    return f"{s:.1f} s" if s < 120 else f"{s / 60:.1f} min"
+
+
+def math_nan_to_none(x):
+    return None if isinstance(x, float) and math.isnan(x) else x
