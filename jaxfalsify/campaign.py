@@ -13,8 +13,7 @@ nothing and is not recorded).
 from __future__ import annotations
 
 import dataclasses
-import math
-from functools import partial
+import functools
 from typing import Callable, NamedTuple
 
 import jax
@@ -129,16 +128,26 @@ def _one(cat, space, p, compile_s, wall_s) -> Result:
     return Result(space, p.batch, idx.astype(np.int32), fields, compile_s, wall_s)
 
 
+@functools.lru_cache(maxsize=16)
+def _compiled(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan,
+              world: sim.World, seeds: bool):
+    """Jitted (init, run_chunk), vmapped over seeds if asked; cached so repeated campaigns of
+    the same configuration compile once."""
+    init, run_chunk = make_campaign(space, sut, strategy, p, world)
+    if seeds:
+        return jax.jit(jax.vmap(init)), jax.jit(jax.vmap(run_chunk))
+    return jax.jit(init), jax.jit(run_chunk)
+
+
 def run(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan, seed: int,
         world: sim.World = sim.WORLD, progress: Callable[[int, Result | None], None] | None = None
         ) -> Result:
     """One seed, chunk by chunk on the host (progress callback after each chunk)."""
     import time
 
-    init, run_chunk = make_campaign(space, sut, strategy, p, world)
-    step = jax.jit(run_chunk)
+    init, step = _compiled(space, sut, strategy, p, world, False)
     t0 = time.perf_counter()
-    carry = jax.jit(init)(jax.random.key(seed))
+    carry = init(jax.random.key(seed))
     records, compile_s = [], 0.0
     for c in range(p.n_chunks):
         carry, rec = step(carry)
@@ -156,10 +165,9 @@ def run_seeds(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan
     """Many seeds at once: the campaign vmapped over keys, one compiled function."""
     import time
 
-    init, run_chunk = make_campaign(space, sut, strategy, p, world)
-    step = jax.jit(jax.vmap(run_chunk))
+    init, step = _compiled(space, sut, strategy, p, world, True)
     t0 = time.perf_counter()
-    carry = jax.jit(jax.vmap(init))(jnp.stack([jax.random.key(s) for s in seeds]))
+    carry = init(jnp.stack([jax.random.key(s) for s in seeds]))
     records, compile_s = [], 0.0
     for c in range(p.n_chunks):
         carry, rec = step(carry)
@@ -217,10 +225,3 @@ def typical_non_critical(res: Result) -> int | None:
     r = res.fields["reward"][idx]
     return int(idx[np.argsort(r, kind="stable")[len(idx) // 2]])
 
-
-def seconds_to_str(s: float) -> str:
-    return f"{s:.1f} s" if s < 120 else f"{s / 60:.1f} min"
-
-
-def math_nan_to_none(x):
-    return None if isinstance(x, float) and math.isnan(x) else x

@@ -73,7 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar or report")
 
     c = sub.add_parser("compare", help="all strategies x seeds vs the exhaustive sweep")
-    c.add_argument("--strategies", default="reinforce,random,cem,anneal,cmaes")
+    c.add_argument("--strategies", default="reinforce,random,cem,anneal,cmaes",
+                   help="comma-separated; reinforce/paper or reinforce/default picks a preset")
     c.add_argument("--seeds", type=_positive_int("--seeds"), default=10)
     c.add_argument("--budget", type=_positive_int("--budget"), default=4000)
     c.add_argument("--space", default="paper")
@@ -201,7 +202,8 @@ def cmd_compare(args) -> int:
     from jaxfalsify.search import STRATEGIES
 
     names = [s.strip() for s in args.strategies.split(",") if s.strip()]
-    bad = [n for n in names if n not in STRATEGIES]
+    bad = [n for n in names if n.split("/")[0] not in STRATEGIES
+           or ("/" in n and not n.startswith("reinforce/"))]
     if bad or not names:
         raise UsageError(f"--strategies: unknown strategy '{bad[0] if bad else ''}' "
                          f"(from {', '.join(STRATEGIES)})")

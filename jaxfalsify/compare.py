@@ -63,16 +63,17 @@ def run_compare(strategies: list[str], seeds: int, budget: int, base: RunConfig,
     sp, sut, _, _ = base.build()
     truth = ground_truth(sp, sut, sweep_dir)
     rows = []
-    for name in strategies:
+    for entry in strategies:
+        name, _, preset = entry.partition("/")  # reinforce/paper picks a preset
         rc = RunConfig(space=base.space, space_seed=base.space_seed, sut=base.sut,
-                       strategy=name, preset=base.preset if name == "reinforce" else None,
-                       episodes=budget, batch=base.batch if name == base.strategy else None)
+                       strategy=name,
+                       preset=(preset or base.preset) if name == "reinforce" else None,
+                       episodes=budget)
         sp, sut, strat, plan = rc.build()
         t0 = time.perf_counter()
         results = campaign.run_seeds(sp, sut, strat, plan, list(range(seeds)))
-        rows.append(strategy_row(name if name != "reinforce" else
-                                 f"reinforce/{rc.resolved().preset}", results, truth,
-                                 time.perf_counter() - t0))
+        label = f"reinforce/{rc.resolved().preset}" if name == "reinforce" else name
+        rows.append(strategy_row(label, results, truth, time.perf_counter() - t0))
         if progress:
             progress(rows[-1])
     return {"space": sp.name, "space_seed": sp.seed, "sut": sut.name, "budget": budget,

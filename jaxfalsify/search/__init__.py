@@ -28,6 +28,8 @@ STRATEGIES = {
 
 
 def default_batch(name: str, preset: str = "default") -> int:
+    if name not in STRATEGIES:
+        raise ValueError(f"unknown strategy '{name}' (one of {', '.join(STRATEGIES)})")
     if name == "reinforce":
         from jaxfalsify.reinforce import get_preset
         return get_preset(preset).batch

@@ -1,0 +1,151 @@
+"""The main job ``jaxfalsify run`` and ``jaxfalsify compare`` on tiny budgets: run-directory
+schema, --config round trip, the closing report, bad input."""
+
+import csv
+import json
+import tomllib
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+import jaxfalsify as jf
+from jaxfalsify.cli import main
+
+SUMMARY_KEYS = {"strategy", "preset", "space", "sut", "seed", "evaluations",
+                "first_collision_evaluation", "best", "convergence_evaluation", "wall_seconds",
+                "compile_seconds", "versions"}
+BEST_KEYS = {"params", "reward", "collision", "min_distance", "final_distance",
+             "high_risk_share_second_half"}
+
+
+@pytest.fixture(scope="module")
+def random_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("runs") / "r"
+    assert main(["run", "--strategy", "random", "--episodes", "70", "--batch", "30",
+                 "--seed", "3", "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def test_run_directory_schema(random_run):
+    out = random_run
+    ep = pq.read_table(out / "episodes.parquet").to_pydict()
+    sp = jf.space("paper")
+    assert ep["evaluation"] == list(range(1, 71))
+    assert ep["update"] == [i // 30 for i in range(70)]
+    for name in sp.names:
+        assert name in ep and f"{name}_idx" in ep
+    for f in ("reward", "reward_rss", "reward_distance", "reward_collision", "collision",
+              "min_distance", "final_distance", "high_risk_share",
+              "high_risk_share_second_half"):
+        assert len(ep[f]) == 70
+    # the recorded outcome is the simulator's outcome of the recorded scenario
+    idx = np.stack([ep[f"{n}_idx"] for n in sp.names], -1)
+    again = jf.evaluate(sp.scenario(idx))
+    np.testing.assert_array_equal(np.asarray(again.reward), np.asarray(ep["reward"], np.float32))
+    s = json.loads((out / "summary.json").read_text())
+    assert SUMMARY_KEYS <= set(s) and BEST_KEYS <= set(s["best"])
+    r = np.asarray(ep["reward"])
+    assert s["best"]["reward"] == pytest.approx(r.max())
+    assert s["evaluations"] == 70 and s["strategy"] == "random" and s["preset"] is None
+    col = np.asarray(ep["collision"])
+    assert s["first_collision_evaluation"] == (int(np.argmax(col)) + 1 if col.any() else None)
+    rows = list(csv.DictReader(open(out / "critical.csv")))
+    assert len(rows) == len({tuple(i) for i in idx[col]})
+    rewards = [float(row["reward"]) for row in rows]
+    assert rewards == sorted(rewards, reverse=True)
+    cfg = tomllib.loads((out / "config.toml").read_text())
+    assert cfg["strategy"] == "random" and cfg["episodes"] == 70 and cfg["seed"] == 3
+
+
+def test_config_round_trip_repeats_the_run(random_run, tmp_path):
+    again = tmp_path / "again"
+    assert main(["run", "--config", str(random_run / "config.toml"), "--out", str(again),
+                 "--quiet"]) == 0
+    a = pq.read_table(random_run / "episodes.parquet")
+    b = pq.read_table(again / "episodes.parquet")
+    assert a.equals(b)
+    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (random_run, again))
+    for k in ("wall_seconds", "compile_seconds"):
+        sa.pop(k), sb.pop(k)
+    assert sa == sb
+    # a flag overrides the config
+    third = tmp_path / "third"
+    assert main(["run", "--config", str(random_run / "config.toml"), "--seed", "4",
+                 "--out", str(third), "--quiet"]) == 0
+    assert not pq.read_table(third / "episodes.parquet").equals(a)
+
+
+def test_reinforce_paper_preset_run_and_report(tmp_path, capsys):
+    out = tmp_path / "rl"
+    assert main(["run", "--preset", "paper", "--episodes", "50", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "Non-challenging" in text and "ego_offset" in text
+    s = json.loads((out / "summary.json").read_text())
+    assert s["strategy"] == "reinforce" and s["preset"] == "paper" and s["batch"] == 25
+    assert s["evaluations"] == 50
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["run", "--strategy", "ga"], "unknown strategy 'ga'"),
+    (["run", "--strategy", "random", "--preset", "paper"], "--preset applies"),
+    (["run", "--preset", "fast"], "unknown preset 'fast'"),
+    (["run", "--episodes", "0"], "--episodes must be positive"),
+    (["run", "--batch", "-4"], "--batch must be positive"),
+    (["run", "--sut", "tesla"], "unknown SUT 'tesla'"),
+    (["run", "--space", "moon"], "unknown space 'moon'"),
+    (["run", "--config", "missing.toml"], "no such file"),
+    (["compare", "--strategies", "random,ga"], "unknown strategy 'ga'"),
+    (["compare", "--seeds", "0"], "--seeds must be positive"),
+])
+def test_run_bad_input_one_line_exit_2(argv, needle, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "runs").exists()
+
+
+def test_bad_config_file(tmp_path, capsys):
+    f = tmp_path / "c.toml"
+    f.write_text('strategy = "random"\nlearning_rate = 3\n')
+    assert main(["run", "--config", str(f), "--out", str(tmp_path / "o")]) == 2
+    assert "unknown key 'learning_rate'" in capsys.readouterr().err
+    f.write_text('strategy = "random"\nepisodes = "many"\n')
+    assert main(["run", "--config", str(f), "--out", str(tmp_path / "o")]) == 2
+    assert "episodes must be an integer" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_existing_run_dir_is_not_overwritten(random_run, capsys):
+    before = (random_run / "summary.json").read_text()
+    assert main(["run", "--strategy", "random", "--episodes", "30", "--out", str(random_run),
+                 "--quiet"]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert (random_run / "summary.json").read_text() == before
+
+
+def test_compare_against_sweep_ground_truth(tmp_path, capsys):
+    space = tmp_path / "tiny.toml"
+    space.write_text("""
+[parameters.ego_offset]
+values = [7, 9]
+[parameters.ped_accel]
+values = [0.007, 0.076]
+[parameters.ped_speed]
+values = [1.0, 1.237, 1.5, 1.808]
+[parameters.ped_offset]
+values = [3.5, 4.0]
+""")
+    out, sweep = tmp_path / "cmp", tmp_path / "sweep"
+    assert main(["compare", "--strategies", "random,cem", "--seeds", "2", "--budget", "60",
+                 "--space", str(space), "--sweep", str(sweep), "--out", str(out)]) == 0
+    result = json.loads((out / "compare.json").read_text())
+    truth = json.loads((sweep / "summary.json").read_text())
+    assert result["all_critical"] == truth["n_collisions"] > 0
+    assert [r["strategy"] for r in result["rows"]] == ["random", "cem"]
+    for r in result["rows"]:
+        assert r["seeds"] == 2 and 0 <= r["found_collision_share"] <= 1
+        assert r["best_over_global_max_median"] <= 1.0 + 1e-6
+        assert r["distinct_critical_median"] <= truth["n_collisions"]
+    assert "| random |" in (out / "compare.md").read_text()
