@@ -2,8 +2,10 @@
 
 ``make_campaign`` builds, PureJaxRL-style, pure functions whose whole loop (ask -> simulate the
 batch -> tell, ``lax.scan`` over updates) is one jit-compiled call; the host calls it once per
-chunk of updates so a progress bar can move, and collects every evaluated scenario. ``vmap``
-over keys runs many seeds at once (``run_seeds``).
+chunk of updates so a progress bar can move, and collects every evaluated scenario.
+``run_seeds`` runs many seeds inside one compiled call (``lax.map`` over keys: each seed's
+batch is already hundreds of scenarios wide, and vmapping the LSTM controller over seeds
+deadlocked XLA:CPU in jax 0.10.2 during development).
 
 Evaluations are numbered from 1 in the order they were asked. A budget that is not a multiple
 of the batch is honoured by giving the overflow of the last batch a reward of -inf (it teaches
@@ -131,11 +133,12 @@ def _one(cat, space, p, compile_s, wall_s) -> Result:
 @functools.lru_cache(maxsize=16)
 def _compiled(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan,
               world: sim.World, seeds: bool):
-    """Jitted (init, run_chunk), vmapped over seeds if asked; cached so repeated campaigns of
+    """Jitted (init, run_chunk), mapped over seeds if asked; cached so repeated campaigns of
     the same configuration compile once."""
     init, run_chunk = make_campaign(space, sut, strategy, p, world)
     if seeds:
-        return jax.jit(jax.vmap(init)), jax.jit(jax.vmap(run_chunk))
+        return (jax.jit(lambda keys: jax.lax.map(init, keys)),
+                jax.jit(lambda carry: jax.lax.map(run_chunk, carry)))
     return jax.jit(init), jax.jit(run_chunk)
 
 
@@ -162,7 +165,7 @@ def run(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan, seed
 
 def run_seeds(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan,
               seeds: list[int], world: sim.World = sim.WORLD) -> list[Result]:
-    """Many seeds at once: the campaign vmapped over keys, one compiled function."""
+    """Many seeds in one compiled function (the campaign mapped over keys)."""
     import time
 
     init, step = _compiled(space, sut, strategy, p, world, True)

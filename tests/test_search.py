@@ -127,7 +127,7 @@ def test_campaign_budget_and_determinism(small_campaign):
     np.testing.assert_array_equal(np.asarray(out.reward), a.fields["reward"][:20])
 
 
-def test_seeds_vmapped_equal_single_runs(small_campaign):
+def test_seeds_together_equal_single_runs(small_campaign):
     sp, strat, plan = small_campaign
     many = campaign.run_seeds(sp, jf.SUTS["carla-tm"], strat, plan, [1, 2])
     one = campaign.run(sp, jf.SUTS["carla-tm"], strat, plan, seed=2)
