@@ -112,7 +112,7 @@ def main() -> None:
 
     print(f"paper preset, {args.seeds} seeds x {args.episodes} episodes in {wall:.1f} s "
           f"(all seeds together, compile included)")
-    print(f"mean reward per 500 episodes: "
+    print("mean reward per 500 episodes: "
           + " ".join(f"{mean[i:i + 500].mean():.3f}" for i in range(0, len(mean), 500)))
     print(f"mean-reward plateau (within 5 %) from episode {summary['plateau_episode_of_mean']}")
     print(f"seeds reaching the global maximum {gmax:.4f}: "

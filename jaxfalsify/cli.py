@@ -71,6 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", type=Path, help="run folder (default runs/<timestamp>-<strategy>)")
     r.add_argument("--force", action="store_true", help="overwrite an existing run folder")
     r.add_argument("--quiet", action="store_true", help="no progress bar or report")
+    r.add_argument("--no-figures", action="store_true", dest="no_figures",
+                   help="skip figures/ and report.md")
 
     c = sub.add_parser("compare", help="all strategies x seeds vs the exhaustive sweep")
     c.add_argument("--strategies", default="reinforce,random,cem,anneal,cmaes",
@@ -86,6 +88,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", type=Path, help="folder for compare.json/.md "
                    "(default runs/compare-<timestamp>)")
     c.add_argument("--force", action="store_true")
+
+    f = sub.add_parser("figures", help="(re)draw a run's figures and report.md")
+    f.add_argument("run_dir", type=Path, metavar="RUN_DIR")
 
     s = sub.add_parser("sweep", help="evaluate every concrete scenario of a space")
     s.add_argument("--space", default="paper", help="built-in name (paper, paper-extended) or a "
@@ -189,7 +194,27 @@ def cmd_run(args) -> int:
     summary = write_run(out, res, rc)
     if not args.quiet:
         print(closing_report(res, summary))
-    print(f"wrote {out}/ (config.toml, episodes.parquet, summary.json, critical.csv)")
+    extra = ""
+    if not args.no_figures:
+        from jaxfalsify.figures import make_figures
+        from jaxfalsify.report import write_report
+        make_figures(out)
+        write_report(out)
+        extra = ", figures/, report.md"
+    print(f"wrote {out}/ (config.toml, episodes.parquet, summary.json, critical.csv{extra})")
+    return 0
+
+
+def cmd_figures(args) -> int:
+    from jaxfalsify.figures import make_figures
+    from jaxfalsify.report import write_report
+
+    try:
+        files = make_figures(args.run_dir)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    report = write_report(args.run_dir)
+    print(f"wrote {len(files)} figures to {args.run_dir}/figures/ and {report}")
     return 0
 
 
@@ -265,8 +290,8 @@ def main(argv=None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
-        handler = {"run": cmd_run, "compare": cmd_compare, "sweep": cmd_sweep,
-                   "simulate": cmd_simulate}[args.command]
+        handler = {"run": cmd_run, "compare": cmd_compare, "figures": cmd_figures,
+                   "sweep": cmd_sweep, "simulate": cmd_simulate}[args.command]
         return handler(args)
     except UsageError as e:
         print(f"jaxfalsify: error: {e}", file=sys.stderr)

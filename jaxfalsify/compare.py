@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfalsify import campaign, config as cfg, search
+from jaxfalsify import campaign, config as cfg
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.runs import RunConfig
 from jaxfalsify.space import Space

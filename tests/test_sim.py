@@ -9,7 +9,7 @@ from conftest import random_scenarios
 
 import jaxfalsify as jf
 from jaxfalsify import reward, sim
-from jaxfalsify.sut import SUT, SUTS, sensor_capability
+from jaxfalsify.sut import SUTS, sensor_capability
 
 W = jf.WORLD
 

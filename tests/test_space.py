@@ -1,6 +1,5 @@
 """Logical scenario spaces: built-ins (Table I), index <-> value maps, TOML, and bad input."""
 
-import itertools
 
 import jax
 import numpy as np
