@@ -73,6 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar or report")
     r.add_argument("--no-figures", action="store_true", dest="no_figures",
                    help="skip figures/ and report.md")
+    r.add_argument("--rerun", action="store_true", help="also save best.rrd (rerun recording)")
 
     c = sub.add_parser("compare", help="all strategies x seeds vs the exhaustive sweep")
     c.add_argument("--strategies", default="reinforce,random,cem,anneal,cmaes",
@@ -88,6 +89,15 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", type=Path, help="folder for compare.json/.md "
                    "(default runs/compare-<timestamp>)")
     c.add_argument("--force", action="store_true")
+
+    pl = sub.add_parser("replay", help="rerun recording of a run's scenario")
+    pl.add_argument("run_dir", type=Path, metavar="RUN_DIR")
+    pl.add_argument("--scenario", default="best", help="best, critical:K or eval:N")
+    g = pl.add_mutually_exclusive_group()
+    g.add_argument("--save", type=Path, help="write FILE.rrd (default RUN_DIR/replay-<scenario>.rrd)")
+    g.add_argument("--spawn", action="store_true", help="open a rerun viewer instead")
+    pl.add_argument("--scenarios", type=_positive_int("--scenarios"), default=0,
+                    help="also overlay the distance of K evaluated scenarios (paper Fig. 10)")
 
     f = sub.add_parser("figures", help="(re)draw a run's figures and report.md")
     f.add_argument("run_dir", type=Path, metavar="RUN_DIR")
@@ -201,7 +211,25 @@ def cmd_run(args) -> int:
         make_figures(out)
         write_report(out)
         extra = ", figures/, report.md"
+    if args.rerun:
+        from jaxfalsify.replay import record
+        record(out, "best", save=out / "best.rrd", overlay=14)
+        extra += ", best.rrd"
     print(f"wrote {out}/ (config.toml, episodes.parquet, summary.json, critical.csv{extra})")
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from jaxfalsify.replay import record
+
+    if args.save is not None and args.save.suffix != ".rrd":
+        raise UsageError(f"--save {args.save}: the file name must end in .rrd")
+    try:
+        path = record(args.run_dir, args.scenario, save=args.save, spawn=args.spawn,
+                      overlay=args.scenarios)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    print(f"wrote {path}" if path else "sent to the rerun viewer")
     return 0
 
 
@@ -291,6 +319,7 @@ def main(argv=None) -> int:
     try:
         args = parser.parse_args(argv)
         handler = {"run": cmd_run, "compare": cmd_compare, "figures": cmd_figures,
+                   "replay": cmd_replay,
                    "sweep": cmd_sweep, "simulate": cmd_simulate}[args.command]
         return handler(args)
     except UsageError as e:

@@ -56,6 +56,7 @@ def write_report(run_dir: Path) -> Path:
     lines += ["", "## Reproduce", "", "```bash",
               f"jaxfalsify run --config {run_dir}/config.toml --out {run_dir}-again",
               f"jaxfalsify figures {run_dir}",
+              f"jaxfalsify replay {run_dir} --scenario best --scenarios 14",
               f"jaxfalsify simulate " + " ".join(f"{n}={ep[n][b]:g}" for n in sp.names)
               + f" --sut {s['sut']}", "```", "",
               f"Files: `config.toml` (resolved configuration), `episodes.parquet` (every "

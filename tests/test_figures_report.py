@@ -55,3 +55,68 @@ def test_figures_command_regenerates_and_rejects_non_runs(run_with_figures, tmp_
     assert main(["figures", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert "is not a run folder" in err and len(err.splitlines()) == 1
+
+
+def _read_rrd(path):
+    from rerun.chunk import RrdReader
+
+    cols = {}
+    for c in RrdReader(path).stream().to_chunks():
+        rb = c.to_record_batch()
+        cols.setdefault(c.entity_path, []).append(rb)
+    return cols
+
+
+def _column(batches, name):
+    import pyarrow as pa
+
+    out = []
+    for rb in batches:
+        if name in rb.schema.names:
+            col = rb.column(name)
+            if pa.types.is_duration(col.type) or pa.types.is_timestamp(col.type):
+                col = col.cast(pa.int64())  # nanoseconds
+            out.extend(col.to_pylist())
+    return out
+
+
+def test_replay_recording_reads_back_with_simulated_values(run_with_figures, tmp_path):
+    import pyarrow.parquet as pq
+
+    import jaxfalsify as jf
+
+    f = tmp_path / "best.rrd"
+    assert main(["replay", str(run_with_figures), "--save", str(f), "--scenarios", "3"]) == 0
+    cols = _read_rrd(f)
+    for ent in ("/world/road", "/world/crosswalk", "/world/ego", "/world/pedestrian",
+                "/world/detection_zone", "/metrics/distance", "/metrics/rss_distance",
+                "/metrics/high_risk", "/metrics/ego_speed", "/info", "/training/reward",
+                "/overlay/0/distance"):
+        assert ent in cols, ent
+    # the logged series are the simulation of the run's best scenario
+    ep = pq.read_table(run_with_figures / "episodes.parquet").to_pydict()
+    sp = jf.space("paper")
+    r = np.asarray(ep["reward"])
+    best = int(np.argmax(r))
+    idx = np.array([[ep[f"{n}_idx"][best] for n in sp.names]])
+    tr = jf.simulate(sp.scenario(idx))
+    v = np.asarray(tr.valid[0])
+    dist = np.concatenate([np.ravel(x) for x in _column(cols["/metrics/distance"],
+                                                         "Scalars:scalars")])
+    np.testing.assert_allclose(dist, np.asarray(tr.distance[0])[v], atol=1e-6)
+    times = np.asarray(_column(cols["/metrics/distance"], "sim_time")) / 1e9
+    np.testing.assert_allclose(times, np.asarray(tr.t[0])[v], atol=1e-6)
+    centers = [np.asarray(c)[0] for c in _column(cols["/world/ego"], "Boxes2D:centers")]
+    np.testing.assert_allclose([c[0] for c in centers], np.asarray(tr.ego_x[0])[v], atol=1e-5)
+    rewards = np.concatenate([np.ravel(x) for x in _column(cols["/training/reward"],
+                                                            "Scalars:scalars")])
+    np.testing.assert_allclose(rewards, r, atol=1e-6)
+    text = " ".join(str(x) for x in _column(cols["/info"], "TextDocument:text"))
+    assert "ego_offset" in text and "reward" in text
+
+
+def test_replay_bad_scenario_spec(run_with_figures, capsys):
+    assert main(["replay", str(run_with_figures), "--scenario", "worst"]) == 2
+    assert "expected best, critical:K or eval:N" in capsys.readouterr().err
+    assert main(["replay", str(run_with_figures), "--scenario", "eval:99999"]) == 2
+    assert main(["replay", str(run_with_figures), "--save", "x.txt"]) == 2

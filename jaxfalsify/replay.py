@@ -1,0 +1,157 @@
+"""rerun-sdk playback of concrete scenarios from a run folder (host side only).
+
+Written for rerun-sdk >= 0.23 (``rr.set_time(..., duration=...)``, ``rr.Scalars``); tested with
+0.41, whose reader is ``rerun.chunk.RrdReader`` (``rerun.dataframe`` is gone there).
+
+Entities of a recording:
+
+* ``world/road`` (static): road edges, lane lines; ``world/crosswalk`` (static);
+* ``world/ego``, ``world/pedestrian``: boxes on the ``sim_time`` timeline; the ego is red while
+  its SUT brakes; ``world/detection_zone``: the Traffic Manager's hazard corridor ahead of the
+  car (2.5 m + 4.35 s x speed, the car's width; ``carla-tm`` only); ``world/collision``: a
+  marker at the collision;
+* ``metrics/distance``, ``metrics/rss_distance``, ``metrics/high_risk`` (1 red / 0 green),
+  ``metrics/ego_speed``, ``metrics/ped_speed``: scalar series on ``sim_time``;
+* ``info``: the scenario's parameters and outcome as a markdown document;
+* ``training/reward``: the run's reward per evaluation, on the ``evaluation`` timeline;
+* ``overlay/<k>/distance``: with several scenarios, each one's distance (collisions red), as in
+  the paper's Fig. 10.
+
+A blueprint puts the top view beside the time series.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from jaxfalsify.figures import indices_of, load_run, pick
+
+RED, GREEN, BLUE, GREY = (220, 40, 40), (40, 160, 60), (40, 90, 220), (150, 150, 150)
+
+
+def resolve_scenario(spec: str, ep: dict, space) -> int:
+    """Row of ``best``, ``critical:K`` (K-th distinct collision by reward, 1-based) or
+    ``eval:N`` (evaluation number N)."""
+    if spec == "best":
+        return pick(ep, space)["best"]
+    kind, _, num = spec.partition(":")
+    try:
+        n = int(num)
+    except ValueError:
+        raise ValueError(f"--scenario {spec!r}: expected best, critical:K or eval:N") from None
+    if kind == "eval":
+        if not 1 <= n <= len(ep["evaluation"]):
+            raise ValueError(f"--scenario {spec}: the run has evaluations 1..{len(ep['evaluation'])}")
+        return n - 1
+    if kind == "critical":
+        rows = np.nonzero(ep["collision"] & ~ep["nonfinite"])[0]
+        keys, first = np.unique(indices_of(ep, space, rows), axis=0, return_index=True)
+        ranked = rows[first][np.argsort(-ep["reward"][rows[first]], kind="stable")]
+        if not 1 <= n <= len(ranked):
+            raise ValueError(f"--scenario {spec}: the run found {len(ranked)} distinct "
+                             "critical scenarios")
+        return int(ranked[n - 1])
+    raise ValueError(f"--scenario {spec!r}: expected best, critical:K or eval:N")
+
+
+def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
+           spawn: bool = False, overlay: int = 0):
+    """Write (or spawn a viewer with) a recording of one scenario of a run; returns the path."""
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    import jaxfalsify as jf
+    from jaxfalsify.sut import SUTS
+
+    sp, rc, summary, ep = load_run(run_dir)
+    row = resolve_scenario(scenario, ep, sp)
+    w = jf.WORLD
+    rec = rr.RecordingStream("jaxfalsify", recording_id=f"{Path(run_dir).name}-{scenario}")
+    path = None
+    if spawn:
+        rec.spawn()
+    else:
+        path = Path(save) if save else Path(run_dir) / f"replay-{scenario.replace(':', '-')}.rrd"
+        rec.save(path)
+
+    # static world
+    x0, x1 = -15.0, w.end_x + 10.0
+    edges = [[[x0, w.road_right], [x1, w.road_right]], [[x0, w.road_left], [x1, w.road_left]]]
+    lanes = [[[x0, y], [x1, y]] for y in np.arange(w.road_right + w.lane_width, w.road_left,
+                                                    w.lane_width)]
+    rec.log("world/road", rr.LineStrips2D(edges + lanes, colors=[GREY] * (2 + len(lanes))),
+            static=True)
+    rec.log("world/crosswalk", rr.Boxes2D(centers=[[w.crosswalk_x, 0.5 * (w.road_left
+                                                                            + w.road_right)]],
+                                          sizes=[[3.0, w.road_left - w.road_right]],
+                                          colors=[(230, 230, 230)], labels=["crosswalk"]),
+            static=True)
+
+    idx = indices_of(ep, sp, [row])
+    traj = jf.simulate(sp.scenario(idx), sut=rc.sut)
+    tr = {k: np.asarray(v)[0] for k, v in vars(traj).items()}
+    valid = tr["valid"]
+    tm = SUTS["carla-tm"].params
+    for k in np.nonzero(valid)[0]:
+        rec.set_time("sim_time", duration=float(tr["t"][k]))
+        braking = bool(tr["braking"][k])
+        rec.log("world/ego", rr.Boxes2D(centers=[[tr["ego_x"][k], tr["ego_y"][k]]],
+                                        sizes=[[w.ego_length, w.ego_width]],
+                                        colors=[RED if braking else BLUE], labels=["ego"]))
+        rec.log("world/pedestrian", rr.Boxes2D(centers=[[tr["ped_x"][k], tr["ped_y"][k]]],
+                                               sizes=[[w.ped_length, w.ped_width]],
+                                               colors=[(240, 160, 0)]))
+        if rc.sut == "carla-tm":
+            length = tm.boundary_min + tm.boundary_rate * float(tr["ego_speed"][k])
+            front = float(tr["ego_x"][k]) + w.ego_length / 2
+            rec.log("world/detection_zone",
+                    rr.Boxes2D(centers=[[front + length / 2, tr["ego_y"][k]]],
+                               sizes=[[length, w.ego_width]], colors=[(120, 120, 255, 80)]))
+        if tr["collided"][k]:
+            rec.log("world/collision", rr.Points2D([[tr["ped_x"][k], tr["ped_y"][k]]],
+                                                   radii=[0.6], colors=[RED],
+                                                   labels=["collision"]))
+        rec.log("metrics/distance", rr.Scalars(float(tr["distance"][k])))
+        rec.log("metrics/rss_distance", rr.Scalars(float(tr["rss_distance"][k])))
+        rec.log("metrics/high_risk", rr.Scalars(float(tr["high_risk"][k])),
+                rr.SeriesPoints(colors=[RED if tr["high_risk"][k] else GREEN]))
+        rec.log("metrics/ego_speed", rr.Scalars(float(tr["ego_speed"][k])))
+        rec.log("metrics/ped_speed", rr.Scalars(float(tr["ped_speed"][k])))
+
+    text = [f"## {scenario} — evaluation {row + 1} of run `{Path(run_dir).name}`", "",
+            "| parameter | value |", "|---|---|"]
+    text += [f"| {n} | {ep[n][row]:g} {u} |" for n, u in zip(sp.names, sp.units)]
+    text += ["", "| outcome | value |", "|---|---|"]
+    text += [f"| {f} | {ep[f][row]} |" for f in ("reward", "collision", "min_distance",
+                                                  "final_distance",
+                                                  "high_risk_share_second_half")]
+    text += ["", f"SUT `{rc.sut}`, strategy `{rc.strategy}`, seed {rc.seed}"]
+    rec.log("info", rr.TextDocument("\n".join(text), media_type="text/markdown"), static=True)
+
+    for e, r in zip(ep["evaluation"], ep["reward"]):
+        rec.set_time("evaluation", sequence=int(e))
+        rec.log("training/reward", rr.Scalars(float(r)))
+
+    if overlay:
+        rng = np.random.default_rng(0)
+        rows = rng.choice(len(ep["reward"]), min(overlay, len(ep["reward"])), replace=False)
+        ov = jf.simulate(sp.scenario(indices_of(ep, sp, rows)), sut=rc.sut)
+        for j, r in enumerate(rows):
+            color = RED if ep["collision"][r] else GREEN
+            rec.log(f"overlay/{j}/distance", rr.SeriesLines(colors=[color],
+                                                           names=[f"eval {r + 1}"]), static=True)
+            v = np.asarray(ov.valid[j])
+            for k in np.nonzero(v)[0]:
+                rec.set_time("sim_time", duration=float(ov.t[j, k]))
+                rec.log(f"overlay/{j}/distance", rr.Scalars(float(ov.distance[j, k])))
+
+    rec.send_blueprint(rrb.Blueprint(rrb.Horizontal(
+        rrb.Vertical(rrb.Spatial2DView(origin="world", name="top view"),
+                     rrb.TextDocumentView(origin="info", name="scenario")),
+        rrb.Vertical(rrb.TimeSeriesView(origin="metrics", name="metrics"),
+                     rrb.TimeSeriesView(origin="overlay" if overlay else "training",
+                                        name="overlay" if overlay else "training")))))
+    rec.flush()
+    return path
