@@ -99,6 +99,13 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--scenarios", type=_positive_int("--scenarios"), default=0,
                     help="also overlay the distance of K evaluated scenarios (paper Fig. 10)")
 
+    x = sub.add_parser("export", help="OpenSCENARIO (.xosc) + OpenDRIVE (.xodr) of a run's "
+                       "scenarios")
+    x.add_argument("run_dir", type=Path, metavar="RUN_DIR")
+    x.add_argument("--scenario", default="best", help="best or critical (all distinct ones)")
+    x.add_argument("--out", type=Path, required=True, help="output folder")
+    x.add_argument("--force", action="store_true", help="overwrite existing files in --out")
+
     f = sub.add_parser("figures", help="(re)draw a run's figures and report.md")
     f.add_argument("run_dir", type=Path, metavar="RUN_DIR")
 
@@ -233,6 +240,20 @@ def cmd_replay(args) -> int:
     return 0
 
 
+def cmd_export(args) -> int:
+    from jaxfalsify.export import export
+
+    if args.scenario not in ("best", "critical"):
+        raise UsageError(f"--scenario {args.scenario!r}: expected best or critical")
+    _check_out(args.out, "crossing.xodr", args.force)
+    try:
+        files = export(args.run_dir, args.out, args.scenario)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    print(f"wrote {len(files) - 1} .xosc and crossing.xodr to {args.out}/")
+    return 0
+
+
 def cmd_figures(args) -> int:
     from jaxfalsify.figures import make_figures
     from jaxfalsify.report import write_report
@@ -319,7 +340,7 @@ def main(argv=None) -> int:
     try:
         args = parser.parse_args(argv)
         handler = {"run": cmd_run, "compare": cmd_compare, "figures": cmd_figures,
-                   "replay": cmd_replay,
+                   "replay": cmd_replay, "export": cmd_export,
                    "sweep": cmd_sweep, "simulate": cmd_simulate}[args.command]
         return handler(args)
     except UsageError as e:

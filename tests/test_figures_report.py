@@ -120,3 +120,53 @@ def test_replay_bad_scenario_spec(run_with_figures, capsys):
     assert "expected best, critical:K or eval:N" in capsys.readouterr().err
     assert main(["replay", str(run_with_figures), "--scenario", "eval:99999"]) == 2
     assert main(["replay", str(run_with_figures), "--save", "x.txt"]) == 2
+
+
+def test_export_validates_against_the_xsd_and_matches_the_trajectory(run_with_figures,
+                                                                     tmp_path):
+    import xml.etree.ElementTree as ET
+
+    import pyarrow.parquet as pq
+    import xmlschema
+
+    import jaxfalsify as jf
+    from jaxfalsify.export import X_OFFSET, schema_path
+
+    out = tmp_path / "osc"
+    assert main(["export", str(run_with_figures), "--scenario", "critical",
+                 "--out", str(out)]) == 0
+    xosc_files = sorted(out.glob("*.xosc"))
+    ep = pq.read_table(run_with_figures / "episodes.parquet").to_pydict()
+    sp = jf.space("paper")
+    idx = np.stack([ep[f"{n}_idx"] for n in sp.names], -1)[np.asarray(ep["collision"])]
+    assert len(xosc_files) == len({tuple(i) for i in idx}) > 0
+    xsd = xmlschema.XMLSchema(str(schema_path("xosc")))
+    for f in xosc_files:
+        xsd.validate(str(f))  # raises if invalid
+    xmlschema.XMLSchema(str(schema_path("xodr"))).validate(str(out / "crossing.xodr"))
+    # the exported ego waypoints are the simulated trajectory of critical scenario 1
+    root = ET.parse(xosc_files[0]).getroot()
+    desc = root.find("FileHeader").attrib["description"]
+    params = dict(kv.split("=") for kv in desc.split(": ", 1)[1].split(", "))
+    tr = jf.simulate({k: float(v) for k, v in params.items()})
+    v = np.asarray(tr.valid)
+    polylines = root.findall(".//Polyline")
+    ego_x = [float(p.find("Position/WorldPosition").attrib["x"]) - X_OFFSET
+             for p in polylines[0].findall("Vertex")]
+    times = [float(p.attrib["time"]) for p in polylines[0].findall("Vertex")]
+    np.testing.assert_allclose(ego_x, np.asarray(tr.ego_x)[v], atol=1e-4)
+    np.testing.assert_allclose(times, np.asarray(tr.t)[v], atol=1e-3)
+    ped_y = [float(p.find("Position/WorldPosition").attrib["y"])
+             for p in polylines[1].findall("Vertex")]
+    np.testing.assert_allclose(ped_y, np.asarray(tr.ped_y)[v], atol=1e-4)
+    # weather preset -> environment
+    assert root.find(".//Environment") is not None
+
+
+def test_export_refuses_existing_output(run_with_figures, tmp_path, capsys):
+    out = tmp_path / "osc"
+    assert main(["export", str(run_with_figures), "--out", str(out)]) == 0
+    assert main(["export", str(run_with_figures), "--out", str(out)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert main(["export", str(run_with_figures), "--scenario", "all", "--out",
+                 str(tmp_path / "o2")]) == 2
