@@ -65,9 +65,13 @@ def make_campaign(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: 
         k_init, k_run = jax.random.split(key)
         return {"state": strategy.init(k_init), "key": k_run, "update": jnp.int32(0)}
 
+    sharding = sim.local_batch_sharding() if p.batch % jax.local_device_count() == 0 else None
+
     def one_update(carry, _):
         key, k_ask = jax.random.split(carry["key"])
         idx, state = strategy.ask(k_ask, carry["state"])
+        if sharding is not None:  # the proposal batch is simulated on all local devices
+            idx = jax.lax.with_sharding_constraint(idx, sharding)
         out, _ = sim.batch_rollout(space.scenario(idx), sut, world, False)
         evaluation = carry["update"] * p.batch + jnp.arange(p.batch)
         in_budget = evaluation < p.budget

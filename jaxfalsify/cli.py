@@ -48,6 +48,29 @@ def _seed(text):
     return v
 
 
+def _distributed_flags(p) -> None:
+    g = p.add_argument_group("multi-process (jax.distributed)")
+    g.add_argument("--distributed", action="store_true",
+                   help="one of several processes; each evaluates its share and writes a part")
+    g.add_argument("--coordinator", help="HOST:PORT of process 0 (or JAX_COORDINATOR_ADDRESS)")
+    g.add_argument("--num-processes", type=_positive_int("--num-processes"),
+                   dest="num_processes", help="(or JAX_NUM_PROCESSES)")
+    g.add_argument("--process-id", type=_seed, dest="process_id", help="(or JAX_PROCESS_ID)")
+
+
+def _start_distributed(args) -> tuple[int, int]:
+    if not args.distributed:
+        if args.coordinator or args.num_processes or args.process_id is not None:
+            raise UsageError("--coordinator/--num-processes/--process-id need --distributed")
+        return 0, 1
+    from jaxfalsify.distributed import initialize
+
+    try:
+        return initialize(args.coordinator, args.num_processes, args.process_id)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     from jaxfalsify.sut import SUTS
 
@@ -121,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="most scenarios per compiled batch (default 131072)")
     s.add_argument("--force", action="store_true", help="overwrite an existing sweep in --out")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    _distributed_flags(s)
 
     m = sub.add_parser("simulate", help="evaluate one concrete scenario and print its outcome")
     m.add_argument("params", nargs="*", metavar="NAME=VALUE",
@@ -152,20 +176,28 @@ def cmd_sweep(args) -> int:
     except ValueError as e:
         raise UsageError(str(e)) from None
     out = args.out or Path("sweeps") / f"{Path(sp.name).stem}-{sut.name}-s{args.seed}"
-    _check_out(out, "sweep.parquet", args.force)
-    bar = tqdm(total=sp.size, unit="scn", unit_scale=True, disable=args.quiet,
-               desc=f"sweep {sp.name} / {sut.name}")
+    _check_out(out, "summary.json", args.force)
+    pid, n_proc = _start_distributed(args)
+    from jaxfalsify.distributed import share
+    begin, end = share(sp.size, pid, n_proc)
+    bar = tqdm(total=end - begin, unit="scn", unit_scale=True, disable=args.quiet,
+               desc=f"sweep {sp.name} / {sut.name}"
+               + (f" [process {pid}/{n_proc}]" if n_proc > 1 else ""))
     try:
-        summary = run_sweep(sp, sut.name, out, chunk=args.chunk, progress=bar.update)
+        summary = run_sweep(sp, sut.name, out, chunk=args.chunk, progress=bar.update,
+                            process_id=pid, num_processes=n_proc)
     finally:
         bar.close()
+    if pid != 0:
+        print(f"process {pid}: wrote {out}/{summary['parts'][pid]}")
+        return 0
     best = summary["global_max_scenario"] or {}
     print(f"{summary['n_scenarios']} scenarios, {summary['n_collisions']} collisions "
           f"({100 * summary['collision_rate']:.2f} %) in {summary['wall_seconds']:.2f} s "
           f"(compile {summary['compile_seconds']:.2f} s)")
     print(f"global maximum reward {summary['global_max_reward']:.4f} at "
           + ", ".join(f"{k}={v:g}" for k, v in best.get("values", {}).items()))
-    print(f"wrote {out}/sweep.parquet, summary.json, config.toml")
+    print(f"wrote {out}/{', '.join(summary['parts'])}, summary.json, config.toml")
     return 0
 
 

@@ -394,17 +394,38 @@ def evaluate(scenario: dict, *, sut="carla-tm", world: World = WORLD,
     flat, shape = _flat(full)
     s = sut_lib.get(sut)
     n = int(np.prod(shape, dtype=np.int64))
-    if n <= chunk_size:
+    n_dev = jax.local_device_count()
+    if n <= chunk_size and n_dev == 1:
         out, _ = _jit_batch(flat, s, world, False)
     else:
+        # equal chunks (a multiple of the device count), the batch split over local devices
+        size = min(chunk_size, n)
+        size = -(-size // n_dev) * n_dev
+        sharding = local_batch_sharding()
         parts = []
-        for b in range(0, n, chunk_size):
-            e = min(b + chunk_size, n)
+        for b in range(0, n, size):
+            e = min(b + size, n)
             chunk = {k: v[b:e] for k, v in flat.items()}
-            if e - b < chunk_size:
-                chunk = {k: jnp.pad(v, (0, chunk_size - (e - b)), mode="edge")
+            if e - b < size:
+                chunk = {k: jnp.pad(v, (0, size - (e - b)), mode="edge")
                          for k, v in chunk.items()}
+            if sharding is not None:
+                chunk = jax.device_put(chunk, sharding)
             o, _ = _jit_batch(chunk, s, world, False)
             parts.append(jax.tree.map(lambda x, m=e - b: np.asarray(x[:m]), o))
         out = jax.tree.map(lambda *xs: jnp.asarray(np.concatenate(xs)), *parts)
     return jax.tree.map(lambda x: x.reshape(shape), out)
+
+
+def local_batch_sharding():
+    """``NamedSharding`` splitting a batch axis over this process's devices (None for one).
+
+    Every rollout is independent, so a sharded batch gives bit-identical results to an
+    unsharded one; XLA partitions the jitted rollout along the batch axis.
+    """
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    devices = jax.local_devices()
+    if len(devices) == 1:
+        return None
+    return NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))

@@ -33,13 +33,8 @@ DEFAULT_CHUNK = 1 << 17
 
 
 def batch_sharding():
-    """A ``NamedSharding`` splitting the batch axis over all local devices (None for one)."""
-    from jax.sharding import Mesh, NamedSharding, PartitionSpec
-
-    devices = jax.local_devices()
-    if len(devices) == 1:
-        return None
-    return NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))
+    """Sharding of a sweep chunk over the local devices (see ``sim.local_batch_sharding``)."""
+    return sim.local_batch_sharding()
 
 
 def plan_chunks(size: int, chunk: int = DEFAULT_CHUNK) -> int:
@@ -82,12 +77,15 @@ def chunk_table(space: Space, begin: int, idx: np.ndarray, out) -> dict[str, np.
 
 
 def iter_sweep(space: Space, sut: sut_lib.SUT, world: sim.World = sim.WORLD,
-               chunk: int = DEFAULT_CHUNK, start: int = 0):
-    """Yield ``(begin, end, columns)`` for consecutive chunks of the space (host-side loop; each
-    chunk is one call of the same compiled function, sharded over the local devices)."""
-    chunk = plan_chunks(space.size, chunk)
+               chunk: int = DEFAULT_CHUNK, start: int = 0, stop: int | None = None):
+    """Yield ``(begin, end, columns)`` for consecutive chunks of scenarios ``[start, stop)``
+    (host-side loop; each chunk is one call of the same compiled function, sharded over the
+    local devices)."""
+    stop = space.size if stop is None else stop
+    chunk = plan_chunks(max(stop - start, 1), chunk)
     sharding = batch_sharding()
-    for b, e in space.chunks(chunk, start):
+    for b in range(start, stop, chunk):
+        e = min(b + chunk, stop)
         idx, out = evaluate_chunk(jnp.int32(b), space=space, sut=sut, world=world, chunk=chunk,
                                   sharding=sharding)
         idx = np.asarray(idx)[: e - b]
@@ -117,23 +115,34 @@ class Reducer:
 
 def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = sim.WORLD,
               chunk: int = DEFAULT_CHUNK, progress: Callable[[int], None] | None = None,
-              extra_config: dict | None = None) -> dict:
-    """Sweep the whole space, stream rows to ``out_dir/sweep.parquet``; returns the summary."""
+              extra_config: dict | None = None, process_id: int = 0,
+              num_processes: int = 1) -> dict:
+    """Sweep the whole space, streaming rows to ``out_dir/sweep.parquet``; returns the summary.
+
+    With several processes (``jax.distributed`` initialised), process i sweeps its contiguous
+    share of the scenario numbers into ``sweep.part-<i>-of-<n>.parquet``; after a barrier,
+    process 0 merges the parts' summaries into ``summary.json``.
+    """
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     from jaxfalsify import config as cfg
+    from jaxfalsify.distributed import barrier, share
 
     sut = sut_lib.get(sut_name)
     out_dir.mkdir(parents=True, exist_ok=True)
-    tmp_parquet = out_dir / ".sweep.parquet.partial"
+    multi = num_processes > 1
+    name = (f"sweep.part-{process_id:05d}-of-{num_processes:05d}.parquet" if multi
+            else "sweep.parquet")
+    tmp_parquet = out_dir / f".{name}.partial"
+    begin, end = share(space.size, process_id, num_processes)
     writer = None
     red = Reducer()
     t0 = time.perf_counter()
     compile_s = 0.0
     try:
-        for b, e, cols in iter_sweep(space, sut, world, chunk):
-            if b == 0:
+        for b, e, cols in iter_sweep(space, sut, world, chunk, begin, end):
+            if b == begin:
                 compile_s = time.perf_counter() - t0
             table = pa.table(cols)
             if writer is None:
@@ -146,22 +155,46 @@ def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = 
     finally:
         if writer is not None:
             writer.close()
+    part = {"process_id": process_id, "n": red.n, "collisions": red.collisions,
+            "nonfinite": red.nonfinite, "best_reward": red.best_reward,
+            "best": _scenario_of(space, red.best_row), "wall": wall, "compile": compile_s}
+    os.replace(tmp_parquet, out_dir / name)
+    if multi:
+        cfg.write_atomic(out_dir / f".summary.part-{process_id:05d}.json",
+                         json.dumps(cfg.jsonable(part)) + "\n")
+        barrier("jaxfalsify-sweep-parts-written")
+        parts = [json.loads((out_dir / f".summary.part-{i:05d}.json").read_text())
+                 for i in range(num_processes)]
+    else:
+        parts = [cfg.jsonable(part)]
+    best = max(parts, key=lambda q: (q["best_reward"] if q["best_reward"] is not None
+                                     else -math.inf, -q["process_id"]))
+    n = sum(q["n"] for q in parts)
+    collisions = sum(q["collisions"] for q in parts)
     summary = {
         "space": space.name, "seed": space.seed, "sut": sut.name,
-        "n_scenarios": red.n, "n_collisions": red.collisions,
-        "collision_rate": red.collisions / max(red.n, 1),
-        "n_nonfinite": red.nonfinite,
-        "global_max_reward": red.best_reward,
-        "global_max_scenario": _scenario_of(space, red.best_row),
-        "wall_seconds": wall, "compile_seconds": compile_s,
-        "chunk": plan_chunks(space.size, chunk), "devices": jax.local_device_count(),
+        "n_scenarios": n, "n_collisions": collisions,
+        "collision_rate": collisions / max(n, 1),
+        "n_nonfinite": sum(q["nonfinite"] for q in parts),
+        "global_max_reward": best["best_reward"],
+        "global_max_scenario": best["best"],
+        "wall_seconds": max(q["wall"] for q in parts),
+        "compile_seconds": max(q["compile"] for q in parts),
+        "chunk": plan_chunks(max(end - begin, 1), chunk), "devices": jax.local_device_count(),
+        "processes": num_processes,
+        "parts": [f"sweep.part-{i:05d}-of-{num_processes:05d}.parquet"
+                  for i in range(num_processes)] if multi else ["sweep.parquet"],
         "versions": cfg.versions(),
     }
-    config = {"command": "sweep", "space": space.describe(), "seed": space.seed,
-              "sut": sut.name, "chunk": chunk, **(extra_config or {})}
-    cfg.write_atomic(out_dir / "config.toml", cfg.dumps_toml(config))
-    cfg.write_atomic(out_dir / "summary.json", json.dumps(cfg.jsonable(summary), indent=2) + "\n")
-    os.replace(tmp_parquet, out_dir / "sweep.parquet")
+    if process_id == 0:
+        config = {"command": "sweep", "space": space.describe(), "seed": space.seed,
+                  "sut": sut.name, "chunk": chunk, "processes": num_processes,
+                  **(extra_config or {})}
+        cfg.write_atomic(out_dir / "config.toml", cfg.dumps_toml(config))
+        cfg.write_atomic(out_dir / "summary.json",
+                         json.dumps(cfg.jsonable(summary), indent=2) + "\n")
+    if multi:
+        barrier("jaxfalsify-sweep-summary-written")
     return summary
 
 

@@ -1,0 +1,55 @@
+"""Multi-process runs on JAX's own distributed runtime (``jax.distributed``).
+
+Every process evaluates its own contiguous share of the work on its local devices and writes
+its own result part; processes meet at barriers (``multihost_utils.sync_global_devices``) and
+process 0 writes the merged summary. On CPU the collectives behind the barriers use gloo.
+
+The coordinator address, process count and process id come from flags or from the usual
+environment variables ``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``, ``JAX_PROCESS_ID``.
+"""
+
+from __future__ import annotations
+
+import os
+
+import jax
+
+
+def initialize(coordinator: str | None = None, num_processes: int | None = None,
+               process_id: int | None = None) -> tuple[int, int]:
+    """Start ``jax.distributed``; returns ``(process_id, num_processes)``.
+
+    Raises ValueError (one line) naming what is missing or invalid.
+    """
+    coordinator = coordinator or os.environ.get("JAX_COORDINATOR_ADDRESS")
+    if num_processes is None and "JAX_NUM_PROCESSES" in os.environ:
+        num_processes = int(os.environ["JAX_NUM_PROCESSES"])
+    if process_id is None and "JAX_PROCESS_ID" in os.environ:
+        process_id = int(os.environ["JAX_PROCESS_ID"])
+    if not coordinator:
+        raise ValueError("--distributed needs --coordinator HOST:PORT "
+                         "(or JAX_COORDINATOR_ADDRESS)")
+    if num_processes is None or num_processes < 1:
+        raise ValueError("--distributed needs --num-processes N >= 1 (or JAX_NUM_PROCESSES)")
+    if process_id is None or not 0 <= process_id < num_processes:
+        raise ValueError(f"--process-id must be in 0..{num_processes - 1} (or JAX_PROCESS_ID)")
+    try:
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    except Exception:  # older jax without the option: CPU barriers may be unavailable
+        pass
+    jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
+                               process_id=process_id)
+    return process_id, num_processes
+
+
+def barrier(name: str) -> None:
+    """All processes wait here (no-op for a single process)."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(name)
+
+
+def share(n: int, process_id: int, num_processes: int) -> tuple[int, int]:
+    """This process's contiguous share ``[begin, end)`` of n items."""
+    return n * process_id // num_processes, n * (process_id + 1) // num_processes

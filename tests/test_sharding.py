@@ -1,0 +1,57 @@
+"""Many devices, one process: results on 4 forced host devices equal those on 1 device
+(evaluation, sweep, and search strategies' proposal batches)."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+HERE = Path(__file__).parent
+SPACE = """
+[parameters.ego_offset]
+values = [5, 7, 9]
+[parameters.ped_accel]
+values = [0.007, 0.076]
+[parameters.ped_speed]
+values = [1.0, 1.237, 1.5, 1.808]
+[parameters.ped_offset]
+values = [3.5, 4.0]
+[parameters.weather]
+values = [0, 8, 6]
+"""
+
+
+def _probe(tmp_path, devices):
+    space = tmp_path / "space.toml"
+    space.write_text(SPACE)
+    out = tmp_path / f"probe{devices}.npz"
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+    env["JAX_PLATFORMS"] = "cpu"
+    r = subprocess.run([sys.executable, str(HERE / "shard_probe.py"), str(out), str(space)],
+                       env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return dict(np.load(out))
+
+
+@pytest.fixture(scope="module")
+def probes(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("shard")
+    return _probe(tmp, 1), _probe(tmp, 4)
+
+
+def test_four_devices_were_used(probes):
+    one, four = probes
+    assert int(one["devices"]) == 1 and int(four["devices"]) == 4
+
+
+@pytest.mark.parametrize("prefix", ["eval_", "sweep_", "cem_", "reinforce_"])
+def test_sharded_equals_unsharded(probes, prefix):
+    one, four = probes
+    keys = [k for k in one if k.startswith(prefix)]
+    assert keys
+    for k in keys:
+        np.testing.assert_array_equal(four[k], one[k], err_msg=k)
