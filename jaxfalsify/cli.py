@@ -112,6 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", type=Path, help="folder for compare.json/.md "
                    "(default runs/compare-<timestamp>)")
     c.add_argument("--force", action="store_true")
+    _distributed_flags(c)
 
     pl = sub.add_parser("replay", help="rerun recording of a run's scenario")
     pl.add_argument("run_dir", type=Path, metavar="RUN_DIR")
@@ -144,6 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="most scenarios per compiled batch (default 131072)")
     s.add_argument("--force", action="store_true", help="overwrite an existing sweep in --out")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--rows", choices=("all", "collisions", "none"), default="all",
+                   help="scenarios written to Parquet (default all; none: summary only)")
     _distributed_flags(s)
 
     m = sub.add_parser("simulate", help="evaluate one concrete scenario and print its outcome")
@@ -185,11 +188,11 @@ def cmd_sweep(args) -> int:
                + (f" [process {pid}/{n_proc}]" if n_proc > 1 else ""))
     try:
         summary = run_sweep(sp, sut.name, out, chunk=args.chunk, progress=bar.update,
-                            process_id=pid, num_processes=n_proc)
+                            process_id=pid, num_processes=n_proc, rows=args.rows)
     finally:
         bar.close()
     if pid != 0:
-        print(f"process {pid}: wrote {out}/{summary['parts'][pid]}")
+        print(f"process {pid}: done ({out})")
         return 0
     best = summary["global_max_scenario"] or {}
     print(f"{summary['n_scenarios']} scenarios, {summary['n_collisions']} collisions "
@@ -197,7 +200,7 @@ def cmd_sweep(args) -> int:
           f"(compile {summary['compile_seconds']:.2f} s)")
     print(f"global maximum reward {summary['global_max_reward']:.4f} at "
           + ", ".join(f"{k}={v:g}" for k, v in best.get("values", {}).items()))
-    print(f"wrote {out}/{', '.join(summary['parts'])}, summary.json, config.toml")
+    print(f"wrote {out}/{', '.join(summary['parts'] + ['summary.json', 'config.toml'])}")
     return 0
 
 
@@ -313,6 +316,9 @@ def cmd_compare(args) -> int:
     if bad or not names:
         raise UsageError(f"--strategies: unknown strategy '{bad[0] if bad else ''}' "
                          f"(from {', '.join(STRATEGIES)})")
+    if args.distributed and not args.out:
+        raise UsageError("compare --distributed needs --out (a folder all processes share)")
+    pid, n_proc = _start_distributed(args)  # before anything touches the JAX backend
     base = RunConfig(space=args.space, space_seed=args.space_seed, sut=args.sut,
                      preset=args.preset, episodes=args.budget)
     try:
@@ -326,7 +332,11 @@ def cmd_compare(args) -> int:
     result = compare.run_compare(names, args.seeds, args.budget, base, args.sweep,
                                  progress=lambda row: print(f"  {row['strategy']}: done in "
                                                             f"{row['wall_seconds']:.1f} s",
-                                                            flush=True))
+                                                            flush=True),
+                                 process_id=pid, num_processes=n_proc, out_dir=out)
+    if pid != 0:
+        print(f"process {pid}: done")
+        return 0
     table = compare.table_markdown(result)
     print(f"{result['space']} space, {result['sut']}, budget {args.budget}, {args.seeds} seeds; "
           f"global max reward {result['global_max_reward']:.4f}, "

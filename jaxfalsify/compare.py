@@ -40,15 +40,20 @@ def ground_truth(sp: Space, sut: sut_lib.SUT, sweep_dir: Path | None, quiet: boo
     return {**cfg.jsonable(s), "dir": str(d), "loaded": False}
 
 
-def strategy_row(name: str, results: list[campaign.Result], truth: dict, wall: float) -> dict:
-    firsts = [campaign.first_collision_evaluation(r) for r in results]
-    found = [f for f in firsts if f is not None]
-    best = np.array([r.ranked_reward().max() for r in results])
+def seed_stats(seed: int, r: campaign.Result) -> dict:
+    return {"seed": seed, "first_collision": campaign.first_collision_evaluation(r),
+            "best": float(r.ranked_reward().max()),
+            "distinct": len(campaign.distinct_critical(r))}
+
+
+def strategy_row(name: str, stats: list[dict], truth: dict, wall: float) -> dict:
+    found = [s["first_collision"] for s in stats if s["first_collision"] is not None]
+    best = np.array([s["best"] for s in stats])
     gmax = truth["global_max_reward"]
-    distinct = np.array([len(campaign.distinct_critical(r)) for r in results])
+    distinct = np.array([s["distinct"] for s in stats])
     q = np.percentile(found, [25, 50, 75]) if found else [np.nan] * 3
-    return {"strategy": name, "seeds": len(results),
-            "found_collision_share": len(found) / len(results),
+    return {"strategy": name, "seeds": len(stats),
+            "found_collision_share": len(found) / len(stats),
             "first_collision_median": float(q[1]), "first_collision_iqr": [float(q[0]),
                                                                            float(q[2])],
             "best_over_global_max_median": float(np.median(best / gmax)),
@@ -59,10 +64,21 @@ def strategy_row(name: str, results: list[campaign.Result], truth: dict, wall: f
 
 
 def run_compare(strategies: list[str], seeds: int, budget: int, base: RunConfig,
-                sweep_dir: Path | None = None, progress=None) -> dict:
+                sweep_dir: Path | None = None, progress=None, process_id: int = 0,
+                num_processes: int = 1, out_dir: Path | None = None) -> dict:
+    """Every strategy on seeds 0..seeds-1. With several processes (``jax.distributed``),
+    process i runs its contiguous share of the seeds and writes a part; process 0 merges."""
+    from jaxfalsify.distributed import barrier, share
+
     sp, sut, _, _ = base.build()
-    truth = ground_truth(sp, sut, sweep_dir)
-    rows = []
+    if process_id == 0:
+        truth = ground_truth(sp, sut, sweep_dir)
+    barrier("jaxfalsify-compare-truth")
+    if process_id != 0:
+        truth = ground_truth(sp, sut, sweep_dir)  # written by process 0: just loads it
+    lo, hi = share(seeds, process_id, num_processes)
+    mine = list(range(lo, hi))
+    parts: dict[str, dict] = {}
     for entry in strategies:
         name, _, preset = entry.partition("/")  # reinforce/paper picks a preset
         rc = RunConfig(space=base.space, space_seed=base.space_seed, sut=base.sut,
@@ -70,14 +86,28 @@ def run_compare(strategies: list[str], seeds: int, budget: int, base: RunConfig,
                        preset=(preset or base.preset) if name == "reinforce" else None,
                        episodes=budget)
         sp, sut, strat, plan = rc.build()
-        t0 = time.perf_counter()
-        results = campaign.run_seeds(sp, sut, strat, plan, list(range(seeds)))
         label = f"reinforce/{rc.resolved().preset}" if name == "reinforce" else name
-        rows.append(strategy_row(label, results, truth, time.perf_counter() - t0))
-        if progress:
-            progress(rows[-1])
+        t0 = time.perf_counter()
+        results = campaign.run_seeds(sp, sut, strat, plan, mine) if mine else []
+        parts[label] = {"stats": [seed_stats(s, r) for s, r in zip(mine, results)],
+                        "wall": time.perf_counter() - t0}
+        if progress and num_processes == 1:
+            progress(strategy_row(label, parts[label]["stats"], truth, parts[label]["wall"]))
+    if num_processes > 1:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        cfg.write_atomic(out_dir / f".compare.part-{process_id:05d}.json",
+                         json.dumps(cfg.jsonable(parts)) + "\n")
+        barrier("jaxfalsify-compare-parts")
+        all_parts = [json.loads((out_dir / f".compare.part-{i:05d}.json").read_text())
+                     for i in range(num_processes)]
+        merged = {k: {"stats": sum((p[k]["stats"] for p in all_parts), []),
+                      "wall": max(p[k]["wall"] for p in all_parts)} for k in parts}
+    else:
+        merged = parts
+    rows = [strategy_row(k, v["stats"], truth, v["wall"]) for k, v in merged.items()]
     return {"space": sp.name, "space_seed": sp.seed, "sut": sut.name, "budget": budget,
-            "seeds": seeds, "global_max_reward": truth["global_max_reward"],
+            "seeds": seeds, "processes": num_processes,
+            "global_max_reward": truth["global_max_reward"],
             "n_scenarios": truth["n_scenarios"], "all_critical": truth["n_collisions"],
             "ground_truth": truth["dir"], "rows": rows, "versions": cfg.versions()}
 

@@ -116,13 +116,17 @@ class Reducer:
 def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = sim.WORLD,
               chunk: int = DEFAULT_CHUNK, progress: Callable[[int], None] | None = None,
               extra_config: dict | None = None, process_id: int = 0,
-              num_processes: int = 1) -> dict:
+              num_processes: int = 1, rows: str = "all") -> dict:
     """Sweep the whole space, streaming rows to ``out_dir/sweep.parquet``; returns the summary.
 
     With several processes (``jax.distributed`` initialised), process i sweeps its contiguous
     share of the scenario numbers into ``sweep.part-<i>-of-<n>.parquet``; after a barrier,
-    process 0 merges the parts' summaries into ``summary.json``.
+    process 0 merges the parts' summaries into ``summary.json``. ``rows`` selects what goes
+    to Parquet: ``all`` scenarios, only ``collisions``, or ``none`` (summary only, for huge
+    spaces).
     """
+    if rows not in ("all", "collisions", "none"):
+        raise ValueError(f"rows must be all, collisions or none (got {rows!r})")
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -144,11 +148,17 @@ def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = 
         for b, e, cols in iter_sweep(space, sut, world, chunk, begin, end):
             if b == begin:
                 compile_s = time.perf_counter() - t0
-            table = pa.table(cols)
-            if writer is None:
-                writer = pq.ParquetWriter(tmp_parquet, table.schema)
-            writer.write_table(table)
             red.add(cols)
+            if rows == "none":
+                pass
+            else:
+                if rows == "collisions":
+                    keep = cols["collision"]
+                    cols = {k: v[keep] for k, v in cols.items()}
+                table = pa.table(cols)
+                if writer is None:
+                    writer = pq.ParquetWriter(tmp_parquet, table.schema)
+                writer.write_table(table)
             if progress:
                 progress(e - b)
         wall = time.perf_counter() - t0
@@ -158,7 +168,8 @@ def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = 
     part = {"process_id": process_id, "n": red.n, "collisions": red.collisions,
             "nonfinite": red.nonfinite, "best_reward": red.best_reward,
             "best": _scenario_of(space, red.best_row), "wall": wall, "compile": compile_s}
-    os.replace(tmp_parquet, out_dir / name)
+    if writer is not None:
+        os.replace(tmp_parquet, out_dir / name)
     if multi:
         cfg.write_atomic(out_dir / f".summary.part-{process_id:05d}.json",
                          json.dumps(cfg.jsonable(part)) + "\n")
@@ -182,8 +193,10 @@ def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = 
         "compile_seconds": max(q["compile"] for q in parts),
         "chunk": plan_chunks(max(end - begin, 1), chunk), "devices": jax.local_device_count(),
         "processes": num_processes,
-        "parts": [f"sweep.part-{i:05d}-of-{num_processes:05d}.parquet"
-                  for i in range(num_processes)] if multi else ["sweep.parquet"],
+        "rows": rows,
+        "parts": [] if rows == "none" else
+        ([f"sweep.part-{i:05d}-of-{num_processes:05d}.parquet" for i in range(num_processes)]
+         if multi else ["sweep.parquet"]),
         "versions": cfg.versions(),
     }
     if process_id == 0:

@@ -70,3 +70,31 @@ def test_distributed_flags_need_their_values(capsys):
     assert "--coordinator" in capsys.readouterr().err
     assert main(["sweep", "--process-id", "1"]) == 2
     assert "need --distributed" in capsys.readouterr().err
+
+
+def test_two_process_compare_equals_single_process(tmp_path):
+    from jaxfalsify.cli import main
+
+    space = tmp_path / "space.toml"
+    space.write_text(SPACE)
+    sweep = tmp_path / "sweep"
+    common = ["compare", "--strategies", "random,cem", "--seeds", "3", "--budget", "40",
+              "--space", str(space), "--sweep", str(sweep)]
+    assert main(common + ["--out", str(tmp_path / "single")]) == 0
+    port = _free_port()
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    procs = [subprocess.Popen(
+        [sys.executable, "-m", "jaxfalsify.cli", *common, "--out", str(tmp_path / "multi"),
+         "--distributed", "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2",
+         "--process-id", str(i)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True) for i in range(2)]
+    for p in procs:
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err[-2000:]
+    single = json.loads((tmp_path / "single" / "compare.json").read_text())
+    multi = json.loads((tmp_path / "multi" / "compare.json").read_text())
+    assert multi["processes"] == 2
+    for a, b in zip(single["rows"], multi["rows"]):
+        a.pop("wall_seconds"), b.pop("wall_seconds")
+        assert a == b
