@@ -38,12 +38,13 @@ def batch_sharding():
 
 
 def plan_chunks(size: int, chunk: int = DEFAULT_CHUNK) -> int:
-    """Balanced chunk size: as few chunks as ``chunk`` allows, equal sizes, a multiple of the
-    local device count (so the batch shards evenly)."""
-    n_dev = jax.local_device_count()
+    """Balanced chunk size: as few chunks as ``chunk`` allows, about equal sizes, rounded up
+    to a multiple of 256 x the local device count — the batch shards evenly, and XLA's CPU
+    loops vectorise fully (an odd batch such as 129,871 ran 4x slower than 130,048)."""
+    align = 256 * jax.local_device_count()
     n_chunks = max(1, -(-size // chunk))
     per = -(-size // n_chunks)
-    return -(-per // n_dev) * n_dev
+    return -(-per // align) * align
 
 
 @partial(jax.jit, static_argnames=("space", "sut", "world", "chunk", "sharding"))
