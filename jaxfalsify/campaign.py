@@ -146,15 +146,12 @@ def _compiled(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan
     return jax.jit(init), jax.jit(run_chunk)
 
 
-def run(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan, seed: int,
-        world: sim.World = sim.WORLD, progress: Callable[[int, Result | None], None] | None = None
-        ) -> Result:
-    """One seed, chunk by chunk on the host (progress callback after each chunk)."""
+def _drive(init, step, keys, p: Plan, progress=None):
+    """Host loop over chunks of updates: returns (records, compile seconds, wall seconds)."""
     import time
 
-    init, step = _compiled(space, sut, strategy, p, world, False)
     t0 = time.perf_counter()
-    carry = init(jax.random.key(seed))
+    carry = init(keys)
     records, compile_s = [], 0.0
     for c in range(p.n_chunks):
         carry, rec = step(carry)
@@ -163,25 +160,24 @@ def run(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan, seed
             compile_s = time.perf_counter() - t0
         if progress:
             progress(min((c + 1) * p.updates_per_chunk * p.batch, p.budget), records)
-    wall = time.perf_counter() - t0
+    return records, compile_s, time.perf_counter() - t0
+
+
+def run(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan, seed: int,
+        world: sim.World = sim.WORLD, progress: Callable[[int, Result | None], None] | None = None
+        ) -> Result:
+    """One seed, chunk by chunk on the host (progress callback after each chunk)."""
+    init, step = _compiled(space, sut, strategy, p, world, False)
+    records, compile_s, wall = _drive(init, step, jax.random.key(seed), p, progress)
     return collect(records, space, p, compile_s, wall)
 
 
 def run_seeds(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan,
               seeds: list[int], world: sim.World = sim.WORLD) -> list[Result]:
     """Many seeds in one compiled function (the campaign mapped over keys)."""
-    import time
-
     init, step = _compiled(space, sut, strategy, p, world, True)
-    t0 = time.perf_counter()
-    carry = init(jnp.stack([jax.random.key(s) for s in seeds]))
-    records, compile_s = [], 0.0
-    for c in range(p.n_chunks):
-        carry, rec = step(carry)
-        records.append(jax.tree.map(np.asarray, rec))
-        if c == 0:
-            compile_s = time.perf_counter() - t0
-    wall = time.perf_counter() - t0
+    keys = jnp.stack([jax.random.key(s) for s in seeds])
+    records, compile_s, wall = _drive(init, step, keys, p)
     return collect(records, space, p, compile_s, wall, seed_axis=0)
 
 
