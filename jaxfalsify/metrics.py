@@ -76,12 +76,3 @@ def time_to_collision(gap_x: ArrayLike, gap_y: ArrayLike, closing_x: ArrayLike,
     s2, e2 = interval(gap_y, closing_y, span_y)
     start = jnp.maximum(s1, s2)
     return jnp.where(start <= jnp.minimum(e1, e2), start, inf)
-
-
-def stl_always_not_clash(distance: ArrayLike, valid: ArrayLike, epsilon: float = 1.0):
-    """Robustness of req = always(not dist < eps) (paper Eq. 1) over the valid steps [m].
-
-    rho = min over valid steps of (distance - eps): negative iff the requirement is violated.
-    ``distance`` and ``valid`` are ``(T,)``; returns a scalar.
-    """
-    return jnp.min(jnp.where(valid, jnp.asarray(distance) - epsilon, jnp.inf))

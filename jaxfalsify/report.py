@@ -58,7 +58,7 @@ def write_report(run_dir: Path) -> Path:
               f"jaxfalsify figures {run_dir}",
               f"jaxfalsify replay {run_dir} --scenario best --scenarios 14",
               f"jaxfalsify export {run_dir} --scenario best --out {run_dir}/openscenario",
-              f"jaxfalsify simulate " + " ".join(f"{n}={ep[n][b]:g}" for n in sp.names)
+              "jaxfalsify simulate " + " ".join(f"{n}={ep[n][b]:g}" for n in sp.names)
               + f" --sut {s['sut']}", "```", "",
               f"Files: `config.toml` (resolved configuration), `episodes.parquet` (every "
               f"evaluated scenario), `summary.json`, `critical.csv` "

@@ -47,12 +47,3 @@ def sample_categorical(key, probs: jax.Array, batch: int) -> jax.Array:
     logits = jnp.where(probs > 0, logits, -jnp.inf)
     return jax.random.categorical(key, logits, axis=-1, shape=(batch, probs.shape[0])
                                   ).astype(jnp.int32)
-
-
-def finite_or_floor(rewards: jax.Array) -> jax.Array:
-    """Replace -inf/NaN by (lowest finite reward - 1) for strategies that do arithmetic on
-    rewards (ranking-based ones can use -inf directly)."""
-    ok = jnp.isfinite(rewards)
-    floor = jnp.min(jnp.where(ok, rewards, jnp.inf))
-    floor = jnp.where(jnp.isfinite(floor), floor, 0.0) - 1.0
-    return jnp.where(ok, rewards, floor)
