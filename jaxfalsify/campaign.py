@@ -42,12 +42,16 @@ class Plan(NamedTuple):
         return self.n_updates // self.updates_per_chunk
 
 
-def plan(budget: int, batch: int, chunks_target: int = 20) -> Plan:
-    """Updates needed for the budget, and a chunking of them (a divisor) for progress."""
+def plan(budget: int, batch: int, chunks_target: int = 20, every: int | None = None) -> Plan:
+    """Updates needed for the budget, and a chunking of them (a divisor) for progress and
+    checkpoints: about ``chunks_target`` chunks, or at most ``every`` updates per chunk.
+    Results do not depend on the chunking (the same update function is scanned)."""
     if budget <= 0:
         raise ValueError(f"budget (--episodes) must be positive (got {budget})")
+    if batch <= 0:
+        raise ValueError(f"batch must be positive (got {batch})")
     n_updates = -(-budget // batch)
-    per = max(1, n_updates // chunks_target)
+    per = min(every, n_updates) if every else max(1, n_updates // chunks_target)
     while n_updates % per:
         per -= 1
     return Plan(batch, n_updates, per, budget)
@@ -146,30 +150,64 @@ def _compiled(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan
     return jax.jit(init), jax.jit(run_chunk)
 
 
-def _drive(init, step, keys, p: Plan, progress=None):
-    """Host loop over chunks of updates: returns (records, compile seconds, wall seconds)."""
+def _drive(init, step, keys, p: Plan, progress=None, checkpoint=None, resumed=None):
+    """Host loop over chunks of updates: returns (records, compile seconds, wall seconds).
+
+    With a :class:`~jaxfalsify.checkpoint.CampaignCheckpoint`, every chunk is committed to it
+    as soon as it is done; ``resumed = (carry, records)`` (from :func:`restore`) continues
+    after the chunks those records hold.
+    """
     import time
 
     t0 = time.perf_counter()
-    carry = init(keys)
-    records, compile_s = [], 0.0
-    for c in range(p.n_chunks):
+    carry, records = resumed if resumed and resumed[0] is not None else (init(keys), [])
+    records = list(records)
+    compile_s = 0.0
+    if progress and records:
+        progress(min(len(records) * p.updates_per_chunk * p.batch, p.budget), records)
+    for c in range(len(records), p.n_chunks):
         carry, rec = step(carry)
         records.append(jax.tree.map(np.asarray, rec))
-        if c == 0:
+        done = min((c + 1) * p.updates_per_chunk * p.batch, p.budget)
+        if checkpoint is not None:
+            checkpoint.save(c, carry, records[-1], done)
+        if not compile_s:
             compile_s = time.perf_counter() - t0
         if progress:
-            progress(min((c + 1) * p.updates_per_chunk * p.batch, p.budget), records)
+            progress(done, records)
     return records, compile_s, time.perf_counter() - t0
 
 
 def run(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan, seed: int,
-        world: sim.World = sim.WORLD, progress: Callable[[int, Result | None], None] | None = None
-        ) -> Result:
-    """One seed, chunk by chunk on the host (progress callback after each chunk)."""
+        world: sim.World = sim.WORLD, progress: Callable[[int, Result | None], None] | None = None,
+        checkpoint=None, resumed=None) -> Result:
+    """One seed, chunk by chunk on the host (progress callback after each chunk).
+
+    ``checkpoint``/``resumed``: see :func:`_drive` and :func:`restore`. A resumed run gives
+    bit-identical results to an uninterrupted one: the carry (strategy and optimiser state,
+    PRNG key, update count) is restored exactly and the same compiled chunk continues.
+    """
     init, step = _compiled(space, sut, strategy, p, world, False)
-    records, compile_s, wall = _drive(init, step, jax.random.key(seed), p, progress)
+    records, compile_s, wall = _drive(init, step, jax.random.key(seed), p, progress,
+                                      checkpoint, resumed)
     return collect(records, space, p, compile_s, wall)
+
+
+def restore(checkpoint, space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan,
+            seed: int, world: sim.World = sim.WORLD):
+    """``(carry, records)`` saved in ``checkpoint`` for this configuration (``(None, [])``
+    if none yet); raises :class:`~jaxfalsify.checkpoint.CheckpointError` if unusable."""
+    from jaxfalsify.checkpoint import CheckpointError
+
+    init, _ = _compiled(space, sut, strategy, p, world, False)
+    carry, records = checkpoint.load(jax.eval_shape(init, jax.random.key(seed)))
+    want = {"indices": (p.updates_per_chunk, p.batch, len(space.shape)),
+            **{f: (p.updates_per_chunk, p.batch) for f in RECORD_FIELDS}}
+    if len(records) > p.n_chunks or any(
+            set(r) != set(want) or any(r[k].shape != want[k] for k in want) for r in records):
+        raise CheckpointError(f"checkpoint {checkpoint.folder}: its records do not fit this "
+                              "run's plan")
+    return carry, records
 
 
 def run_seeds(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan,

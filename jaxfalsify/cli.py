@@ -97,6 +97,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-figures", action="store_true", dest="no_figures",
                    help="skip figures/ and report.md")
     r.add_argument("--rerun", action="store_true", help="also save best.rrd (rerun recording)")
+    r.add_argument("--resume", type=Path, metavar="RUN_DIR",
+                   help="continue an interrupted run from its last checkpoint (its config.toml "
+                   "is used; only --quiet, --no-figures and --rerun may be added)")
+    r.add_argument("--checkpoint-every", type=_positive_int("--checkpoint-every"),
+                   dest="checkpoint_every", help="updates between checkpoints, rounded down to "
+                   "a divisor of the number of updates (default: about 1/20 of the run)")
 
     c = sub.add_parser("compare", help="all strategies x seeds vs the exhaustive sweep")
     c.add_argument("--strategies", default="reinforce,random,cem,anneal,cmaes",
@@ -134,19 +140,20 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("run_dir", type=Path, metavar="RUN_DIR")
 
     s = sub.add_parser("sweep", help="evaluate every concrete scenario of a space")
-    s.add_argument("--space", default="paper", help="built-in name (paper, paper-extended) or a "
-                   "TOML file (default: paper)")
-    s.add_argument("--seed", type=_seed, default=0, help="discretisation seed (default 0)")
-    s.add_argument("--sut", default="carla-tm", help=f"system under test: {', '.join(SUTS)} "
-                   "(default carla-tm)")
+    s.add_argument("--space", help="built-in name (paper, paper-extended) or a TOML file "
+                   "(default: paper)")
+    s.add_argument("--seed", type=_seed, help="discretisation seed (default 0)")
+    s.add_argument("--sut", help=f"system under test: {', '.join(SUTS)} (default carla-tm)")
     s.add_argument("--out", type=Path, default=None,
                    help="output folder (default sweeps/<space>-<sut>-s<seed>)")
-    s.add_argument("--chunk", type=_positive_int("--chunk"), default=1 << 17,
-                   help="most scenarios per compiled batch (default 131072)")
+    s.add_argument("--chunk", type=_positive_int("--chunk"),
+                   help=f"most scenarios per compiled batch (default {1 << 17})")
     s.add_argument("--force", action="store_true", help="overwrite an existing sweep in --out")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
-    s.add_argument("--rows", choices=("all", "collisions", "none"), default="all",
+    s.add_argument("--rows", choices=("all", "collisions", "none"),
                    help="scenarios written to Parquet (default all; none: summary only)")
+    s.add_argument("--resume", type=Path, metavar="OUT",
+                   help="continue an interrupted sweep in OUT (its config.toml is used)")
     _distributed_flags(s)
 
     m = sub.add_parser("simulate", help="evaluate one concrete scenario and print its outcome")
@@ -157,29 +164,89 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _check_out(out: Path, marker: str, force: bool) -> None:
+    """Refuse an --out that is not a folder, holds finished results (without --force), or
+    cannot be written (probed by creating and removing a temporary file)."""
+    import tempfile
+
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} exists and is not a folder")
     if (out / marker).exists() and not force:
         raise UsageError(f"--out {out} already holds {marker}; pass --force to overwrite")
     parent = out if out.exists() else next((a for a in out.parents if a.exists()), Path("."))
-    if not os.access(parent, os.W_OK):
-        raise UsageError(f"--out {out}: folder {parent} is not writable")
+    if not parent.is_dir():
+        raise UsageError(f"--out {out}: {parent} is not a folder")
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        raise UsageError(f"--out {out}: cannot write in {parent} ({e.strerror})") from None
+
+
+def _check_unfinished(out: Path, force: bool, command: str) -> None:
+    if not force and ((out / "checkpoint").exists() or (out / "status.json").exists()
+                      or any(out.glob("checkpoint*"))):
+        raise UsageError(f"--out {out} holds an unfinished {command}; pass --resume {out} to "
+                         "continue it or --force to start over")
+
+
+SWEEP_FLAGS = ("space", "seed", "sut", "chunk", "rows", "out")
+
+
+def _sweep_config(args):
+    """``(space, sut, out, chunk, rows)`` from --resume OUT's config.toml or from the flags."""
+    import tomllib
+
+    from jaxfalsify import sut as sut_lib
+    from jaxfalsify.space import space as load_space, space_from_dict
+
+    if args.resume is None:
+        sp = load_space(args.space or "paper", seed=args.seed or 0)
+        sut = sut_lib.get(args.sut or "carla-tm")
+        out = args.out or Path("sweeps") / f"{Path(sp.name).stem}-{sut.name}-s{sp.seed}"
+        return sp, sut, out, args.chunk or (1 << 17), args.rows or "all"
+    given = [k for k in SWEEP_FLAGS if getattr(args, k) is not None]
+    if given or args.force:
+        flag = "--" + (given[0] if given else "force")
+        raise UsageError(f"{flag} cannot be combined with --resume (the sweep's own "
+                         "config.toml is used)")
+    out = args.resume
+    path = out / "config.toml"
+    if not path.is_file():
+        raise UsageError(f"--resume {out}: no config.toml there (not a sweep folder)")
+    if (out / "summary.json").exists():
+        raise UsageError(f"--resume {out}: the sweep is already complete (summary.json)")
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise UsageError(f"{path}: malformed TOML: {e}") from None
+    if doc.get("command") != "sweep":
+        raise UsageError(f"--resume {out}: {path} is not a sweep's config")
+    try:
+        sp = space_from_dict(doc["space"], doc["seed"])
+        sut = sut_lib.get(doc["sut"])
+        chunk, rows = int(doc["chunk"]), doc["rows"]
+    except KeyError as e:
+        raise UsageError(f"{path}: missing key {e}") from None
+    except (TypeError, ValueError) as e:
+        raise UsageError(f"{path}: {e}") from None
+    if args.distributed and doc.get("processes") != (args.num_processes or doc.get("processes")):
+        raise UsageError(f"--resume {out}: the sweep ran on {doc.get('processes')} processes")
+    return sp, sut, out, chunk, rows
 
 
 def cmd_sweep(args) -> int:
     from tqdm import tqdm
 
-    from jaxfalsify.space import space as load_space
-    from jaxfalsify import sut as sut_lib
+    from jaxfalsify.checkpoint import CheckpointError
     from jaxfalsify.sweep import run_sweep
 
     try:
-        sp = load_space(args.space, seed=args.seed)
-        sut = sut_lib.get(args.sut)
+        sp, sut, out, chunk, rows = _sweep_config(args)
     except ValueError as e:
         raise UsageError(str(e)) from None
-    out = args.out or Path("sweeps") / f"{Path(sp.name).stem}-{sut.name}-s{args.seed}"
-    _check_out(out, "summary.json", args.force)
+    if args.resume is None:
+        _check_out(out, "summary.json", args.force)
+        _check_unfinished(out, args.force, "sweep")
     pid, n_proc = _start_distributed(args)
     from jaxfalsify.distributed import share
     begin, end = share(sp.size, pid, n_proc)
@@ -187,8 +254,16 @@ def cmd_sweep(args) -> int:
                desc=f"sweep {sp.name} / {sut.name}"
                + (f" [process {pid}/{n_proc}]" if n_proc > 1 else ""))
     try:
-        summary = run_sweep(sp, sut.name, out, chunk=args.chunk, progress=bar.update,
-                            process_id=pid, num_processes=n_proc, rows=args.rows)
+        summary = run_sweep(sp, sut.name, out, chunk=chunk, progress=bar.update,
+                            process_id=pid, num_processes=n_proc, rows=rows,
+                            resume=args.resume is not None)
+    except CheckpointError as e:
+        raise UsageError(f"{e}; start over with --force --out {out}") from None
+    except KeyboardInterrupt:
+        bar.close()
+        print(f"jaxfalsify: interrupted after {bar.n} of {end - begin} scenarios; {out} is "
+              f"resumable: jaxfalsify sweep --resume {out}", file=sys.stderr)
+        return 130
     finally:
         bar.close()
     if pid != 0:
@@ -200,50 +275,99 @@ def cmd_sweep(args) -> int:
           f"(compile {summary['compile_seconds']:.2f} s)")
     print(f"global maximum reward {summary['global_max_reward']:.4f} at "
           + ", ".join(f"{k}={v:g}" for k, v in best.get("values", {}).items()))
-    print(f"wrote {out}/{', '.join(summary['parts'] + ['summary.json', 'config.toml'])}")
+    print(f"wrote {out}/{', '.join(summary['parts'] + ['summary.json', 'timing.json', 'config.toml'])}")
     return 0
+
+
+RUN_FLAGS = ("space", "space_seed", "sut", "strategy", "preset", "episodes", "batch", "seed",
+             "checkpoint_every")
+
+
+def _run_config(args):
+    """The run's config and folder: from --resume RUN_DIR, or from --config and flags."""
+    from jaxfalsify.runs import RunConfig, config_from_toml, default_run_dir
+
+    if args.resume is not None:
+        given = [k for k in RUN_FLAGS + ("config", "out") if getattr(args, k) is not None]
+        if given or args.force:
+            flag = "--" + (given[0].replace("_", "-") if given else "force")
+            raise UsageError(f"{flag} cannot be combined with --resume (the run's own "
+                             "config.toml is used)")
+        out = args.resume
+        if not (out / "config.toml").is_file():
+            raise UsageError(f"--resume {out}: no config.toml there (not a run folder)")
+        if (out / "summary.json").exists():
+            raise UsageError(f"--resume {out}: the run is already complete (summary.json)")
+        return config_from_toml(out / "config.toml"), out
+    base = config_from_toml(args.config) if args.config else RunConfig()
+    flags = {k: getattr(args, k) for k in RUN_FLAGS if getattr(args, k) is not None}
+    if "space" in flags and args.config:
+        flags.setdefault("space_seed", base.space_seed)
+    rc = dataclasses.replace(base, **flags)
+    if rc.strategy != "reinforce" and "preset" in flags:
+        raise ValueError(f"--preset applies to strategy 'reinforce', not '{rc.strategy}'")
+    return rc, args.out or default_run_dir(rc.resolved().strategy)
 
 
 def cmd_run(args) -> int:
     from tqdm import tqdm
 
     from jaxfalsify import campaign
-    from jaxfalsify.runs import RunConfig, closing_report, config_from_toml, default_run_dir, \
-        write_run
+    from jaxfalsify.checkpoint import CheckpointError
+    from jaxfalsify.runs import checkpoint_for, closing_report, start_run, write_run, \
+        write_status
 
     try:
-        base = config_from_toml(args.config) if args.config else RunConfig()
-        flags = {k: getattr(args, k) for k in ("space", "space_seed", "sut", "strategy",
-                                               "preset", "episodes", "batch", "seed")
-                 if getattr(args, k) is not None}
-        if "space" in flags and args.config:
-            flags.setdefault("space_seed", base.space_seed)
-        rc = dataclasses.replace(base, **flags)
-        if rc.strategy != "reinforce" and "preset" in flags:
-            raise ValueError(f"--preset applies to strategy 'reinforce', not '{rc.strategy}'")
+        rc, out = _run_config(args)
         sp, sut, strat, plan = rc.build()
     except ValueError as e:
         raise UsageError(str(e)) from None
     rc = rc.resolved()
-    out = args.out or default_run_dir(rc.strategy)
-    _check_out(out, "summary.json", args.force)
+    ckpt = checkpoint_for(out, rc, plan, sp)
+    resumed = None
+    if args.resume is not None:
+        try:
+            resumed = campaign.restore(ckpt, sp, sut, strat, plan, rc.seed)
+        except CheckpointError as e:
+            raise UsageError(f"{e}; start over with --force --out {out}") from None
+    else:
+        _check_out(out, "summary.json", args.force)
+        _check_unfinished(out, args.force, "run")
+    start_from = sum(len(r["reward"].reshape(-1)) for r in resumed[1]) if resumed else 0
+    start_from = min(start_from, plan.budget)
+    if resumed is None:
+        start_run(out, rc, sp, plan.budget, args.force)
+    else:
+        write_status(out, "running", budget=plan.budget, resumed_from_evaluation=start_from)
+        if not args.quiet:
+            print(f"resuming {out} at evaluation {start_from} of {plan.budget}")
     bar = tqdm(total=plan.budget, unit="eval", disable=args.quiet,
                desc=f"{rc.strategy}{'/' + rc.preset if rc.preset else ''} on {sp.name}")
 
     def progress(done, records):
-        last = records[-1]
-        r = np.where(np.isnan(last["reward"]), -np.inf, last["reward"])
-        progress.best = max(progress.best, float(r.max()))
-        progress.collisions += int(np.sum(last["collision"]))
+        fresh = records[progress.seen:]
+        progress.seen = len(records)
+        for rec in fresh:
+            r = np.where(np.isnan(rec["reward"]), -np.inf, rec["reward"])
+            progress.best = max(progress.best, float(r.max()))
+            progress.collisions += int(np.sum(rec["collision"]))
+        progress.done = done
         bar.set_postfix(best=f"{progress.best:.4f}", collisions=progress.collisions)
         bar.update(done - bar.n)
 
-    progress.best, progress.collisions = -np.inf, 0
+    progress.best, progress.collisions, progress.seen, progress.done = -np.inf, 0, 0, start_from
     try:
-        res = campaign.run(sp, sut, strat, plan, rc.seed, progress=progress)
+        res = campaign.run(sp, sut, strat, plan, rc.seed, progress=progress, checkpoint=ckpt,
+                           resumed=resumed)
+    except KeyboardInterrupt:
+        bar.close()
+        write_status(out, "interrupted", evaluations_done=progress.done, budget=plan.budget)
+        print(f"jaxfalsify: interrupted after {progress.done} of {plan.budget} evaluations; "
+              f"{out} is resumable: jaxfalsify run --resume {out}", file=sys.stderr)
+        return 130
     finally:
         bar.close()
-    summary = write_run(out, res, rc)
+    summary = write_run(out, res, rc, resumed_from=start_from)
     if not args.quiet:
         print(closing_report(res, summary))
     extra = ""
@@ -257,7 +381,8 @@ def cmd_run(args) -> int:
         from jaxfalsify.replay import record
         record(out, "best", save=out / "best.rrd", overlay=14)
         extra += ", best.rrd"
-    print(f"wrote {out}/ (config.toml, episodes.parquet, summary.json, critical.csv{extra})")
+    print(f"wrote {out}/ (config.toml, episodes.parquet, summary.json, critical.csv, "
+          f"timing.json{extra})")
     return 0
 
 

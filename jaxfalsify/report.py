@@ -22,6 +22,13 @@ FIGURES = [("reward_per_episode.png", "Reward per evaluation (paper Fig. 7)"),
 def write_report(run_dir: Path) -> Path:
     run_dir = Path(run_dir)
     sp, rc, s, ep = load_run(run_dir)
+    import json
+    timing = (json.loads((run_dir / "timing.json").read_text())
+              if (run_dir / "timing.json").exists() else {})
+    wall = (f"{timing['wall_seconds']:.1f} s ({timing['compile_seconds']:.1f} s compile)"
+            + (f", resumed at evaluation {timing['resumed_from_evaluation']}"
+               if timing.get("resumed_from_evaluation") else "")
+            if "wall_seconds" in timing else "not recorded")
     rows = pick(ep, sp)
     b, t = rows["best"], rows["typical"]
     fc = s["first_collision_evaluation"]
@@ -37,7 +44,7 @@ def write_report(run_dir: Path) -> Path:
              f"| best reward | {s['best']['reward']:.4f} at evaluation "
              f"{s['best']['evaluation']} |",
              f"| converged (running best within 1 %) at | {s['convergence_evaluation']} |",
-             f"| wall time | {s['wall_seconds']:.1f} s ({s['compile_seconds']:.1f} s compile) |",
+             f"| wall time | {wall} |",
              "", "## Best critical scenario (paper Table II layout)", "",
              "| parameter | challenging (best) | non-challenging (typical) |", "|---|---|---|"]
     for n, u in zip(sp.names, sp.units):

@@ -6,8 +6,14 @@ A run directory holds:
   ``jaxfalsify run --config RUN/config.toml`` repeats the run;
 * ``episodes.parquet`` — every evaluated concrete scenario;
 * ``summary.json`` — the run's outcome (see README, 'The main job');
-* ``critical.csv`` — the distinct collision scenarios found, ranked by reward.
+* ``critical.csv`` — the distinct collision scenarios found, ranked by reward;
+* ``timing.json`` — wall and compile seconds (kept out of ``summary.json``, which is
+  bit-identical between runs of the same config and seed);
+* ``status.json`` — ``running``, ``interrupted`` or ``complete``, and how to resume;
+* ``checkpoint/`` — while the run is unfinished: the state to resume from
+  (see :mod:`jaxfalsify.checkpoint`); removed once the results are written.
 
+``config.toml`` and ``status.json`` are written when the run starts; the results when it ends.
 Files are written under temporary names and renamed, so nothing is left half-written.
 """
 
@@ -43,6 +49,7 @@ class RunConfig:
     episodes: int = PAPER_BUDGET
     batch: int | None = None
     seed: int = 0
+    checkpoint_every: int | None = None  # updates between checkpoints (None: ~1/20 of the run)
 
     def resolved(self) -> "RunConfig":
         preset = self.preset if self.strategy == "reinforce" else None
@@ -58,6 +65,8 @@ class RunConfig:
         _check_int("episodes", self.episodes, minimum=1)
         if self.batch is not None:
             _check_int("batch", self.batch, minimum=1)
+        if self.checkpoint_every is not None:
+            _check_int("checkpoint_every", self.checkpoint_every, minimum=1)
         if isinstance(self.space, dict):
             sp = space_from_dict(self.space, self.space_seed)
         else:
@@ -68,13 +77,13 @@ class RunConfig:
             raise ValueError(f"batch={r.batch} exceeds the space's {sp.size} scenarios "
                              "(strategy 'grid' would repeat scenarios within one batch)")
         strat = search.make(r.strategy, sp.shape, r.batch, r.preset or "default")
-        return sp, sut, strat, campaign.plan(r.episodes, r.batch)
+        return sp, sut, strat, campaign.plan(r.episodes, r.batch, every=r.checkpoint_every)
 
     def to_toml(self, sp: Space) -> str:
         r = self.resolved()
         doc = {"strategy": r.strategy, "preset": r.preset, "sut": r.sut, "seed": r.seed,
                "episodes": r.episodes, "batch": r.batch, "space_seed": r.space_seed,
-               "space": sp.describe()}
+               "checkpoint_every": r.checkpoint_every, "space": sp.describe()}
         return cfg.dumps_toml(doc)
 
 
@@ -134,7 +143,6 @@ def summary_dict(res: campaign.Result, rc: RunConfig) -> dict:
             "n_distinct_critical": len(crit),
             "n_nonfinite": int(np.sum(res.fields["nonfinite"])),
             "best": best, "convergence_evaluation": campaign.convergence_evaluation(res),
-            "wall_seconds": res.wall_seconds, "compile_seconds": res.compile_seconds,
             "versions": cfg.versions()}
 
 
@@ -152,8 +160,46 @@ def critical_csv(res: campaign.Result) -> str:
     return buf.getvalue()
 
 
-def write_run(out: Path, res: campaign.Result, rc: RunConfig) -> dict:
-    """Write the run directory's four files (atomically); returns the summary."""
+RESULT_FILES = ("episodes.parquet", "summary.json", "critical.csv", "timing.json",
+                "report.md", "best.rrd")
+
+
+def checkpoint_for(out: Path, rc: RunConfig, p: campaign.Plan, sp: Space):
+    """The run's checkpoint folder, fingerprinted by the resolved config and the plan."""
+    from jaxfalsify.checkpoint import CampaignCheckpoint
+
+    fp = {"config": rc.to_toml(sp), "plan": list(p)}
+    return CampaignCheckpoint(out / "checkpoint", json.loads(json.dumps(fp)))
+
+
+def write_status(out: Path, state: str, **extra) -> None:
+    doc = {"state": state, **extra}
+    if state != "complete":
+        doc["resume"] = f"jaxfalsify run --resume {out}"
+    cfg.write_atomic(out / "status.json", json.dumps(cfg.jsonable(doc), indent=2) + "\n")
+
+
+def start_run(out: Path, rc: RunConfig, sp: Space, budget: int, force: bool) -> None:
+    """Create the run folder with config.toml and status.json; with ``force``, first remove
+    an earlier run's results and checkpoint from it."""
+    import shutil
+
+    if force:
+        for name in RESULT_FILES + ("status.json", "config.toml"):
+            (out / name).unlink(missing_ok=True)
+        for name in ("checkpoint", "figures"):
+            shutil.rmtree(out / name, ignore_errors=True)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg.write_atomic(out / "config.toml", rc.to_toml(sp))
+    write_status(out, "running", budget=budget)
+
+
+def write_run(out: Path, res: campaign.Result, rc: RunConfig,
+              resumed_from: int = 0) -> dict:
+    """Write the run's results (atomically), mark it complete and drop its checkpoint;
+    returns the summary."""
+    import shutil
+
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -161,11 +207,16 @@ def write_run(out: Path, res: campaign.Result, rc: RunConfig) -> dict:
     tmp = out / ".episodes.parquet.partial"
     pq.write_table(pa.table(episodes_table(res)), tmp)
     summary = summary_dict(res, rc)
+    timing = {"wall_seconds": res.wall_seconds, "compile_seconds": res.compile_seconds,
+              "resumed_from_evaluation": resumed_from}
     cfg.write_atomic(out / "config.toml", rc.to_toml(res.space))
     cfg.write_atomic(out / "critical.csv", critical_csv(res))
-    cfg.write_atomic(out / "summary.json", json.dumps(cfg.jsonable(summary), indent=2) + "\n")
     tmp.replace(out / "episodes.parquet")
-    return summary
+    cfg.write_atomic(out / "timing.json", json.dumps(cfg.jsonable(timing), indent=2) + "\n")
+    cfg.write_atomic(out / "summary.json", json.dumps(cfg.jsonable(summary), indent=2) + "\n")
+    write_status(out, "complete", evaluations_done=res.n, budget=res.n)
+    shutil.rmtree(out / "checkpoint", ignore_errors=True)
+    return {**summary, **timing}
 
 
 def closing_report(res: campaign.Result, summary: dict) -> str:

@@ -1,10 +1,16 @@
 """Exhaustive sweep of a discrete logical scenario: every concrete scenario, evaluated in chunks.
 
 The result is the ground truth that search strategies are measured against: every concrete
-scenario's indices, values and outcome, streamed chunk by chunk to ``sweep.parquet`` (so memory
-stays flat as the space grows), plus ``summary.json`` and the resolved ``config.toml``. Files
-are written under temporary names and renamed at the end: an interrupted sweep leaves no
-half-written result behind.
+scenario's indices, values and outcome in ``sweep.parquet``, plus ``summary.json`` (bit-identical
+for the same space, seed and SUT whatever the chunk size), ``timing.json`` and the resolved
+``config.toml`` (written first).
+
+Each chunk is committed to ``checkpoint/`` as it finishes (its rows as ``rows-<c>.parquet``, then
+the running totals in ``state.json``; see :mod:`jaxfalsify.checkpoint`), so memory stays flat and
+an interrupted sweep — Ctrl-C, SIGKILL, a lost machine — resumes where it stopped
+(``jaxfalsify sweep --resume OUT``). At the end the chunk files are merged into ``sweep.parquet``
+under a temporary name and renamed, and the checkpoint is removed: no half-written result is
+ever left under a final name.
 """
 
 from __future__ import annotations
@@ -78,12 +84,14 @@ def chunk_table(space: Space, begin: int, idx: np.ndarray, out) -> dict[str, np.
 
 
 def iter_sweep(space: Space, sut: sut_lib.SUT, world: sim.World = sim.WORLD,
-               chunk: int = DEFAULT_CHUNK, start: int = 0, stop: int | None = None):
+               chunk: int = DEFAULT_CHUNK, start: int = 0, stop: int | None = None,
+               planned: int | None = None):
     """Yield ``(begin, end, columns)`` for consecutive chunks of scenarios ``[start, stop)``
     (host-side loop; each chunk is one call of the same compiled function, sharded over the
-    local devices)."""
+    local devices). ``planned`` fixes the compiled chunk size (default: planned from
+    ``chunk`` and the range)."""
     stop = space.size if stop is None else stop
-    chunk = plan_chunks(max(stop - start, 1), chunk)
+    chunk = planned or plan_chunks(max(stop - start, 1), chunk)
     sharding = batch_sharding()
     for b in range(start, stop, chunk):
         e = min(b + chunk, stop)
@@ -96,12 +104,19 @@ def iter_sweep(space: Space, sut: sut_lib.SUT, world: sim.World = sim.WORLD,
 class Reducer:
     """Running totals of a sweep: counts and the global maximum reward (first one on ties)."""
 
-    def __init__(self):
+    FIELDS = ("n", "collisions", "nonfinite", "best_reward", "best_row")
+
+    def __init__(self, **state):
         self.n = 0
         self.collisions = 0
         self.nonfinite = 0
         self.best_reward = -math.inf
         self.best_row: dict | None = None
+        for k, v in state.items():
+            setattr(self, k, v)
+
+    def state(self) -> dict:
+        return {k: getattr(self, k) for k in self.FIELDS}
 
     def add(self, cols: dict[str, np.ndarray]):
         self.n += len(cols["scenario"])
@@ -114,24 +129,58 @@ class Reducer:
             self.best_row = {k: v[i].item() for k, v in cols.items()}
 
 
+def checkpoint_name(process_id: int = 0, num_processes: int = 1) -> str:
+    return ("checkpoint" if num_processes == 1 else
+            f"checkpoint-part-{process_id:05d}-of-{num_processes:05d}")
+
+
+def sweep_config(space: Space, sut_name: str, chunk: int, rows: str, num_processes: int,
+                 extra: dict | None = None) -> dict:
+    """What ``config.toml`` of a sweep holds (and ``--resume`` reads back)."""
+    return {"command": "sweep", "space": space.describe(), "seed": space.seed,
+            "sut": sut_name, "chunk": chunk, "processes": num_processes, "rows": rows,
+            **(extra or {})}
+
+
+def _load_progress(ck: Path, fingerprint: dict) -> tuple[int, Reducer]:
+    from jaxfalsify.checkpoint import CheckpointError, read_json
+
+    st = read_json(ck / "state.json")
+    if st.get("fingerprint") != fingerprint:
+        raise CheckpointError(f"checkpoint {ck / 'state.json'} was written by another sweep "
+                              "configuration")
+    try:
+        done = int(st["chunks_done"])
+        red = Reducer(**{k: st["totals"][k] for k in Reducer.FIELDS})
+    except (KeyError, TypeError, ValueError):
+        raise CheckpointError(f"checkpoint {ck / 'state.json'} is corrupt (fields)") from None
+    return done, red
+
+
 def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = sim.WORLD,
               chunk: int = DEFAULT_CHUNK, progress: Callable[[int], None] | None = None,
               extra_config: dict | None = None, process_id: int = 0,
-              num_processes: int = 1, rows: str = "all") -> dict:
-    """Sweep the whole space, streaming rows to ``out_dir/sweep.parquet``; returns the summary.
+              num_processes: int = 1, rows: str = "all", resume: bool = False) -> dict:
+    """Sweep the whole space into ``out_dir``; returns the summary (plus timing).
+
+    ``rows`` selects what goes to Parquet: ``all`` scenarios, only ``collisions``, or ``none``
+    (summary only, for huge spaces). With ``resume``, the chunks already committed to the
+    checkpoint are skipped (a missing checkpoint starts from the beginning); without it, an
+    existing checkpoint is discarded.
 
     With several processes (``jax.distributed`` initialised), process i sweeps its contiguous
-    share of the scenario numbers into ``sweep.part-<i>-of-<n>.parquet``; after a barrier,
-    process 0 merges the parts' summaries into ``summary.json``. ``rows`` selects what goes
-    to Parquet: ``all`` scenarios, only ``collisions``, or ``none`` (summary only, for huge
-    spaces).
+    share of the scenario numbers into ``sweep.part-<i>-of-<n>.parquet`` with its own
+    checkpoint; after a barrier, process 0 merges the parts' summaries into ``summary.json``.
     """
     if rows not in ("all", "collisions", "none"):
         raise ValueError(f"rows must be all, collisions or none (got {rows!r})")
+    import shutil
+
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     from jaxfalsify import config as cfg
+    from jaxfalsify.checkpoint import write_json, FORMAT
     from jaxfalsify.distributed import barrier, share
 
     sut = sut_lib.get(sut_name)
@@ -139,38 +188,51 @@ def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = 
     multi = num_processes > 1
     name = (f"sweep.part-{process_id:05d}-of-{num_processes:05d}.parquet" if multi
             else "sweep.parquet")
-    tmp_parquet = out_dir / f".{name}.partial"
     begin, end = share(space.size, process_id, num_processes)
-    writer = None
-    red = Reducer()
+    planned = plan_chunks(max(end - begin, 1), chunk)
+    ck = out_dir / checkpoint_name(process_id, num_processes)
+    fingerprint = json.loads(json.dumps(
+        {"space": space.describe(), "seed": space.seed, "sut": sut.name, "chunk": planned,
+         "rows": rows, "range": [begin, end], "world": repr(world)}))
+    if process_id == 0 and not resume:
+        cfg.write_atomic(out_dir / "config.toml", cfg.dumps_toml(
+            sweep_config(space, sut.name, chunk, rows, num_processes, extra_config)))
+    done, red = 0, Reducer()
+    if resume and (ck / "state.json").exists():
+        done, red = _load_progress(ck, fingerprint)
+    elif ck.exists():
+        shutil.rmtree(ck)
+    ck.mkdir(parents=True, exist_ok=True)
+    resumed_from = min(begin + done * planned, end)
+    if progress and resumed_from > begin:
+        progress(resumed_from - begin)
     t0 = time.perf_counter()
     compile_s = 0.0
-    try:
-        for b, e, cols in iter_sweep(space, sut, world, chunk, begin, end):
-            if b == begin:
-                compile_s = time.perf_counter() - t0
-            red.add(cols)
-            if rows == "none":
-                pass
-            else:
-                if rows == "collisions":
-                    keep = cols["collision"]
-                    cols = {k: v[keep] for k, v in cols.items()}
-                table = pa.table(cols)
-                if writer is None:
-                    writer = pq.ParquetWriter(tmp_parquet, table.schema)
-                writer.write_table(table)
-            if progress:
-                progress(e - b)
-        wall = time.perf_counter() - t0
-    finally:
-        if writer is not None:
-            writer.close()
+    for c, (b, e, cols) in enumerate(iter_sweep(space, sut, world, chunk, resumed_from, end,
+                                                planned=planned), start=done):
+        if not compile_s:
+            compile_s = time.perf_counter() - t0
+        red.add(cols)
+        if rows != "none":
+            if rows == "collisions":
+                keep = cols["collision"]
+                cols = {k: v[keep] for k, v in cols.items()}
+            tmp = ck / f".rows-{c:06d}.parquet.partial"
+            pq.write_table(pa.table(cols), tmp)
+            os.replace(tmp, ck / f"rows-{c:06d}.parquet")
+        write_json(ck / "state.json", {"format": FORMAT, "chunks_done": c + 1,
+                                       "scenarios_done": e - begin,
+                                       "fingerprint": fingerprint, "totals": red.state()})
+        if progress:
+            progress(e - b)
+    wall = time.perf_counter() - t0
+    n_chunks = -(-(end - begin) // planned)
+    if rows != "none":
+        _merge_rows([ck / f"rows-{c:06d}.parquet" for c in range(n_chunks)],
+                    out_dir / f".{name}.partial", out_dir / name)
     part = {"process_id": process_id, "n": red.n, "collisions": red.collisions,
             "nonfinite": red.nonfinite, "best_reward": red.best_reward,
             "best": _scenario_of(space, red.best_row), "wall": wall, "compile": compile_s}
-    if writer is not None:
-        os.replace(tmp_parquet, out_dir / name)
     if multi:
         cfg.write_atomic(out_dir / f".summary.part-{process_id:05d}.json",
                          json.dumps(cfg.jsonable(part)) + "\n")
@@ -190,9 +252,6 @@ def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = 
         "n_nonfinite": sum(q["nonfinite"] for q in parts),
         "global_max_reward": best["best_reward"],
         "global_max_scenario": best["best"],
-        "wall_seconds": max(q["wall"] for q in parts),
-        "compile_seconds": max(q["compile"] for q in parts),
-        "chunk": plan_chunks(max(end - begin, 1), chunk), "devices": jax.local_device_count(),
         "processes": num_processes,
         "rows": rows,
         "parts": [] if rows == "none" else
@@ -200,16 +259,43 @@ def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = 
          if multi else ["sweep.parquet"]),
         "versions": cfg.versions(),
     }
+    timing = {"wall_seconds": max(q["wall"] for q in parts),
+              "compile_seconds": max(q["compile"] for q in parts),
+              "chunk": planned, "devices": jax.local_device_count(),
+              "resumed_from_scenario": resumed_from - begin if process_id == 0 else None}
     if process_id == 0:
-        config = {"command": "sweep", "space": space.describe(), "seed": space.seed,
-                  "sut": sut.name, "chunk": chunk, "processes": num_processes,
-                  **(extra_config or {})}
-        cfg.write_atomic(out_dir / "config.toml", cfg.dumps_toml(config))
+        cfg.write_atomic(out_dir / "timing.json", json.dumps(cfg.jsonable(timing), indent=2)
+                         + "\n")
         cfg.write_atomic(out_dir / "summary.json",
                          json.dumps(cfg.jsonable(summary), indent=2) + "\n")
     if multi:
         barrier("jaxfalsify-sweep-summary-written")
-    return summary
+    shutil.rmtree(ck, ignore_errors=True)
+    return {**summary, **timing}
+
+
+def _merge_rows(files: list[Path], tmp: Path, final: Path) -> None:
+    """Concatenate the chunks' Parquet files into one, under a temporary name, then rename."""
+    import pyarrow.parquet as pq
+
+    from jaxfalsify.checkpoint import CheckpointError
+
+    writer = None
+    try:
+        for f in files:
+            if not f.exists():
+                raise CheckpointError(f"checkpoint file {f} is missing")
+            table = pq.read_table(f)
+            if writer is None:
+                writer = pq.ParquetWriter(tmp, table.schema)
+            writer.write_table(table)
+    except BaseException:
+        if writer is not None:
+            writer.close()
+        tmp.unlink(missing_ok=True)
+        raise
+    writer.close()
+    os.replace(tmp, final)
 
 
 def _scenario_of(space: Space, row: dict | None) -> dict | None:
