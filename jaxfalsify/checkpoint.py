@@ -142,8 +142,9 @@ class CampaignCheckpoint:
     def exists(self) -> bool:
         return self.state_path.exists()
 
-    def chunks_done(self) -> int:
-        return int(read_json(self.state_path)["chunks_done"]) if self.exists() else 0
+    def evaluations_done(self) -> int:
+        """Evaluations committed so far (0 without a checkpoint)."""
+        return int(read_json(self.state_path)["evaluations_done"]) if self.exists() else 0
 
     def load(self, template) -> tuple[Any, list[dict[str, np.ndarray]]]:
         """``(carry, records of the chunks done)``; ``(None, [])`` when nothing is saved."""

@@ -237,7 +237,7 @@ def cmd_sweep(args) -> int:
     from tqdm import tqdm
 
     from jaxfalsify.checkpoint import CheckpointError
-    from jaxfalsify.sweep import run_sweep
+    from jaxfalsify.sweep import check_resume, run_sweep
 
     try:
         sp, sut, out, chunk, rows = _sweep_config(args)
@@ -249,6 +249,11 @@ def cmd_sweep(args) -> int:
     pid, n_proc = _start_distributed(args)
     from jaxfalsify.distributed import share
     begin, end = share(sp.size, pid, n_proc)
+    if args.resume is not None:
+        try:
+            check_resume(sp, sut.name, out, chunk, rows, pid, n_proc)
+        except CheckpointError as e:
+            raise UsageError(f"{e}; start over with --force --out {out}") from None
     bar = tqdm(total=end - begin, unit="scn", unit_scale=True, disable=args.quiet,
                desc=f"sweep {sp.name} / {sut.name}"
                + (f" [process {pid}/{n_proc}]" if n_proc > 1 else ""))
@@ -256,11 +261,10 @@ def cmd_sweep(args) -> int:
         summary = run_sweep(sp, sut.name, out, chunk=chunk, progress=bar.update,
                             process_id=pid, num_processes=n_proc, rows=rows,
                             resume=args.resume is not None)
-    except CheckpointError as e:
-        raise UsageError(f"{e}; start over with --force --out {out}") from None
     except KeyboardInterrupt:
         bar.close()
-        print(f"jaxfalsify: interrupted after {bar.n} of {end - begin} scenarios; {out} is "
+        done = check_resume(sp, sut.name, out, chunk, rows, pid, n_proc)
+        print(f"jaxfalsify: interrupted after {done} of {end - begin} scenarios; {out} is "
               f"resumable: jaxfalsify sweep --resume {out}", file=sys.stderr)
         return 130
     finally:
@@ -350,18 +354,18 @@ def cmd_run(args) -> int:
             r = np.where(np.isnan(rec["reward"]), -np.inf, rec["reward"])
             progress.best = max(progress.best, float(r.max()))
             progress.collisions += int(np.sum(rec["collision"]))
-        progress.done = done
         bar.set_postfix(best=f"{progress.best:.4f}", collisions=progress.collisions)
         bar.update(done - bar.n)
 
-    progress.best, progress.collisions, progress.seen, progress.done = -np.inf, 0, 0, start_from
+    progress.best, progress.collisions, progress.seen = -np.inf, 0, 0
     try:
         res = campaign.run(sp, sut, strat, plan, rc.seed, progress=progress, checkpoint=ckpt,
                            resumed=resumed)
     except KeyboardInterrupt:
         bar.close()
-        write_status(out, "interrupted", evaluations_done=progress.done, budget=plan.budget)
-        print(f"jaxfalsify: interrupted after {progress.done} of {plan.budget} evaluations; "
+        done = ckpt.evaluations_done()
+        write_status(out, "interrupted", evaluations_done=done, budget=plan.budget)
+        print(f"jaxfalsify: interrupted after {done} of {plan.budget} evaluations; "
               f"{out} is resumable: jaxfalsify run --resume {out}", file=sys.stderr)
         return 130
     finally:

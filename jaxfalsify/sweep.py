@@ -142,6 +142,32 @@ def sweep_config(space: Space, sut_name: str, chunk: int, rows: str, num_process
             **(extra or {})}
 
 
+def _layout(space: Space, sut_name: str, out_dir: Path, chunk: int, rows: str,
+            process_id: int, num_processes: int, world: sim.World):
+    """This process's range, compiled chunk size, checkpoint folder and its fingerprint."""
+    from jaxfalsify.distributed import share
+
+    begin, end = share(space.size, process_id, num_processes)
+    planned = plan_chunks(max(end - begin, 1), chunk)
+    fingerprint = json.loads(json.dumps(
+        {"space": space.describe(), "seed": space.seed, "sut": sut_name, "chunk": planned,
+         "rows": rows, "range": [begin, end], "world": repr(world)}))
+    return begin, end, planned, out_dir / checkpoint_name(process_id, num_processes), fingerprint
+
+
+def check_resume(space: Space, sut_name: str, out_dir: Path, chunk: int, rows: str,
+                 process_id: int = 0, num_processes: int = 1,
+                 world: sim.World = sim.WORLD) -> int:
+    """Scenarios this process has committed in ``out_dir``'s checkpoint (0 if none); raises
+    :class:`~jaxfalsify.checkpoint.CheckpointError` if the checkpoint is unusable."""
+    begin, end, planned, ck, fp = _layout(space, sut_lib.get(sut_name).name, out_dir, chunk,
+                                          rows, process_id, num_processes, world)
+    if not (ck / "state.json").exists():
+        return 0
+    done, _ = _load_progress(ck, fp)
+    return min(done * planned, end - begin)
+
+
 def _load_progress(ck: Path, fingerprint: dict) -> tuple[int, Reducer]:
     from jaxfalsify.checkpoint import CheckpointError, read_json
 
@@ -181,19 +207,15 @@ def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = 
 
     from jaxfalsify import config as cfg
     from jaxfalsify.checkpoint import write_json, FORMAT
-    from jaxfalsify.distributed import barrier, share
+    from jaxfalsify.distributed import barrier
 
     sut = sut_lib.get(sut_name)
     out_dir.mkdir(parents=True, exist_ok=True)
     multi = num_processes > 1
     name = (f"sweep.part-{process_id:05d}-of-{num_processes:05d}.parquet" if multi
             else "sweep.parquet")
-    begin, end = share(space.size, process_id, num_processes)
-    planned = plan_chunks(max(end - begin, 1), chunk)
-    ck = out_dir / checkpoint_name(process_id, num_processes)
-    fingerprint = json.loads(json.dumps(
-        {"space": space.describe(), "seed": space.seed, "sut": sut.name, "chunk": planned,
-         "rows": rows, "range": [begin, end], "world": repr(world)}))
+    begin, end, planned, ck, fingerprint = _layout(space, sut.name, out_dir, chunk, rows,
+                                                   process_id, num_processes, world)
     if process_id == 0 and not resume:
         cfg.write_atomic(out_dir / "config.toml", cfg.dumps_toml(
             sweep_config(space, sut.name, chunk, rows, num_processes, extra_config)))

@@ -1,0 +1,210 @@
+"""Bad input, driven through the real command line: one line naming the problem, exit code 2,
+nothing written and nothing overwritten (every file under the working folder is compared
+byte for byte before and after)."""
+
+import hashlib
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from jaxfalsify import campaign
+from jaxfalsify.cli import main
+from jaxfalsify.runs import RunConfig, checkpoint_for, start_run
+from jaxfalsify.sweep import run_sweep
+import jaxfalsify as jf
+
+TINY = """name = "tiny"
+[parameters.ego_offset]
+values = [7, 9]
+[parameters.ped_accel]
+values = [0.007, 0.076]
+[parameters.ped_speed]
+values = [1.0, 1.237, 1.5, 1.808]
+[parameters.ped_offset]
+values = [3.5, 4.0]
+"""
+
+
+class Stop(Exception):
+    pass
+
+
+def _stop_after(n):
+    def progress(done, records=None):
+        if records is None or len(records) >= n:
+            raise Stop
+    return progress
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """A working folder holding finished, unfinished and corrupted runs and sweeps."""
+    w = tmp_path_factory.mktemp("bad-input")
+    (w / "tiny.toml").write_text(TINY)
+    (w / "afile").write_text("not a folder\n")
+    files = {
+        "malformed.toml": 'strategy = "random"\nepisodes = \n',
+        "unknown_key.toml": 'strategy = "random"\nlearning_rate = 3\n',
+        "wrong_type.toml": 'strategy = "random"\nepisodes = "many"\n',
+        "float_seed.toml": "seed = 1.5\n",
+        "zero_batch.toml": 'strategy = "random"\nbatch = 0\n',
+        "space_malformed.toml": "[parameters.ped_speed\nvalues = [1]\n",
+        "space_unknown_param.toml": "[parameters.ped_height]\nvalues = [1.7]\n",
+        "space_unknown_key.toml": "[parameters.ped_speed]\nvalues = [1.2]\ncolour = 'red'\n",
+        "space_wrong_type.toml": "[parameters.ped_speed]\nvalues = [1.2, 'fast']\n",
+        "space_inverted.toml": ("[parameters.ped_speed]\ndistribution = 'uniform'\nlow = 2.0\n"
+                                "high = 1.0\nsamples = 3\n"),
+        "space_empty_range.toml": ("[parameters.ped_speed]\ndistribution = 'uniform'\n"
+                                   "low = 1.0\nhigh = 1.0\nsamples = 3\n"),
+        "space_empty_values.toml": "[parameters.ped_speed]\nvalues = []\n",
+        "space_nan.toml": ("[parameters.ped_speed]\ndistribution = 'normal'\nmean = nan\n"
+                           "sd = 0.2\nsamples = 3\n"),
+        "space_inf.toml": ("[parameters.ped_speed]\ndistribution = 'uniform'\nlow = 1.0\n"
+                           "high = inf\nsamples = 3\n"),
+        "space_zero_samples.toml": ("[parameters.ped_speed]\ndistribution = 'uniform'\n"
+                                    "low = 1.0\nhigh = 2.0\nsamples = 0\n"),
+    }
+    for name, text in files.items():
+        (w / name).write_text(text)
+    # a finished run and sweep
+    assert main(["run", "--space", str(w / "tiny.toml"), "--strategy", "random",
+                 "--episodes", "40", "--batch", "8", "--out", str(w / "done"), "--quiet",
+                 "--no-figures"]) == 0
+    assert main(["sweep", "--space", str(w / "tiny.toml"), "--out", str(w / "sweep_done"),
+                 "--quiet"]) == 0
+    # an unfinished run, interrupted after 2 of 5 checkpointed chunks (what the CLI leaves)
+    rc = RunConfig(space=str(w / "tiny.toml"), strategy="random", episodes=40, batch=8,
+                   checkpoint_every=1)
+    sp, sut, strat, plan = rc.build()
+    rc = rc.resolved()
+    out = w / "unfinished"
+    start_run(out, rc, sp, plan.budget, force=False)
+    with pytest.raises(Stop):
+        campaign.run(sp, sut, strat, plan, rc.seed, progress=_stop_after(2),
+                     checkpoint=checkpoint_for(out, rc, plan, sp))
+    ck = Path("checkpoint")
+    for name, damage in {
+        "corrupt_carry": lambda d: (d / ck / "carry-000002.npz").write_bytes(
+            (d / ck / "carry-000002.npz").read_bytes()[:100]),
+        "corrupt_state": lambda d: (d / ck / "state.json").write_text("{not json"),
+        "missing_records": lambda d: (d / ck / "records-000000.npz").unlink(),
+        "foreign_checkpoint": lambda d: (d / ck / "state.json").write_text(
+            (d / ck / "state.json").read_text().replace("seed = 0", "seed = 1")),
+        "corrupt_config": lambda d: (d / "config.toml").write_text("strategy = [\n"),
+    }.items():
+        shutil.copytree(out, w / name)
+        damage(w / name)
+    # an unfinished sweep (1 of 98 chunks committed) and a corrupted copy
+    with pytest.raises(Stop):
+        run_sweep(jf.space("paper"), "carla-tm", w / "sweep_unfinished", chunk=1024,
+                  progress=_stop_after(1))
+    shutil.copytree(w / "sweep_unfinished", w / "sweep_corrupt")
+    (w / "sweep_corrupt" / "checkpoint" / "state.json").write_text('{"format": 1}')
+    return w
+
+
+CASES = [
+    # malformed TOML
+    (["run", "--config", "malformed.toml"], "malformed TOML"),
+    (["run", "--space", "space_malformed.toml"], "malformed TOML"),
+    (["run", "--resume", "corrupt_config"], "malformed TOML"),
+    # unknown keys
+    (["run", "--config", "unknown_key.toml"], "unknown key 'learning_rate'"),
+    (["sweep", "--space", "space_unknown_param.toml"], "unknown parameter 'ped_height'"),
+    (["sweep", "--space", "space_unknown_key.toml"], "colour"),
+    (["run", "--bogus"], "--bogus"),
+    # wrong types
+    (["run", "--config", "wrong_type.toml"], "episodes must be an integer"),
+    (["run", "--config", "float_seed.toml"], "seed must be an integer"),
+    (["sweep", "--space", "space_wrong_type.toml"], "'fast'"),
+    (["run", "--episodes", "ten"], "--episodes must be an integer"),
+    (["sweep", "--chunk", "x"], "--chunk must be an integer"),
+    (["simulate", "ped_speed=abc"], "ped_speed='abc'"),
+    # empty or inverted ranges
+    (["sweep", "--space", "space_inverted.toml"], "inverted"),
+    (["sweep", "--space", "space_empty_range.toml"], "empty or inverted"),
+    (["run", "--space", "space_empty_values.toml"], "values is empty"),
+    # NaN / inf
+    (["sweep", "--space", "space_nan.toml"], "not finite"),
+    (["sweep", "--space", "space_inf.toml"], "not finite"),
+    (["simulate", "ped_speed=inf"], "not finite"),
+    (["simulate", "ped_speed=nan"], "not finite"),
+    # zero or negative budgets, batches, sizes
+    (["run", "--episodes", "0"], "--episodes must be positive"),
+    (["run", "--episodes", "-5"], "--episodes must be positive"),
+    (["run", "--batch", "0"], "--batch must be positive"),
+    (["run", "--batch", "-4"], "--batch must be positive"),
+    (["run", "--checkpoint-every", "0"], "--checkpoint-every must be positive"),
+    (["run", "--config", "zero_batch.toml"], "batch must be an integer >= 1"),
+    (["run", "--seed", "-1"], "--seed"),
+    (["sweep", "--chunk", "0"], "--chunk must be positive"),
+    (["sweep", "--space", "space_zero_samples.toml"], "samples must be a positive integer"),
+    (["compare", "--budget", "0"], "--budget must be positive"),
+    (["compare", "--seeds", "0"], "--seeds must be positive"),
+    # a batch larger than the space where that matters
+    (["run", "--space", "tiny.toml", "--strategy", "grid", "--batch", "64"],
+     "exceeds the space's 32 scenarios"),
+    # unknown names
+    (["run", "--sut", "tesla"], "unknown SUT 'tesla'"),
+    (["run", "--strategy", "ga"], "unknown strategy 'ga'"),
+    (["run", "--space", "moon"], "unknown space 'moon'"),
+    (["run", "--preset", "fast"], "unknown preset 'fast'"),
+    (["run", "--strategy", "random", "--preset", "paper"], "--preset applies"),
+    (["sweep", "--sut", "tesla"], "unknown SUT 'tesla'"),
+    (["sweep", "--space", "moon"], "unknown space 'moon'"),
+    (["sweep", "--rows", "some"], "--rows"),
+    (["compare", "--strategies", "random,ga"], "unknown strategy 'ga'"),
+    (["simulate", "speed=1"], "unknown parameter 'speed'"),
+    (["replay", "done", "--scenario", "worst"], "worst"),
+    (["export", "done", "--scenario", "worst", "--out", "x"], "--scenario 'worst'"),
+    # unwritable or impossible output folders
+    (["run", "--out", "/proc/jaxfalsify-out"], "cannot write in /proc"),
+    (["sweep", "--out", "/proc/jaxfalsify-out"], "cannot write in /proc"),
+    (["run", "--out", "afile"], "exists and is not a folder"),
+    (["sweep", "--out", "afile/sub"], "afile is not a folder"),
+    # an existing run folder without --resume or --force
+    (["run", "--out", "done", "--strategy", "random"], "already holds summary.json"),
+    (["run", "--out", "unfinished"], "pass --resume unfinished"),
+    (["sweep", "--space", "tiny.toml", "--out", "sweep_done"], "already holds summary.json"),
+    (["sweep", "--chunk", "1024", "--out", "sweep_unfinished"], "pass --resume"),
+    # resume: wrong folder, finished run, extra flags, corrupt checkpoints
+    (["run", "--resume", "nowhere"], "no config.toml"),
+    (["run", "--resume", "done"], "already complete"),
+    (["run", "--resume", "unfinished", "--seed", "3"], "--seed cannot be combined"),
+    (["run", "--resume", "unfinished", "--force"], "--force cannot be combined"),
+    (["run", "--resume", "corrupt_carry"], "carry-000002.npz is corrupt"),
+    (["run", "--resume", "corrupt_state"], "state.json is corrupt"),
+    (["run", "--resume", "missing_records"], "records-000000.npz is missing"),
+    (["run", "--resume", "foreign_checkpoint"], "another configuration"),
+    (["sweep", "--resume", "sweep_corrupt"], "corrupt"),
+    (["sweep", "--resume", "sweep_done"], "already complete"),
+    (["sweep", "--resume", "sweep_unfinished", "--sut", "none"], "--sut cannot be combined"),
+]
+
+
+def _snapshot(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): (hashlib.sha256(p.read_bytes()).hexdigest()
+                                       if p.is_file() else "dir")
+            for p in sorted(root.rglob("*"))}
+
+
+@pytest.mark.parametrize("argv, needle", CASES, ids=[" ".join(a) for a, _ in CASES])
+def test_bad_input_one_line_exit_2_nothing_written(argv, needle, world, capsys, monkeypatch):
+    monkeypatch.chdir(world)
+    before = _snapshot(world)
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("jaxfalsify: error: "), err
+    assert needle in err, err
+    assert _snapshot(world) == before
+
+
+def test_console_script_exit_code_and_stderr(world):
+    r = subprocess.run([sys.executable, "-m", "jaxfalsify.cli", "run", "--resume",
+                        "corrupt_state"], capture_output=True, text=True, cwd=world)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.startswith("jaxfalsify: error: ") and len(r.stderr.splitlines()) == 1

@@ -1,0 +1,192 @@
+"""Resume: an interrupted campaign or sweep, continued from its checkpoint, ends with exactly
+the files an uninterrupted one writes. The oracle is the uninterrupted run with the same config
+and seed; interruptions are real (SIGKILL and SIGINT sent to a subprocess, or an exception
+raised between chunks in-process)."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+import jaxfalsify as jf
+from jaxfalsify import campaign, search
+from jaxfalsify import sut as sut_lib
+from jaxfalsify.checkpoint import CampaignCheckpoint
+from jaxfalsify.cli import main
+
+
+class Stop(Exception):
+    pass
+
+
+@pytest.mark.parametrize("strategy", sorted(search.STRATEGIES))
+def test_every_strategy_resumes_bit_identically(strategy, tmp_path):
+    """Interrupt after 2 of 4 chunks, restore the carry (strategy + optimiser state, PRNG key,
+    update count) from disk, continue: every recorded field equals the uninterrupted run's."""
+    sp = jf.space("paper")
+    sut = sut_lib.get("carla-tm")
+    strat = search.make(strategy, sp.shape, 16)
+    p = campaign.plan(16 * 8 - 5, 16, every=2)  # 8 updates, 4 chunks, a partial last batch
+    ref = campaign.run(sp, sut, strat, p, seed=5)
+
+    ck = CampaignCheckpoint(tmp_path / "checkpoint", {"test": strategy})
+
+    def stop_after_two(done, records):
+        if len(records) == 2:
+            raise Stop
+
+    with pytest.raises(Stop):
+        campaign.run(sp, sut, strat, p, seed=5, checkpoint=ck, progress=stop_after_two)
+    assert json.loads((ck.folder / "state.json").read_text())["chunks_done"] == 2
+    resumed = campaign.restore(ck, sp, sut, strat, p, seed=5)
+    assert len(resumed[1]) == 2
+    res = campaign.run(sp, sut, strat, p, seed=5, checkpoint=ck, resumed=resumed)
+    np.testing.assert_array_equal(res.indices, ref.indices)
+    for f in campaign.RECORD_FIELDS:
+        np.testing.assert_array_equal(res.fields[f], ref.fields[f], err_msg=f)
+
+
+@pytest.mark.parametrize("strategy", ["random", pytest.param("reinforce", marks=pytest.mark.slow)])
+def test_results_do_not_depend_on_chunking(strategy):
+    """Checkpointing every update or every 5 updates scans the same update function."""
+    sp = jf.space("paper")
+    sut = sut_lib.get("carla-tm")
+    strat = search.make(strategy, sp.shape, 20)
+    a = campaign.run(sp, sut, strat, campaign.plan(200, 20, every=1), seed=2)
+    b = campaign.run(sp, sut, strat, campaign.plan(200, 20, every=5), seed=2)
+    np.testing.assert_array_equal(a.indices, b.indices)
+    for f in campaign.RECORD_FIELDS:
+        np.testing.assert_array_equal(a.fields[f], b.fields[f], err_msg=f)
+
+
+def _wait_for_chunks(proc, state: Path, n: int, what: str):
+    """Block until ``state`` (a checkpoint's state.json) says ``n`` chunks are committed."""
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, f"{what} ended before it could be interrupted"
+        try:
+            if json.loads(state.read_text())["chunks_done"] >= n:
+                return
+        except (FileNotFoundError, json.JSONDecodeError):
+            pass
+        time.sleep(0.02)
+    proc.kill()
+    raise AssertionError(f"{what} wrote no checkpoint within 300 s")
+
+
+@pytest.fixture(scope="module")
+def compile_cache(tmp_path_factory):
+    """A persistent compilation cache shared by this module's subprocesses (same programs)."""
+    return tmp_path_factory.mktemp("jax-cache")
+
+
+def _cli(args, cache, **kw):
+    env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(cache))
+    return subprocess.Popen([sys.executable, "-m", "jaxfalsify.cli", *args], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+RUN_ARGS = ["run", "--episodes", "3000", "--batch", "20", "--checkpoint-every", "1",
+            "--seed", "7", "--no-figures", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("resume") / "reference"
+    assert main([*RUN_ARGS, "--out", str(out)]) == 0
+    return out
+
+
+def _same_table(a: Path, b: Path):
+    """Same columns, same values bit for bit (NaN where the other has NaN)."""
+    ta, tb = pq.read_table(a), pq.read_table(b)
+    assert ta.schema.equals(tb.schema) and ta.num_rows == tb.num_rows
+    for name in ta.column_names:
+        np.testing.assert_array_equal(ta.column(name).to_numpy(), tb.column(name).to_numpy(),
+                                      err_msg=name)
+
+
+def _same_run(a: Path, b: Path):
+    assert (a / "summary.json").read_bytes() == (b / "summary.json").read_bytes()
+    tb = pq.read_table(b / "episodes.parquet")
+    assert tb.column("evaluation").to_pylist() == list(range(1, 3001))  # no gaps, no duplicates
+    _same_table(a / "episodes.parquet", b / "episodes.parquet")
+    assert (a / "critical.csv").read_text() == (b / "critical.csv").read_text()
+    assert (a / "config.toml").read_text() == (b / "config.toml").read_text()
+
+
+def test_sigkilled_run_resumes_to_identical_results(uninterrupted_run, tmp_path, capsys,
+                                                    compile_cache):
+    out = tmp_path / "killed"
+    proc = _cli([*RUN_ARGS, "--out", str(out)], compile_cache)
+    _wait_for_chunks(proc, out / "checkpoint" / "state.json", 3, "the run")
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate()
+    assert proc.returncode == -signal.SIGKILL
+    assert not (out / "summary.json").exists() and not (out / "episodes.parquet").exists()
+    # the unfinished folder is neither reused nor silently overwritten
+    assert main([*RUN_ARGS, "--out", str(out)]) == 2
+    assert f"--resume {out}" in capsys.readouterr().err
+    assert main(["run", "--resume", str(out), "--quiet", "--no-figures"]) == 0
+    _same_run(uninterrupted_run, out)
+    assert json.loads((out / "timing.json").read_text())["resumed_from_evaluation"] >= 60
+    assert json.loads((out / "status.json").read_text())["state"] == "complete"
+    assert not (out / "checkpoint").exists()
+    assert main(["run", "--resume", str(out)]) == 2  # complete: nothing to resume
+    assert "already complete" in capsys.readouterr().err
+
+
+def test_ctrl_c_leaves_a_resumable_run(uninterrupted_run, tmp_path, compile_cache):
+    out = tmp_path / "interrupted"
+    proc = _cli([*RUN_ARGS, "--out", str(out)], compile_cache)
+    _wait_for_chunks(proc, out / "checkpoint" / "state.json", 2, "the run")
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130
+    assert err.strip().splitlines()[-1].endswith(f"resumable: jaxfalsify run --resume {out}")
+    status = json.loads((out / "status.json").read_text())
+    saved = json.loads((out / "checkpoint" / "state.json").read_text())
+    assert status["state"] == "interrupted"
+    assert status["evaluations_done"] == saved["evaluations_done"] < 3000
+    assert not (out / "summary.json").exists()
+    assert main(["run", "--resume", str(out), "--quiet", "--no-figures"]) == 0
+    _same_run(uninterrupted_run, out)
+
+
+SWEEP_ARGS = ["sweep", "--space", "paper", "--chunk", "1024", "--quiet"]
+
+
+def test_sigkilled_sweep_resumes_to_identical_results(tmp_path, capsys, compile_cache):
+    ref = tmp_path / "reference"
+    assert main([*SWEEP_ARGS, "--out", str(ref)]) == 0
+    out = tmp_path / "killed"
+    proc = _cli([*SWEEP_ARGS, "--out", str(out)], compile_cache)
+    _wait_for_chunks(proc, out / "checkpoint" / "state.json", 3, "the sweep")
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate()
+    assert not (out / "summary.json").exists() and not (out / "sweep.parquet").exists()
+    assert main([*SWEEP_ARGS, "--out", str(out)]) == 2
+    assert f"--resume {out}" in capsys.readouterr().err
+    assert main(["sweep", "--resume", str(out), "--quiet"]) == 0
+    assert (ref / "summary.json").read_bytes() == (out / "summary.json").read_bytes()
+    b = pq.read_table(out / "sweep.parquet")
+    assert b.column("scenario").to_pylist() == list(range(100_000))
+    _same_table(ref / "sweep.parquet", out / "sweep.parquet")
+    assert json.loads((out / "timing.json").read_text())["resumed_from_scenario"] > 0
+    assert sorted(os.listdir(out)) == ["config.toml", "summary.json", "sweep.parquet",
+                                       "timing.json"]
+
+
+def test_sweep_summary_does_not_depend_on_chunk_size(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["sweep", "--space", "paper", "--chunk", "4096", "--quiet", "--out", str(a)]) == 0
+    assert main(["sweep", "--space", "paper", "--quiet", "--out", str(b)]) == 0
+    assert (a / "summary.json").read_bytes() == (b / "summary.json").read_bytes()
+    _same_table(a / "sweep.parquet", b / "sweep.parquet")
