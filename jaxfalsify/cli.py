@@ -192,7 +192,8 @@ SWEEP_FLAGS = ("space", "seed", "sut", "chunk", "rows", "out")
 
 
 def _sweep_config(args):
-    """``(space, sut, out, chunk, rows)`` from --resume OUT's config.toml or from the flags."""
+    """``(space, sut, out, chunk, rows, processes)`` from --resume OUT's config.toml (processes:
+    how many it ran on) or from the flags (processes None)."""
     import tomllib
 
     from jaxfalsify import sut as sut_lib
@@ -202,7 +203,7 @@ def _sweep_config(args):
         sp = load_space(args.space or "paper", seed=args.seed or 0)
         sut = sut_lib.get(args.sut or "carla-tm")
         out = args.out or Path("sweeps") / f"{Path(sp.name).stem}-{sut.name}-s{sp.seed}"
-        return sp, sut, out, args.chunk or (1 << 17), args.rows or "all"
+        return sp, sut, out, args.chunk or (1 << 17), args.rows or "all", None
     given = [k for k in SWEEP_FLAGS if getattr(args, k) is not None]
     if given or args.force:
         flag = "--" + (given[0] if given else "force")
@@ -228,9 +229,7 @@ def _sweep_config(args):
         raise UsageError(f"{path}: missing key {e}") from None
     except (TypeError, ValueError) as e:
         raise UsageError(f"{path}: {e}") from None
-    if args.distributed and doc.get("processes") != (args.num_processes or doc.get("processes")):
-        raise UsageError(f"--resume {out}: the sweep ran on {doc.get('processes')} processes")
-    return sp, sut, out, chunk, rows
+    return sp, sut, out, chunk, rows, doc.get("processes", 1)
 
 
 def cmd_sweep(args) -> int:
@@ -240,7 +239,7 @@ def cmd_sweep(args) -> int:
     from jaxfalsify.sweep import check_resume, run_sweep
 
     try:
-        sp, sut, out, chunk, rows = _sweep_config(args)
+        sp, sut, out, chunk, rows, procs = _sweep_config(args)
     except ValueError as e:
         raise UsageError(str(e)) from None
     if args.resume is None:
@@ -250,6 +249,9 @@ def cmd_sweep(args) -> int:
     from jaxfalsify.distributed import share
     begin, end = share(sp.size, pid, n_proc)
     if args.resume is not None:
+        if procs != n_proc:
+            raise UsageError(f"--resume {out}: the sweep ran on {procs} process(es), this is "
+                             f"{n_proc}; resume it with the same number")
         try:
             check_resume(sp, sut.name, out, chunk, rows, pid, n_proc)
         except CheckpointError as e:

@@ -143,9 +143,12 @@ def test_sigkilled_run_resumes_to_identical_results(uninterrupted_run, tmp_path,
     assert "already complete" in capsys.readouterr().err
 
 
-def test_ctrl_c_leaves_a_resumable_run(uninterrupted_run, tmp_path, compile_cache):
+def test_ctrl_c_leaves_a_resumable_run(tmp_path, compile_cache):
+    args = [*RUN_ARGS, "--strategy", "random"]
+    reference = tmp_path / "reference"
+    assert main([*args, "--out", str(reference)]) == 0
     out = tmp_path / "interrupted"
-    proc = _cli([*RUN_ARGS, "--out", str(out)], compile_cache)
+    proc = _cli([*args, "--out", str(out)], compile_cache)
     _wait_for_chunks(proc, out / "checkpoint" / "state.json", 2, "the run")
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
@@ -157,7 +160,7 @@ def test_ctrl_c_leaves_a_resumable_run(uninterrupted_run, tmp_path, compile_cach
     assert status["evaluations_done"] == saved["evaluations_done"] < 3000
     assert not (out / "summary.json").exists()
     assert main(["run", "--resume", str(out), "--quiet", "--no-figures"]) == 0
-    _same_run(uninterrupted_run, out)
+    _same_run(reference, out)
 
 
 SWEEP_ARGS = ["sweep", "--space", "paper", "--chunk", "1024", "--quiet"]

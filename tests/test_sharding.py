@@ -24,23 +24,29 @@ values = [0, 8, 6]
 """
 
 
-def _probe(tmp_path, devices):
+def _start_probe(tmp_path, devices):
     space = tmp_path / "space.toml"
     space.write_text(SPACE)
     out = tmp_path / f"probe{devices}.npz"
     env = dict(os.environ)
     env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
     env["JAX_PLATFORMS"] = "cpu"
-    r = subprocess.run([sys.executable, str(HERE / "shard_probe.py"), str(out), str(space)],
-                       env=env, capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0, r.stderr[-2000:]
-    return dict(np.load(out))
+    proc = subprocess.Popen([sys.executable, str(HERE / "shard_probe.py"), str(out), str(space)],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return proc, out
 
 
 @pytest.fixture(scope="module")
 def probes(tmp_path_factory):
+    """The probe on 1 and on 4 forced host devices, run side by side."""
     tmp = tmp_path_factory.mktemp("shard")
-    return _probe(tmp, 1), _probe(tmp, 4)
+    started = [_start_probe(tmp, n) for n in (1, 4)]
+    results = []
+    for proc, out in started:
+        _, err = proc.communicate(timeout=600)
+        assert proc.returncode == 0, err[-2000:]
+        results.append(dict(np.load(out)))
+    return tuple(results)
 
 
 def test_four_devices_were_used(probes):
