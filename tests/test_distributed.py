@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 import pyarrow as pa
 import pyarrow.parquet as pq
 
@@ -100,3 +101,51 @@ def test_two_process_compare_equals_single_process(tmp_path):
     for a, b in zip(single["rows"], multi["rows"]):
         a.pop("wall_seconds"), b.pop("wall_seconds")
         assert a == b
+
+
+@pytest.mark.slow
+def test_two_process_sweep_killed_and_resumed_equals_single_process(tmp_path):
+    """Both processes SIGKILLed mid-way, then resumed (each from its own checkpoint): the union
+    of the parts is still exactly the single-process sweep."""
+    import signal
+    import time
+
+    out = tmp_path / "dist"
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+
+    def start(extra):
+        port = _free_port()
+        return [subprocess.Popen(
+            [sys.executable, "-m", "jaxfalsify.cli", "sweep", *extra, "--quiet",
+             "--distributed", "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2",
+             "--process-id", str(i)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            text=True) for i in range(2)]
+
+    procs = start(["--space", "paper", "--out", str(out), "--chunk", "1024"])  # 49 chunks each
+    states = [out / f"checkpoint-part-{i:05d}-of-00002" / "state.json" for i in range(2)]
+
+    def chunks_done(state):
+        try:
+            return json.loads(state.read_text())["chunks_done"]
+        except (FileNotFoundError, json.JSONDecodeError):
+            return 0
+
+    deadline = time.monotonic() + 300
+    while min(chunks_done(s) for s in states) < 2:
+        assert time.monotonic() < deadline and all(p.poll() is None for p in procs)
+        time.sleep(0.02)
+    for p in procs:
+        p.send_signal(signal.SIGKILL)
+        p.communicate()
+    assert not (out / "summary.json").exists()
+    for p in start(["--resume", str(out)]):
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err[-2000:]
+    parts = sorted(out.glob("sweep.part-*-of-00002.parquet"))
+    union = pa.concat_tables([pq.read_table(p) for p in parts]).to_pydict()
+    single = sweep_arrays(jf.space("paper"))
+    assert union["scenario"] == list(range(100_000))
+    for k, v in single.items():
+        np.testing.assert_array_equal(np.asarray(union[k]), v, err_msg=k)
+    assert json.loads((out / "timing.json").read_text())["resumed_from_scenario"] > 0
