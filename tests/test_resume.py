@@ -97,13 +97,6 @@ RUN_ARGS = ["run", "--episodes", "3000", "--batch", "20", "--checkpoint-every", 
             "--seed", "7", "--no-figures", "--quiet"]
 
 
-@pytest.fixture(scope="module")
-def uninterrupted_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("resume") / "reference"
-    assert main([*RUN_ARGS, "--out", str(out)]) == 0
-    return out
-
-
 def _same_table(a: Path, b: Path):
     """Same columns, same values bit for bit (NaN where the other has NaN)."""
     ta, tb = pq.read_table(a), pq.read_table(b)
@@ -122,9 +115,9 @@ def _same_run(a: Path, b: Path):
     assert (a / "config.toml").read_text() == (b / "config.toml").read_text()
 
 
-def test_sigkilled_run_resumes_to_identical_results(uninterrupted_run, tmp_path, capsys,
-                                                    compile_cache):
-    out = tmp_path / "killed"
+def test_sigkilled_run_resumes_to_identical_results(tmp_path, capsys, compile_cache):
+    reference, out = tmp_path / "reference", tmp_path / "killed"
+    uninterrupted = _cli([*RUN_ARGS, "--out", str(reference)], compile_cache)  # side by side
     proc = _cli([*RUN_ARGS, "--out", str(out)], compile_cache)
     _wait_for_chunks(proc, out / "checkpoint" / "state.json", 3, "the run")
     proc.send_signal(signal.SIGKILL)
@@ -134,8 +127,11 @@ def test_sigkilled_run_resumes_to_identical_results(uninterrupted_run, tmp_path,
     # the unfinished folder is neither reused nor silently overwritten
     assert main([*RUN_ARGS, "--out", str(out)]) == 2
     assert f"--resume {out}" in capsys.readouterr().err
-    assert main(["run", "--resume", str(out), "--quiet", "--no-figures"]) == 0
-    _same_run(uninterrupted_run, out)
+    resume = _cli(["run", "--resume", str(out), "--quiet", "--no-figures"], compile_cache)
+    for p in (uninterrupted, resume):
+        _, err = p.communicate(timeout=600)
+        assert p.returncode == 0, err[-2000:]
+    _same_run(reference, out)
     assert json.loads((out / "timing.json").read_text())["resumed_from_evaluation"] >= 60
     assert json.loads((out / "status.json").read_text())["state"] == "complete"
     assert not (out / "checkpoint").exists()
