@@ -3,6 +3,18 @@ import pytest
 
 import jaxfalsify as jf
 
+# a 32-scenario space (Table I values around Table II) for CLI tests
+TINY_SPACE = """name = "tiny"
+[parameters.ego_offset]
+values = [7, 9]
+[parameters.ped_accel]
+values = [0.007, 0.076]
+[parameters.ped_speed]
+values = [1.0, 1.237, 1.5, 1.808]
+[parameters.ped_offset]
+values = [3.5, 4.0]
+"""
+
 TABLE_II_CHALLENGING = dict(ego_offset=9.0, ped_accel=0.007, ped_speed=1.237, ped_offset=3.5,
                             weather=8.0)
 TABLE_II_NON_CHALLENGING = dict(ego_offset=7.0, ped_accel=0.076, ped_speed=1.808,

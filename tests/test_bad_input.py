@@ -15,17 +15,8 @@ from jaxfalsify.cli import main
 from jaxfalsify.runs import RunConfig, checkpoint_for, start_run
 from jaxfalsify.sweep import run_sweep
 import jaxfalsify as jf
+from conftest import TINY_SPACE
 
-TINY = """name = "tiny"
-[parameters.ego_offset]
-values = [7, 9]
-[parameters.ped_accel]
-values = [0.007, 0.076]
-[parameters.ped_speed]
-values = [1.0, 1.237, 1.5, 1.808]
-[parameters.ped_offset]
-values = [3.5, 4.0]
-"""
 
 
 class Stop(Exception):
@@ -43,7 +34,7 @@ def _stop_after(n):
 def world(tmp_path_factory):
     """A working folder holding finished, unfinished and corrupted runs and sweeps."""
     w = tmp_path_factory.mktemp("bad-input")
-    (w / "tiny.toml").write_text(TINY)
+    (w / "tiny.toml").write_text(TINY_SPACE)
     (w / "afile").write_text("not a folder\n")
     files = {
         "malformed.toml": 'strategy = "random"\nepisodes = \n',

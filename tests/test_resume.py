@@ -93,6 +93,16 @@ def _cli(args, cache, **kw):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
 
 
+def _interrupt(args, out: Path, cache, chunks: int, sig) -> tuple[int, str]:
+    """Start ``jaxfalsify ARGS --out OUT`` in a subprocess, send ``sig`` once its checkpoint
+    holds ``chunks`` chunks; returns (exit code, stderr)."""
+    proc = _cli([*args, "--out", str(out)], cache)
+    _wait_for_chunks(proc, out / "checkpoint" / "state.json", chunks, " ".join(args[:1]))
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=120)
+    return proc.returncode, err
+
+
 RUN_ARGS = ["run", "--episodes", "3000", "--batch", "20", "--checkpoint-every", "1",
             "--seed", "7", "--no-figures", "--quiet"]
 
@@ -118,11 +128,8 @@ def _same_run(a: Path, b: Path):
 def test_sigkilled_run_resumes_to_identical_results(tmp_path, capsys, compile_cache):
     reference, out = tmp_path / "reference", tmp_path / "killed"
     uninterrupted = _cli([*RUN_ARGS, "--out", str(reference)], compile_cache)  # side by side
-    proc = _cli([*RUN_ARGS, "--out", str(out)], compile_cache)
-    _wait_for_chunks(proc, out / "checkpoint" / "state.json", 3, "the run")
-    proc.send_signal(signal.SIGKILL)
-    proc.communicate()
-    assert proc.returncode == -signal.SIGKILL
+    rc, _ = _interrupt(RUN_ARGS, out, compile_cache, 3, signal.SIGKILL)
+    assert rc == -signal.SIGKILL
     assert not (out / "summary.json").exists() and not (out / "episodes.parquet").exists()
     # the unfinished folder is neither reused nor silently overwritten
     assert main([*RUN_ARGS, "--out", str(out)]) == 2
@@ -144,11 +151,8 @@ def test_ctrl_c_leaves_a_resumable_run(tmp_path, compile_cache):
     reference = tmp_path / "reference"
     assert main([*args, "--out", str(reference)]) == 0
     out = tmp_path / "interrupted"
-    proc = _cli([*args, "--out", str(out)], compile_cache)
-    _wait_for_chunks(proc, out / "checkpoint" / "state.json", 2, "the run")
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130
+    rc, err = _interrupt(args, out, compile_cache, 2, signal.SIGINT)
+    assert rc == 130
     assert err.strip().splitlines()[-1].endswith(f"resumable: jaxfalsify run --resume {out}")
     status = json.loads((out / "status.json").read_text())
     saved = json.loads((out / "checkpoint" / "state.json").read_text())
@@ -166,10 +170,7 @@ def test_sigkilled_sweep_resumes_to_identical_results(tmp_path, capsys, compile_
     ref = tmp_path / "reference"
     assert main([*SWEEP_ARGS, "--out", str(ref)]) == 0
     out = tmp_path / "killed"
-    proc = _cli([*SWEEP_ARGS, "--out", str(out)], compile_cache)
-    _wait_for_chunks(proc, out / "checkpoint" / "state.json", 3, "the sweep")
-    proc.send_signal(signal.SIGKILL)
-    proc.communicate()
+    assert _interrupt(SWEEP_ARGS, out, compile_cache, 3, signal.SIGKILL)[0] == -signal.SIGKILL
     assert not (out / "summary.json").exists() and not (out / "sweep.parquet").exists()
     assert main([*SWEEP_ARGS, "--out", str(out)]) == 2
     assert f"--resume {out}" in capsys.readouterr().err

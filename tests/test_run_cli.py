@@ -11,6 +11,7 @@ import pytest
 
 import jaxfalsify as jf
 from jaxfalsify.cli import main
+from conftest import TINY_SPACE
 
 SUMMARY_KEYS = {"strategy", "preset", "space", "sut", "seed", "evaluations",
                 "first_collision_evaluation", "best", "convergence_evaluation", "n_nonfinite",
@@ -90,16 +91,7 @@ def test_reinforce_paper_preset_run_and_report(tmp_path, capsys):
 
 def test_compare_against_sweep_ground_truth(tmp_path, capsys):
     space = tmp_path / "tiny.toml"
-    space.write_text("""
-[parameters.ego_offset]
-values = [7, 9]
-[parameters.ped_accel]
-values = [0.007, 0.076]
-[parameters.ped_speed]
-values = [1.0, 1.237, 1.5, 1.808]
-[parameters.ped_offset]
-values = [3.5, 4.0]
-""")
+    space.write_text(TINY_SPACE)
     out, sweep = tmp_path / "cmp", tmp_path / "sweep"
     assert main(["compare", "--strategies", "random,cem", "--seeds", "2", "--budget", "60",
                  "--space", str(space), "--sweep", str(sweep), "--out", str(out)]) == 0

@@ -8,20 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import TINY_SPACE
 
 HERE = Path(__file__).parent
-SPACE = """
-[parameters.ego_offset]
-values = [5, 7, 9]
-[parameters.ped_accel]
-values = [0.007, 0.076]
-[parameters.ped_speed]
-values = [1.0, 1.237, 1.5, 1.808]
-[parameters.ped_offset]
-values = [3.5, 4.0]
-[parameters.weather]
-values = [0, 8, 6]
-"""
+# the tiny CLI space with a third ego offset and three weathers (144 scenarios)
+SPACE = (TINY_SPACE.replace("values = [7, 9]", "values = [5, 7, 9]", 1)
+         + "[parameters.weather]\nvalues = [0, 8, 6]\n")
 
 
 def _start_probe(tmp_path, devices):
