@@ -58,7 +58,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results"
                     / "bench_checkpoint.json")
     args = ap.parse_args()
-    sp = jf.space(args.space)
+    sp = jf.load_space(args.space)
     tmp = Path(tempfile.mkdtemp())
 
     def fresh(name):
@@ -71,7 +71,7 @@ def main() -> None:
     t_plain = best_of(lambda: plain_sweep(sp, fresh("plain")), args.repeats)
     t_ckpt = best_of(lambda: run_sweep(sp, "carla-tm", fresh("ckpt")), args.repeats)
 
-    paper = jf.space("paper")
+    paper = jf.load_space("paper")
     sut = sut_lib.get("carla-tm")
     strat = search.make("reinforce", paper.shape, 250)
     plan = campaign.plan(20_000, 250, every=1)  # 80 updates, a checkpoint after each

@@ -29,7 +29,7 @@ from jaxfalsify import campaign, sim
 from jaxfalsify.runs import RunConfig
 from jaxfalsify.sweep import batch_sharding, plan_chunks
 
-SPACE = jf.space("paper-extended")
+SPACE = jf.load_space("paper-extended")
 STRIDE = 997
 
 

@@ -36,7 +36,7 @@ from jaxfalsify.config import versions
 from jaxfalsify.reference import python_loop_evaluate, reference_evaluate
 from jaxfalsify.sweep import batch_sharding, evaluate_chunk, plan_chunks
 
-SPACE = jf.space("paper-extended")
+SPACE = jf.load_space("paper-extended")
 STRIDE = 997  # prime, coprime with the space size; size * STRIDE < 2**31 (no int32 overflow)
 CHUNK = 1 << 17
 HORIZON = jf.WORLD.horizon
@@ -97,7 +97,7 @@ def one(n: int) -> None:
 
 
 def sweep_seconds(space_name: str) -> dict:
-    sp = jf.space(space_name)
+    sp = jf.load_space(space_name)
     chunk = plan_chunks(sp.size, CHUNK)
     sut = jf.SUTS["carla-tm"]
     run = partial(evaluate_chunk, space=sp, sut=sut, chunk=chunk, sharding=batch_sharding())

@@ -1,11 +1,16 @@
 """A falsification campaign: a search strategy against a SUT over a space, for a budget.
 
-``make_campaign`` builds, PureJaxRL-style, pure functions whose whole loop (ask -> simulate the
-batch -> tell, ``lax.scan`` over updates) is one jit-compiled call; the host calls it once per
-chunk of updates so a progress bar can move, and collects every evaluated scenario.
-``run_seeds`` runs many seeds inside one compiled call (``lax.map`` over keys: each seed's
-batch is already hundreds of scenarios wide, and vmapping the LSTM controller over seeds
-deadlocked XLA:CPU in jax 0.10.2 during development).
+:func:`make_campaign` builds, PureJaxRL-style, pure functions whose whole loop (ask -> simulate
+the batch -> tell, ``lax.scan`` over updates) is one jit-compiled call. Everything numeric is a
+traced argument (:class:`Args`: the space's value table, the SUT's and the strategy's
+parameters, the world, the budget), so another space seed, calibration or hyperparameter value
+reuses the compiled code; only the static configuration (space layout, SUT, strategy, batch,
+updates per chunk) compiles anew. The host (:func:`drive`) calls it once per chunk of updates
+so progress can be shown, checkpoints committed and a stop request honoured between chunks.
+
+Many seeds run inside one compiled call (``lax.map`` over keys: each seed's batch is already
+hundreds of scenarios wide, and vmapping the LSTM controller over seeds deadlocked XLA:CPU in
+jax 0.10.2 during development).
 
 Evaluations are numbered from 1 in the order they were asked. A budget that is not a multiple
 of the batch is honoured by giving the overflow of the last batch a reward of -inf (it teaches
@@ -16,15 +21,17 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable, NamedTuple
+import time
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfalsify import search, sim
+from jaxfalsify import cache, sim
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.space import Space
+from jaxfalsify.search.base import Strategy
+from jaxfalsify.space import Layout, Space
 
 RECORD_FIELDS = ("reward", "reward_rss", "reward_distance", "reward_collision", "collision",
                  "min_distance", "final_distance", "high_risk_share",
@@ -32,24 +39,28 @@ RECORD_FIELDS = ("reward", "reward_rss", "reward_distance", "reward_collision", 
 
 
 class Plan(NamedTuple):
-    batch: int
-    n_updates: int
-    updates_per_chunk: int
-    budget: int
+    batch: int  # scenarios per update
+    n_updates: int  # updates to spend the budget
+    updates_per_chunk: int  # updates per compiled call (progress, checkpoints, stop checks)
+    budget: int  # evaluations
 
     @property
     def n_chunks(self) -> int:
         return self.n_updates // self.updates_per_chunk
+
+    def done_after(self, chunks: int) -> int:
+        """Evaluations committed after ``chunks`` chunks."""
+        return min(chunks * self.updates_per_chunk * self.batch, self.budget)
 
 
 def plan(budget: int, batch: int, chunks_target: int = 20, every: int | None = None) -> Plan:
     """Updates needed for the budget, and a chunking of them (a divisor) for progress and
     checkpoints: about ``chunks_target`` chunks, or at most ``every`` updates per chunk.
     Results do not depend on the chunking (the same update function is scanned)."""
-    if budget <= 0:
-        raise ValueError(f"budget (--episodes) must be positive (got {budget})")
-    if batch <= 0:
-        raise ValueError(f"batch must be positive (got {batch})")
+    if isinstance(budget, bool) or not isinstance(budget, int) or budget <= 0:
+        raise ValueError(f"evaluations must be a positive integer (got {budget!r})")
+    if isinstance(batch, bool) or not isinstance(batch, int) or batch <= 0:
+        raise ValueError(f"batch must be a positive integer (got {batch!r})")
     n_updates = -(-budget // batch)
     per = min(every, n_updates) if every else max(1, n_updates // chunks_target)
     while n_updates % per:
@@ -57,37 +68,130 @@ def plan(budget: int, batch: int, chunks_target: int = 20, every: int | None = N
     return Plan(batch, n_updates, per, budget)
 
 
-def make_campaign(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan,
-                  world: sim.World = sim.WORLD):
-    """Returns ``(init(key) -> carry, run_chunk(carry) -> (carry, records))``, both pure.
+class Args(NamedTuple):
+    """The traced inputs of a campaign."""
 
-    ``records`` hold, per update of the chunk, the batch's ``indices (U, B, P)`` and each of
-    ``RECORD_FIELDS`` ``(U, B)``.
-    """
+    table: jax.Array  # (P, max_n) float32, the space's values
+    sut_params: Any  # the SUT's parameter pytree
+    strategy_params: Any  # the strategy's hyperparameter pytree
+    world: sim.World
+    budget: jax.Array  # () int32, evaluations
 
-    def init(key):
-        k_init, k_run = jax.random.split(key)
-        return {"state": strategy.init(k_init), "key": k_run, "update": jnp.int32(0)}
 
-    sharding = sim.local_batch_sharding() if p.batch % jax.local_device_count() == 0 else None
+def args_for(space: Space, sut_params, strategy_params, world: sim.World, budget: int) -> Args:
+    """The traced inputs, as host arrays (float32 parameters, int32 budget)."""
+    f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    return Args(space.table_array, jax.tree.map(f32, sut_params),
+                jax.tree.map(f32, strategy_params), jax.tree.map(f32, world),
+                np.int32(budget))
 
-    def one_update(carry, _):
-        key, k_ask = jax.random.split(carry["key"])
-        idx, state = strategy.ask(k_ask, carry["state"])
+
+@dataclasses.dataclass(frozen=True)
+class Campaign:
+    """The static configuration of a campaign (hashable: it keys the compiled functions)."""
+
+    layout: Layout
+    sut: sut_lib.SUT
+    strategy: Strategy
+    updates_per_chunk: int
+
+    @property
+    def batch(self) -> int:
+        return self.strategy.batch
+
+
+def make_campaign(c: Campaign):
+    """Returns ``(init(key, args) -> carry, run_chunk(carry, args) -> (carry, records))``,
+    both pure. ``records`` hold, per update of the chunk, the batch's ``indices (U, B, P)`` and
+    each of ``RECORD_FIELDS`` ``(U, B)``."""
+    strategy, B = c.strategy, c.batch
+
+    def init(key, args: Args):
+        k_init, k_eval, k_run = jax.random.split(key, 3)
+        return {"state": strategy.init(k_init, args.strategy_params), "key": k_run,
+                "eval_key": k_eval, "update": jnp.int32(0)}
+
+    sharding = sim.local_batch_sharding() if B % jax.local_device_count() == 0 else None
+
+    def one_update(carry, args: Args):
+        key, k_ask, k_tell = jax.random.split(carry["key"], 3)
+        idx, state = strategy.ask(k_ask, carry["state"], args.strategy_params)
         if sharding is not None:  # the proposal batch is simulated on all local devices
             idx = jax.lax.with_sharding_constraint(idx, sharding)
-        out, _ = sim.batch_rollout(space.scenario(idx), sut, world, False)
-        evaluation = carry["update"] * p.batch + jnp.arange(p.batch)
-        in_budget = evaluation < p.budget
+        evaluation = carry["update"] * B + jnp.arange(B, dtype=jnp.int32)
+        out, _ = sim.batch_rollout(c.layout.scenario(idx, args.table), evaluation,
+                                   carry["eval_key"], c.sut, args.sut_params, args.world)
+        in_budget = evaluation < args.budget
         r = jnp.where(jnp.isnan(out.reward) | ~in_budget, -jnp.inf, out.reward)
-        state = strategy.tell(state, idx, r)
+        state = strategy.tell(k_tell, state, idx, r, args.strategy_params)
         rec = {"indices": idx, **{f: getattr(out, f) for f in RECORD_FIELDS}}
-        return {"state": state, "key": key, "update": carry["update"] + 1}, rec
+        return {**carry, "state": state, "key": key, "update": carry["update"] + 1}, rec
 
-    def run_chunk(carry):
-        return jax.lax.scan(one_update, carry, None, length=p.updates_per_chunk)
+    def run_chunk(carry, args: Args):
+        return jax.lax.scan(lambda cr, _: one_update(cr, args), carry, None,
+                            length=c.updates_per_chunk)
 
     return init, run_chunk
+
+
+def _is_key(x) -> bool:
+    return jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def static_key(c: Campaign) -> dict | None:
+    """What identifies a campaign's program besides its argument shapes (None: not cacheable,
+    e.g. a SUT built from a closure)."""
+    sut = sut_lib.cache_key(c.sut)
+    if sut is None:
+        return None
+    return {"layout": repr(c.layout), "sut": sut, "strategy": repr(c.strategy),
+            "updates_per_chunk": c.updates_per_chunk}
+
+
+@functools.lru_cache(maxsize=64)
+def _program(c: Campaign, args_tree, args_avals: tuple, n_seeds: int) -> cache.Program:
+    init, run_chunk = make_campaign(c)
+
+    def fn(carry_leaves, key_data, args_leaves, fresh):
+        """One chunk for ``n_seeds`` seeds: ``(S, ...)`` carry leaves (PRNG keys as key data),
+        key data ``(S, 2)``, the args' leaves, and ``fresh`` (start from ``init``)."""
+        args = jax.tree.unflatten(args_tree, args_leaves)
+        template = jax.eval_shape(init, jax.random.key(0), args)
+        leaves_t, ctree = jax.tree.flatten(template)
+        keys = [_is_key(x) for x in leaves_t]
+
+        def one(xs):
+            leaves, kd = xs
+            carry = jax.lax.cond(
+                fresh, lambda: init(jax.random.wrap_key_data(kd), args),
+                lambda: jax.tree.unflatten(ctree, [jax.random.wrap_key_data(x) if k else x
+                                                   for x, k in zip(leaves, keys)]))
+            carry, rec = run_chunk(carry, args)
+            return [jax.random.key_data(x) if k else x
+                    for x, k in zip(jax.tree.leaves(carry), keys)], rec
+
+        return jax.lax.map(one, (carry_leaves, key_data))
+
+    def example():
+        args_leaves = [jnp.zeros(a.shape, a.dtype) for a in args_avals]
+        args = jax.tree.unflatten(args_tree, args_leaves)
+        template = jax.eval_shape(init, jax.random.key(0), args)
+        carry = [jnp.zeros((n_seeds,) + jax.random.key_data(jax.random.key(0)).shape, jnp.uint32)
+                 if _is_key(x) else jnp.zeros((n_seeds,) + x.shape, x.dtype)
+                 for x in jax.tree.leaves(template)]
+        return (carry, jnp.zeros((n_seeds, 2), jnp.uint32), args_leaves, jnp.bool_(True))
+
+    key_args = ([jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args_avals],
+                jax.ShapeDtypeStruct((n_seeds,), jnp.uint32))
+    return cache.exported_jit(fn, "campaign", static_key(c), key_args, example)
+
+
+def program(c: Campaign, args: Args, n_seeds: int) -> cache.Program:
+    """The compiled chunk function of a campaign for ``n_seeds`` seeds (cached in-process and,
+    with :func:`jaxfalsify.cache.exported_jit`, per machine)."""
+    leaves, tree = jax.tree.flatten(args)
+    avals = tuple(jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) for x in leaves)
+    return _program(c, tree, avals, n_seeds)
 
 
 @dataclasses.dataclass
@@ -98,8 +202,8 @@ class Result:
     batch: int
     indices: np.ndarray  # (N, P) int32
     fields: dict[str, np.ndarray]  # RECORD_FIELDS -> (N,)
-    compile_seconds: float
-    wall_seconds: float
+    compile_seconds: float = 0.0
+    search_seconds: float = 0.0
 
     @property
     def n(self) -> int:
@@ -113,156 +217,105 @@ class Result:
     def update(self) -> np.ndarray:
         return (self.evaluation - 1) // self.batch
 
-    def ranked_reward(self) -> np.ndarray:
-        r = self.fields["reward"].astype(np.float64)
-        return np.where(np.isnan(r), -np.inf, r)
 
-
-def collect(records: list[dict], space: Space, p: Plan, compile_s: float, wall_s: float,
-            seed_axis: int | None = None) -> Result | list[Result]:
-    """Flatten chunk records ``(U, B, ...)`` (or ``(S, U, B, ...)``) into Result(s)."""
+def collect(records: list[dict], space: Space, p: Plan, compile_s: float = 0.0,
+            search_s: float = 0.0) -> list[Result]:
+    """Flatten chunk records ``(S, U, B, ...)`` into one Result per seed."""
     host = [jax.tree.map(np.asarray, r) for r in records]
-    cat = {k: np.concatenate([h[k] for h in host], axis=0 if seed_axis is None else 1)
-           for k in host[0]}
-    if seed_axis is None:
-        return _one(cat, space, p, compile_s, wall_s)
-    n_seeds = cat["reward"].shape[0]
-    return [_one({k: v[s] for k, v in cat.items()}, space, p, compile_s, wall_s)
-            for s in range(n_seeds)]
+    cat = {k: np.concatenate([h[k] for h in host], axis=1) for k in host[0]}
+
+    def one(c):
+        idx = c["indices"].reshape(-1, len(space.shape))[: p.budget]
+        fields = {f: c[f].reshape(-1)[: p.budget] for f in RECORD_FIELDS}
+        return Result(space, p.batch, idx.astype(np.int32), fields, compile_s, search_s)
+
+    return [one({k: v[s] for k, v in cat.items()}) for s in range(cat["reward"].shape[0])]
 
 
-def _one(cat, space, p, compile_s, wall_s) -> Result:
-    P = len(space.shape)
-    idx = cat["indices"].reshape(-1, P)[: p.budget]
-    fields = {f: cat[f].reshape(-1)[: p.budget] for f in RECORD_FIELDS}
-    return Result(space, p.batch, idx.astype(np.int32), fields, compile_s, wall_s)
+class Stopped(Exception):
+    """Raised by :func:`drive` when ``stop()`` asked to stop; the work done is committed."""
+
+    def __init__(self, chunks_done: int):
+        super().__init__(f"stopped after {chunks_done} chunks")
+        self.chunks_done = chunks_done
 
 
-@functools.lru_cache(maxsize=16)
-def _compiled(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan,
-              world: sim.World, seeds: bool):
-    """Jitted (init, run_chunk), mapped over seeds if asked; cached so repeated campaigns of
-    the same configuration compile once."""
-    init, run_chunk = make_campaign(space, sut, strategy, p, world)
-    if seeds:
-        return (jax.jit(lambda keys: jax.lax.map(init, keys)),
-                jax.jit(lambda carry: jax.lax.map(run_chunk, carry)))
-    return jax.jit(init), jax.jit(run_chunk)
+def drive(prog: cache.Program, seeds: list[int], args: Args, p: Plan, *, progress=None,
+          checkpoint=None, resumed=None, stop: Callable[[], bool] | None = None):
+    """Host loop over chunks of updates: ``(records, compile seconds, search seconds)``.
 
-
-def _drive(init, step, keys, p: Plan, progress=None, checkpoint=None, resumed=None):
-    """Host loop over chunks of updates: returns (records, compile seconds, wall seconds).
-
-    With a :class:`~jaxfalsify.checkpoint.CampaignCheckpoint`, every chunk is committed to it
-    as soon as it is done; ``resumed = (carry, records)`` (from :func:`restore`) continues
-    after the chunks those records hold.
+    ``progress(done, records)`` after each chunk (``done`` in evaluations); with a
+    checkpoint (:class:`jaxfalsify.store.CampaignCheckpoint`) each chunk is committed to it;
+    ``resumed = (carry, records)`` continues after the chunks those records hold;
+    ``stop()`` is checked before each chunk: when true, raise :class:`Stopped` (everything
+    done so far is committed). The first chunk's time counts as compilation (its compile time
+    plus one chunk's run time).
     """
-    import time
-
     t0 = time.perf_counter()
-    carry, records = resumed if resumed and resumed[0] is not None else (init(keys), [])
-    records = list(records)
+    # every input committed to the device, as the outputs fed back are: the first and later
+    # calls then share one compiled executable
+    # (host-side NumPy: an eager jnp op would compile a small program of its own; on several
+    # devices the batch is sharded inside, so inputs stay uncommitted)
+    dev = jax.local_devices()[0] if jax.local_device_count() == 1 else None
+    args_leaves = jax.device_put(jax.tree.leaves(args), dev)
+    key_data = jax.device_put(np.stack([sim.seed_key_data(s) for s in seeds]), dev)
+    if resumed and resumed[0] is not None:
+        carry, records, fresh = list(resumed[0]), list(resumed[1]), False
+    else:
+        carry = [np.zeros(a.shape, a.dtype) for a in prog.in_avals[0]]
+        records, fresh = [], True
+    carry = jax.device_put(carry, dev)
+    flags = [jax.device_put(np.bool_(f), dev) for f in (False, True)]
     compile_s = 0.0
-    if progress and records:
-        progress(min(len(records) * p.updates_per_chunk * p.batch, p.budget), records)
+    t_search = None
     for c in range(len(records), p.n_chunks):
-        carry, rec = step(carry)
+        if stop is not None and stop():
+            raise Stopped(len(records))
+        carry, rec = prog(carry, key_data, args_leaves, flags[fresh])
+        fresh = False
         records.append(jax.tree.map(np.asarray, rec))
-        done = min((c + 1) * p.updates_per_chunk * p.batch, p.budget)
-        if checkpoint is not None:
-            checkpoint.save(c, carry, records[-1], done)
-        if not compile_s:
+        if t_search is None:
             compile_s = time.perf_counter() - t0
+            t_search = time.perf_counter()
+        if checkpoint is not None:
+            checkpoint.save(c, [np.asarray(x) for x in carry], records[-1],
+                            p.done_after(c + 1))
         if progress:
-            progress(done, records)
-    return records, compile_s, time.perf_counter() - t0
+            progress(p.done_after(c + 1), records)
+    search_s = time.perf_counter() - t_search if t_search is not None else 0.0
+    return records, compile_s, search_s
 
 
-def run(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan, seed: int,
-        world: sim.World = sim.WORLD, progress: Callable[[int, Result | None], None] | None = None,
-        checkpoint=None, resumed=None) -> Result:
-    """One seed, chunk by chunk on the host (progress callback after each chunk).
-
-    ``checkpoint``/``resumed``: see :func:`_drive` and :func:`restore`. A resumed run gives
+def run_seeds(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy,
+              strategy_params, p: Plan, seeds: list[int], world: sim.World = sim.WORLD,
+              **drive_kw) -> list[Result]:
+    """Campaigns for many seeds in one compiled function (mapped over the seeds), chunk by
+    chunk on the host (see :func:`drive` for the keywords). A resumed campaign gives
     bit-identical results to an uninterrupted one: the carry (strategy and optimiser state,
-    PRNG key, update count) is restored exactly and the same compiled chunk continues.
-    """
-    init, step = _compiled(space, sut, strategy, p, world, False)
-    records, compile_s, wall = _drive(init, step, jax.random.key(seed), p, progress,
-                                      checkpoint, resumed)
-    return collect(records, space, p, compile_s, wall)
+    PRNG keys, update count) is restored exactly and the same compiled chunk continues."""
+    args = args_for(space, sut_params, strategy_params, world, p.budget)
+    prog = program(Campaign(space.layout, sut, strategy, p.updates_per_chunk), args,
+                   len(seeds))
+    records, compile_s, search_s = drive(prog, list(seeds), args, p, **drive_kw)
+    return collect(records, space, p, compile_s, search_s)
 
 
-def restore(checkpoint, space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan,
-            seed: int, world: sim.World = sim.WORLD):
-    """``(carry, records)`` saved in ``checkpoint`` for this configuration (``(None, [])``
-    if none yet); raises :class:`~jaxfalsify.checkpoint.CheckpointError` if unusable."""
-    from jaxfalsify.checkpoint import CheckpointError
-
-    init, _ = _compiled(space, sut, strategy, p, world, False)
-    carry, records = checkpoint.load(jax.eval_shape(init, jax.random.key(seed)))
-    want = {"indices": (p.updates_per_chunk, p.batch, len(space.shape)),
-            **{f: (p.updates_per_chunk, p.batch) for f in RECORD_FIELDS}}
-    if len(records) > p.n_chunks or any(
-            set(r) != set(want) or any(r[k].shape != want[k] for k in want) for r in records):
-        raise CheckpointError(f"checkpoint {checkpoint.folder}: its records do not fit this "
-                              "run's plan")
-    return carry, records
+def run(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy, strategy_params,
+        p: Plan, seed: int, world: sim.World = sim.WORLD, **drive_kw) -> Result:
+    """One seed (see :func:`run_seeds`)."""
+    return run_seeds(space, sut, sut_params, strategy, strategy_params, p, [seed], world,
+                     **drive_kw)[0]
 
 
-def run_seeds(space: Space, sut: sut_lib.SUT, strategy: search.Strategy, p: Plan,
-              seeds: list[int], world: sim.World = sim.WORLD) -> list[Result]:
-    """Many seeds in one compiled function (the campaign mapped over keys)."""
-    init, step = _compiled(space, sut, strategy, p, world, True)
-    keys = jnp.stack([jax.random.key(s) for s in seeds])
-    records, compile_s, wall = _drive(init, step, keys, p)
-    return collect(records, space, p, compile_s, wall, seed_axis=0)
+def carry_avals(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy,
+                strategy_params, p: Plan, world: sim.World = sim.WORLD, n_seeds: int = 1):
+    """Shapes and dtypes of a campaign's carry leaves (what a checkpoint must hold)."""
+    args = args_for(space, sut_params, strategy_params, world, p.budget)
+    return program(Campaign(space.layout, sut, strategy, p.updates_per_chunk), args,
+                   n_seeds).in_avals[0]
 
 
-# ----------------------------------------------------------------------------- summaries
-def first_collision_evaluation(res: Result) -> int | None:
-    hits = np.nonzero(res.fields["collision"] & ~res.fields["nonfinite"])[0]
-    return int(hits[0]) + 1 if hits.size else None
-
-
-def convergence_evaluation(res: Result) -> int:
-    """First evaluation after which the running best stays within 1 % of its final value."""
-    best = np.maximum.accumulate(res.ranked_reward())
-    final = best[-1]
-    if not np.isfinite(final):
-        return res.n
-    ok = best >= final - 0.01 * abs(final)
-    return int(np.argmax(ok)) + 1
-
-
-def best_index(res: Result) -> int:
-    return int(np.argmax(res.ranked_reward()))  # the first evaluation reaching the maximum
-
-
-def distinct_critical(res: Result) -> list[dict]:
-    """Distinct collision scenarios found, ranked by reward (then by first evaluation)."""
-    col = res.fields["collision"] & ~res.fields["nonfinite"]
-    seen: dict[tuple, dict] = {}
-    for i in np.nonzero(col)[0]:
-        key = tuple(int(v) for v in res.indices[i])
-        if key in seen:
-            seen[key]["times_evaluated"] += 1
-        else:
-            seen[key] = {"indices": key, "first_evaluation": int(i) + 1, "times_evaluated": 1,
-                         **{f: res.fields[f][i].item() for f in RECORD_FIELDS}}
-    return sorted(seen.values(), key=lambda d: (-d["reward"], d["first_evaluation"]))
-
-
-def scenario_values(space: Space, indices) -> dict[str, float]:
-    return {n: float(space.values[p][int(indices[p])]) for p, n in enumerate(space.names)}
-
-
-def typical_non_critical(res: Result) -> int | None:
-    """The non-colliding evaluation with the median reward (a 'typical' one, paper Table II)."""
-    ok = ~res.fields["collision"] & ~res.fields["nonfinite"]
-    idx = np.nonzero(ok)[0]
-    if idx.size == 0:
-        return None
-    r = res.fields["reward"][idx]
-    return int(idx[np.argsort(r, kind="stable")[len(idx) // 2]])
-
+def record_shapes(space: Space, p: Plan, n_seeds: int = 1) -> dict[str, tuple[int, ...]]:
+    """Shapes of one chunk's records ``(S, U, B, ...)``."""
+    lead = (n_seeds, p.updates_per_chunk, p.batch)
+    return {"indices": lead + (len(space.shape),), **{f: lead for f in RECORD_FIELDS}}

@@ -1,8 +1,9 @@
-"""Command line: ``jaxfalsify run`` (the main job: a falsification campaign), ``compare``,
-``sweep`` (exhaustive ground truth) and ``simulate`` (one concrete scenario).
+"""The ``jaxfalsify`` command: a thin shell over the library.
 
-Bad input prints one line ``jaxfalsify: error: ...`` naming the offending flag or key and exits
-with code 2, before anything is written.
+Each subcommand maps its flags to a config (``runs.RunConfig``, ``sweep.SweepConfig``,
+``compare.CompareConfig``) and calls the library's ``execute``; exceptions become one line
+``jaxfalsify: error: ...`` and an exit code: 2 for bad input (nothing written), 130 / 143 after
+SIGINT / SIGTERM (work committed, resumable), 1 for a failed write (disk full, permissions).
 """
 
 from __future__ import annotations
@@ -10,10 +11,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import signal
 import sys
 from pathlib import Path
 
-import numpy as np
+DESCRIPTION = ("JAX-accelerated, batched scenario-based falsification: search a logical "
+               "scenario for the concrete scenarios in which a system under test collides.")
+
+
+class UsageError(Exception):
+    pass
 
 
 class _Parser(argparse.ArgumentParser):
@@ -21,30 +28,51 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(message)
 
 
-class UsageError(Exception):
-    pass
-
-
-def _positive_int(name):
+def _int(name, minimum=0):
     def parse(text):
         try:
             v = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{name} must be an integer (got {text!r})")
-        if v <= 0:
-            raise argparse.ArgumentTypeError(f"{name} must be positive (got {v})")
+        if v < minimum:
+            raise argparse.ArgumentTypeError(f"{name} must be >= {minimum} (got {v})")
         return v
     return parse
 
 
-def _seed(text):
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--seed must be a non-negative integer (got {text!r})")
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"--seed must be a non-negative integer (got {v})")
-    return v
+class StopFlag:
+    """SIGINT / SIGTERM handlers that ask the running work to stop between chunks (a second
+    signal interrupts at once)."""
+
+    def __init__(self):
+        self.signum = None
+
+    def __call__(self) -> bool:
+        return self.signum is not None
+
+    def handler(self, signum, frame):
+        if self.signum is not None:
+            raise KeyboardInterrupt
+        self.signum = signum
+
+    def install(self):
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, self.handler)
+        return self
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + (self.signum or signal.SIGINT)
+
+
+def _add_sut(p, many=False):
+    from jaxfalsify.sut import REGISTRY
+
+    p.add_argument("--sut", help=f"system under test: {', '.join(REGISTRY)} or an import "
+                   "path module:attr / file.py:attr (default carla-tm)")
+    p.add_argument("--sut-param", action="append", dest="sut_param", metavar="NAME=VALUE",
+                   help="set a SUT parameter (repeatable)" + (
+                       "; NAME=V1,V2,... sweeps calibrations" if many else ""))
 
 
 def _distributed_flags(p) -> None:
@@ -52,72 +80,87 @@ def _distributed_flags(p) -> None:
     g.add_argument("--distributed", action="store_true",
                    help="one of several processes; each evaluates its share and writes a part")
     g.add_argument("--coordinator", help="HOST:PORT of process 0 (or JAX_COORDINATOR_ADDRESS)")
-    g.add_argument("--num-processes", type=_positive_int("--num-processes"),
-                   dest="num_processes", help="(or JAX_NUM_PROCESSES)")
-    g.add_argument("--process-id", type=_seed, dest="process_id", help="(or JAX_PROCESS_ID)")
-
-
-def _start_distributed(args) -> tuple[int, int]:
-    if not args.distributed:
-        if args.coordinator or args.num_processes or args.process_id is not None:
-            raise UsageError("--coordinator/--num-processes/--process-id need --distributed")
-        return 0, 1
-    from jaxfalsify.distributed import initialize
-
-    try:
-        return initialize(args.coordinator, args.num_processes, args.process_id)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
+    g.add_argument("--num-processes", type=_int("--num-processes", 1), dest="num_processes",
+                   help="(or JAX_NUM_PROCESSES)")
+    g.add_argument("--process-id", type=_int("--process-id"), dest="process_id",
+                   help="(or JAX_PROCESS_ID)")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from jaxfalsify.sut import SUTS
+    from jaxfalsify import search
+    from jaxfalsify.compare import DEFAULT_STRATEGIES
 
-    p = _Parser(prog="jaxfalsify", description=__doc__.splitlines()[0])
+    p = _Parser(prog="jaxfalsify", description=DESCRIPTION)
+    p.add_argument("--no-cache", action="store_true", dest="no_cache",
+                   help="no compilation or ground-truth cache (also JAXFALSIFY_NO_CACHE=1)")
     sub = p.add_subparsers(dest="command", required=True)
+    strategies = ", ".join(search.names())
 
     r = sub.add_parser("run", help="falsification campaign (the main job); no arguments: the "
                        "paper space, carla-tm, reinforce/default, seed 0, 4000 evaluations")
     r.add_argument("--config", type=Path, help="a run's config.toml to repeat; flags override it")
-    r.add_argument("--space", help="built-in name or TOML file (default paper)")
-    r.add_argument("--space-seed", type=_seed, dest="space_seed",
+    r.add_argument("--space", help="built-in name (paper, paper-extended) or TOML file")
+    r.add_argument("--space-seed", type=_int("--space-seed"), dest="space_seed",
                    help="discretisation seed of the space (default 0)")
-    r.add_argument("--sut", help=f"system under test: {', '.join(SUTS)} (default carla-tm)")
-    r.add_argument("--strategy", help="random, grid, cem, anneal, cmaes, reinforce "
-                   "(default reinforce)")
-    r.add_argument("--preset", help="reinforce preset: paper or default (default default)")
-    r.add_argument("--episodes", type=_positive_int("--episodes"),
+    _add_sut(r)
+    r.add_argument("--strategy", help=f"{strategies} (default reinforce/default)")
+    r.add_argument("--strategy-param", action="append", dest="strategy_param",
+                   metavar="NAME=VALUE", help="set a strategy option (repeatable)")
+    r.add_argument("--evaluations", type=_int("--evaluations", 1),
                    help="budget in evaluated scenarios (default 4000, the paper's)")
-    r.add_argument("--batch", type=_positive_int("--batch"), help="scenarios per update")
-    r.add_argument("--seed", type=_seed, help="search seed (default 0)")
+    r.add_argument("--batch", type=_int("--batch", 1), help="scenarios per update")
+    r.add_argument("--seed", type=_int("--seed"), help="search seed (default 0)")
+    r.add_argument("--checkpoint-every", type=_int("--checkpoint-every", 1),
+                   dest="checkpoint_every", help="updates between checkpoints (default: "
+                   "about 1/20 of the run)")
     r.add_argument("--out", type=Path, help="run folder (default runs/<timestamp>-<strategy>)")
     r.add_argument("--force", action="store_true", help="overwrite an existing run folder")
-    r.add_argument("--quiet", action="store_true", help="no progress bar or report")
+    r.add_argument("--resume", type=Path, metavar="RUN_DIR",
+                   help="continue an interrupted run (its config.toml is used)")
+    r.add_argument("--quiet", action="store_true", help="no progress or report")
     r.add_argument("--no-figures", action="store_true", dest="no_figures",
                    help="skip figures/ and report.md")
     r.add_argument("--rerun", action="store_true", help="also save best.rrd (rerun recording)")
-    r.add_argument("--resume", type=Path, metavar="RUN_DIR",
-                   help="continue an interrupted run from its last checkpoint (its config.toml "
-                   "is used; only --quiet, --no-figures and --rerun may be added)")
-    r.add_argument("--checkpoint-every", type=_positive_int("--checkpoint-every"),
-                   dest="checkpoint_every", help="updates between checkpoints, rounded down to "
-                   "a divisor of the number of updates (default: about 1/20 of the run)")
 
-    c = sub.add_parser("compare", help="all strategies x seeds vs the exhaustive sweep")
-    c.add_argument("--strategies", default="reinforce,random,cem,anneal,cmaes",
-                   help="comma-separated; reinforce/paper or reinforce/default picks a preset")
-    c.add_argument("--seeds", type=_positive_int("--seeds"), default=10)
-    c.add_argument("--budget", type=_positive_int("--budget"), default=4000)
+    s = sub.add_parser("sweep", help="evaluate every concrete scenario of a space")
+    s.add_argument("--space", help="built-in name or TOML file (default paper)")
+    s.add_argument("--space-seed", type=_int("--space-seed"), dest="space_seed",
+                   help="discretisation seed of the space (default 0)")
+    _add_sut(s, many=True)
+    s.add_argument("--seed", type=_int("--seed"),
+                   help="seed of the SUT's randomness (default 0; built-ins are deterministic)")
+    s.add_argument("--chunk", type=_int("--chunk", 1),
+                   help="most scenarios per compiled batch (default 131072)")
+    s.add_argument("--rows", choices=("all", "collisions", "none"),
+                   help="scenarios written to Parquet (default all; none: summary only)")
+    s.add_argument("--out", type=Path, help="output folder (default "
+                   "sweeps/<space>-<sut>-s<space-seed>)")
+    s.add_argument("--force", action="store_true", help="overwrite an existing sweep in --out")
+    s.add_argument("--resume", type=Path, metavar="OUT",
+                   help="continue an interrupted sweep (its config.toml is used)")
+    s.add_argument("--quiet", action="store_true", help="no progress")
+    _distributed_flags(s)
+
+    c = sub.add_parser("compare", help="strategies x seeds against the exhaustive ground truth")
+    c.add_argument("--strategies", default=",".join(DEFAULT_STRATEGIES),
+                   help=f"comma-separated (default {','.join(DEFAULT_STRATEGIES)})")
+    c.add_argument("--seeds", type=_int("--seeds", 1), default=10)
+    c.add_argument("--evaluations", type=_int("--evaluations", 1), default=4000)
     c.add_argument("--space", default="paper")
-    c.add_argument("--space-seed", type=_seed, default=0, dest="space_seed")
-    c.add_argument("--sut", default="carla-tm")
-    c.add_argument("--preset", default="default", help="reinforce preset (default default)")
-    c.add_argument("--sweep", type=Path, help="sweep folder to use as ground truth (default "
-                   "sweeps/<space>-<sut>-s<space-seed>, run if missing)")
+    c.add_argument("--space-seed", type=_int("--space-seed"), default=0, dest="space_seed")
+    _add_sut(c)
     c.add_argument("--out", type=Path, help="folder for compare.json/.md "
                    "(default runs/compare-<timestamp>)")
     c.add_argument("--force", action="store_true")
+    c.add_argument("--quiet", action="store_true", help="no progress")
     _distributed_flags(c)
+
+    m = sub.add_parser("simulate", help="evaluate one concrete scenario and print it with its "
+                       "outcome")
+    m.add_argument("params", nargs="*", metavar="NAME=VALUE",
+                   help="scenario parameters, e.g. ego_offset=9 ped_speed=1.237")
+    _add_sut(m)
+    m.add_argument("--seed", type=_int("--seed"), default=0, help="seed of the SUT's randomness")
 
     pl = sub.add_parser("replay", help="rerun recording of a run's scenario")
     pl.add_argument("run_dir", type=Path, metavar="RUN_DIR")
@@ -125,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
     g = pl.add_mutually_exclusive_group()
     g.add_argument("--save", type=Path, help="write FILE.rrd (default RUN_DIR/replay-<scenario>.rrd)")
     g.add_argument("--spawn", action="store_true", help="open a rerun viewer instead")
-    pl.add_argument("--scenarios", type=_positive_int("--scenarios"), default=0,
+    pl.add_argument("--scenarios", type=_int("--scenarios", 1), default=0,
                     help="also overlay the distance of K evaluated scenarios (paper Fig. 10)")
 
     x = sub.add_parser("export", help="OpenSCENARIO (.xosc) + OpenDRIVE (.xodr) of a run's "
@@ -137,353 +180,152 @@ def build_parser() -> argparse.ArgumentParser:
 
     f = sub.add_parser("figures", help="(re)draw a run's figures and report.md")
     f.add_argument("run_dir", type=Path, metavar="RUN_DIR")
-
-    s = sub.add_parser("sweep", help="evaluate every concrete scenario of a space")
-    s.add_argument("--space", help="built-in name (paper, paper-extended) or a TOML file "
-                   "(default: paper)")
-    s.add_argument("--seed", type=_seed, help="discretisation seed (default 0)")
-    s.add_argument("--sut", help=f"system under test: {', '.join(SUTS)} (default carla-tm)")
-    s.add_argument("--out", type=Path, default=None,
-                   help="output folder (default sweeps/<space>-<sut>-s<seed>)")
-    s.add_argument("--chunk", type=_positive_int("--chunk"),
-                   help=f"most scenarios per compiled batch (default {1 << 17})")
-    s.add_argument("--force", action="store_true", help="overwrite an existing sweep in --out")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
-    s.add_argument("--rows", choices=("all", "collisions", "none"),
-                   help="scenarios written to Parquet (default all; none: summary only)")
-    s.add_argument("--resume", type=Path, metavar="OUT",
-                   help="continue an interrupted sweep in OUT (its config.toml is used)")
-    _distributed_flags(s)
-
-    m = sub.add_parser("simulate", help="evaluate one concrete scenario and print its outcome")
-    m.add_argument("params", nargs="*", metavar="NAME=VALUE",
-                   help="scenario parameters, e.g. ego_offset=9 ped_speed=1.237")
-    m.add_argument("--sut", default="carla-tm")
     return p
 
 
-def _check_out(out: Path, marker: str, force: bool) -> None:
-    """Refuse an --out that is not a folder, holds finished results (without --force), or
-    cannot be written (probed by creating and removing a temporary file)."""
-    import tempfile
+def _progress(quiet: bool):
+    from jaxfalsify.progress import Bar, Progress
 
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out} exists and is not a folder")
-    if (out / marker).exists() and not force:
-        raise UsageError(f"--out {out} already holds {marker}; pass --force to overwrite")
-    parent = out if out.exists() else next((a for a in out.parents if a.exists()), Path("."))
-    if not parent.is_dir():
-        raise UsageError(f"--out {out}: {parent} is not a folder")
-    try:
-        with tempfile.TemporaryFile(dir=parent):
-            pass
-    except OSError as e:
-        raise UsageError(f"--out {out}: cannot write in {parent} ({e.strerror})") from None
+    return Progress() if quiet else Bar()
 
 
-def _check_unfinished(out: Path, force: bool, command: str) -> None:
-    if not force and ((out / "checkpoint").exists() or (out / "status.json").exists()
-                      or any(out.glob("checkpoint*"))):
-        raise UsageError(f"--out {out} holds an unfinished {command}; pass --resume {out} to "
-                         "continue it or --force to start over")
+def _assignments(items, flag, many=False):
+    from jaxfalsify.config import parse_assignments
+
+    return parse_assignments(items, flag, many)
 
 
-SWEEP_FLAGS = ("space", "seed", "sut", "chunk", "rows", "out")
+def _no_flags_with_resume(args, names):
+    given = [n for n in names if getattr(args, n, None) not in (None, False)]
+    if given:
+        raise UsageError(f"--{given[0].replace('_', '-')} cannot be combined with --resume "
+                         "(the folder's own config.toml is used)")
 
 
-def _sweep_config(args):
-    """``(space, sut, out, chunk, rows, processes)`` from --resume OUT's config.toml (processes:
-    how many it ran on) or from the flags (processes None)."""
-    import tomllib
-
-    from jaxfalsify import sut as sut_lib
-    from jaxfalsify.space import space as load_space, space_from_dict
-
-    if args.resume is None:
-        sp = load_space(args.space or "paper", seed=args.seed or 0)
-        sut = sut_lib.get(args.sut or "carla-tm")
-        out = args.out or Path("sweeps") / f"{Path(sp.name).stem}-{sut.name}-s{sp.seed}"
-        return sp, sut, out, args.chunk or (1 << 17), args.rows or "all", None
-    given = [k for k in SWEEP_FLAGS if getattr(args, k) is not None]
-    if given or args.force:
-        flag = "--" + (given[0] if given else "force")
-        raise UsageError(f"{flag} cannot be combined with --resume (the sweep's own "
-                         "config.toml is used)")
-    out = args.resume
-    path = out / "config.toml"
-    if not path.is_file():
-        raise UsageError(f"--resume {out}: no config.toml there (not a sweep folder)")
-    if (out / "summary.json").exists():
-        raise UsageError(f"--resume {out}: the sweep is already complete (summary.json)")
-    try:
-        doc = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise UsageError(f"{path}: malformed TOML: {e}") from None
-    if doc.get("command") != "sweep":
-        raise UsageError(f"--resume {out}: {path} is not a sweep's config")
-    try:
-        sp = space_from_dict(doc["space"], doc["seed"])
-        sut = sut_lib.get(doc["sut"])
-        chunk, rows = int(doc["chunk"]), doc["rows"]
-    except KeyError as e:
-        raise UsageError(f"{path}: missing key {e}") from None
-    except (TypeError, ValueError) as e:
-        raise UsageError(f"{path}: {e}") from None
-    return sp, sut, out, chunk, rows, doc.get("processes", 1)
-
-
-def cmd_sweep(args) -> int:
-    from tqdm import tqdm
-
-    from jaxfalsify.checkpoint import CheckpointError
-    from jaxfalsify.sweep import check_resume, run_sweep
-
-    try:
-        sp, sut, out, chunk, rows, procs = _sweep_config(args)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    if args.resume is None:
-        _check_out(out, "summary.json", args.force)
-        _check_unfinished(out, args.force, "sweep")
-    pid, n_proc = _start_distributed(args)
-    from jaxfalsify.distributed import share
-    begin, end = share(sp.size, pid, n_proc)
-    if args.resume is not None:
-        if procs != n_proc:
-            raise UsageError(f"--resume {out}: the sweep ran on {procs} process(es), this is "
-                             f"{n_proc}; resume it with the same number")
-        try:
-            check_resume(sp, sut.name, out, chunk, rows, pid, n_proc)
-        except CheckpointError as e:
-            raise UsageError(f"{e}; start over with --force --out {out}") from None
-    bar = tqdm(total=end - begin, unit="scn", unit_scale=True, disable=args.quiet,
-               desc=f"sweep {sp.name} / {sut.name}"
-               + (f" [process {pid}/{n_proc}]" if n_proc > 1 else ""))
-    try:
-        summary = run_sweep(sp, sut.name, out, chunk=chunk, progress=bar.update,
-                            process_id=pid, num_processes=n_proc, rows=rows,
-                            resume=args.resume is not None)
-    except KeyboardInterrupt:
-        bar.close()
-        done = check_resume(sp, sut.name, out, chunk, rows, pid, n_proc)
-        print(f"jaxfalsify: interrupted after {done} of {end - begin} scenarios; {out} is "
-              f"resumable: jaxfalsify sweep --resume {out}", file=sys.stderr)
-        return 130
-    finally:
-        bar.close()
-    if pid != 0:
-        print(f"process {pid}: done ({out})")
-        return 0
-    best = summary["global_max_scenario"] or {}
-    print(f"{summary['n_scenarios']} scenarios, {summary['n_collisions']} collisions "
-          f"({100 * summary['collision_rate']:.2f} %) in {summary['wall_seconds']:.2f} s "
-          f"(compile {summary['compile_seconds']:.2f} s)")
-    print(f"global maximum reward {summary['global_max_reward']:.4f} at "
-          + ", ".join(f"{k}={v:g}" for k, v in best.get("values", {}).items()))
-    print(f"wrote {out}/{', '.join(summary['parts'] + ['summary.json', 'timing.json', 'config.toml'])}")
-    return 0
-
-
-RUN_FLAGS = ("space", "space_seed", "sut", "strategy", "preset", "episodes", "batch", "seed",
+RUN_FLAGS = ("space", "space_seed", "sut", "strategy", "evaluations", "batch", "seed",
              "checkpoint_every")
 
 
-def _run_config(args):
-    """The run's config and folder: from --resume RUN_DIR, or from --config and flags."""
-    from jaxfalsify.runs import RunConfig, config_from_toml, default_run_dir
+def cmd_run(args, stop, startup) -> int:
+    from jaxfalsify import runs
 
     if args.resume is not None:
-        given = [k for k in RUN_FLAGS + ("config", "out") if getattr(args, k) is not None]
-        if given or args.force:
-            flag = "--" + (given[0].replace("_", "-") if given else "force")
-            raise UsageError(f"{flag} cannot be combined with --resume (the run's own "
-                             "config.toml is used)")
-        out = args.resume
-        if not (out / "config.toml").is_file():
-            raise UsageError(f"--resume {out}: no config.toml there (not a run folder)")
-        if (out / "summary.json").exists():
-            raise UsageError(f"--resume {out}: the run is already complete (summary.json)")
-        return config_from_toml(out / "config.toml"), out
-    base = config_from_toml(args.config) if args.config else RunConfig()
-    flags = {k: getattr(args, k) for k in RUN_FLAGS if getattr(args, k) is not None}
-    if "space" in flags and args.config:
-        flags.setdefault("space_seed", base.space_seed)
-    rc = dataclasses.replace(base, **flags)
-    if rc.strategy != "reinforce" and "preset" in flags:
-        raise ValueError(f"--preset applies to strategy 'reinforce', not '{rc.strategy}'")
-    return rc, args.out or default_run_dir(rc.resolved().strategy)
-
-
-def cmd_run(args) -> int:
-    from tqdm import tqdm
-
-    from jaxfalsify import campaign
-    from jaxfalsify.checkpoint import CheckpointError
-    from jaxfalsify.runs import checkpoint_for, closing_report, start_run, write_run, \
-        write_status
-
-    try:
-        rc, out = _run_config(args)
-        sp, sut, strat, plan = rc.build()
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    rc = rc.resolved()
-    ckpt = checkpoint_for(out, rc, plan, sp)
-    resumed = None
-    if args.resume is not None:
-        try:
-            resumed = campaign.restore(ckpt, sp, sut, strat, plan, rc.seed)
-        except CheckpointError as e:
-            raise UsageError(f"{e}; start over with --force --out {out}") from None
+        _no_flags_with_resume(args, RUN_FLAGS + ("config", "out", "force", "sut_param",
+                                                 "strategy_param"))
+        rc, out = runs.resume_config(args.resume), args.resume
     else:
-        _check_out(out, "summary.json", args.force)
-        _check_unfinished(out, args.force, "run")
-    start_from = sum(len(r["reward"].reshape(-1)) for r in resumed[1]) if resumed else 0
-    start_from = min(start_from, plan.budget)
-    if resumed is None:
-        start_run(out, rc, sp, plan.budget, args.force)
-    else:
-        write_status(out, "running", budget=plan.budget, resumed_from_evaluation=start_from)
-        if not args.quiet:
-            print(f"resuming {out} at evaluation {start_from} of {plan.budget}")
-    bar = tqdm(total=plan.budget, unit="eval", disable=args.quiet,
-               desc=f"{rc.strategy}{'/' + rc.preset if rc.preset else ''} on {sp.name}")
-
-    def progress(done, records):
-        fresh = records[progress.seen:]
-        progress.seen = len(records)
-        for rec in fresh:
-            r = np.where(np.isnan(rec["reward"]), -np.inf, rec["reward"])
-            progress.best = max(progress.best, float(r.max()))
-            progress.collisions += int(np.sum(rec["collision"]))
-        bar.set_postfix(best=f"{progress.best:.4f}", collisions=progress.collisions)
-        bar.update(done - bar.n)
-
-    progress.best, progress.collisions, progress.seen = -np.inf, 0, 0
-    try:
-        res = campaign.run(sp, sut, strat, plan, rc.seed, progress=progress, checkpoint=ckpt,
-                           resumed=resumed)
-    except KeyboardInterrupt:
-        bar.close()
-        done = ckpt.evaluations_done()
-        write_status(out, "interrupted", evaluations_done=done, budget=plan.budget)
-        print(f"jaxfalsify: interrupted after {done} of {plan.budget} evaluations; "
-              f"{out} is resumable: jaxfalsify run --resume {out}", file=sys.stderr)
-        return 130
-    finally:
-        bar.close()
-    summary = write_run(out, res, rc, resumed_from=start_from)
+        rc = runs.RunConfig.from_toml(args.config) if args.config else runs.RunConfig()
+        flags = {k: getattr(args, k) for k in RUN_FLAGS if getattr(args, k) is not None}
+        if args.config and "strategy" in flags and flags["strategy"] != rc.strategy:
+            rc = dataclasses.replace(rc, strategy_params={})  # options of another strategy
+        if args.config and "sut" in flags and flags["sut"] != rc.sut:
+            rc = dataclasses.replace(rc, sut_params={})
+        rc = dataclasses.replace(rc, **flags)
+        if args.sut_param:
+            rc = dataclasses.replace(rc, sut_params={**rc.sut_params, **_assignments(
+                args.sut_param, "--sut-param")})
+        if args.strategy_param:
+            rc = dataclasses.replace(rc, strategy_params={**rc.strategy_params, **_assignments(
+                args.strategy_param, "--strategy-param")})
+        out = args.out or runs.default_run_dir(rc.strategy)
+    o = runs.execute(rc, out, resume=args.resume is not None, force=args.force,
+                     progress=_progress(args.quiet), stop=stop, figures=not args.no_figures,
+                     rerun=args.rerun, startup_seconds=startup)
     if not args.quiet:
-        print(closing_report(res, summary))
-    extra = ""
-    if not args.no_figures:
-        from jaxfalsify.figures import make_figures
-        from jaxfalsify.report import write_report
-        make_figures(out)
-        write_report(out)
-        extra = ", figures/, report.md"
-    if args.rerun:
-        from jaxfalsify.replay import record
-        record(out, "best", save=out / "best.rrd", overlay=14)
-        extra += ", best.rrd"
+        print(runs.closing_report(o))
     print(f"wrote {out}/ (config.toml, episodes.parquet, summary.json, critical.csv, "
-          f"timing.json{extra})")
+          f"timing.json{'' if args.no_figures else ', figures/, report.md'}"
+          f"{', best.rrd' if args.rerun else ''})")
     return 0
 
 
-def cmd_replay(args) -> int:
-    from jaxfalsify.replay import record
+SWEEP_FLAGS = ("space", "space_seed", "sut", "seed", "chunk", "rows", "out", "force",
+               "sut_param")
 
-    if args.save is not None and args.save.suffix != ".rrd":
-        raise UsageError(f"--save {args.save}: the file name must end in .rrd")
-    try:
-        path = record(args.run_dir, args.scenario, save=args.save, spawn=args.spawn,
-                      overlay=args.scenarios)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    print(f"wrote {path}" if path else "sent to the rerun viewer")
+
+def _start_distributed(args) -> tuple[int, int]:
+    if not args.distributed:
+        if args.coordinator or args.num_processes or args.process_id is not None:
+            raise UsageError("--coordinator/--num-processes/--process-id need --distributed")
+        return 0, 1
+    from jaxfalsify.distributed import initialize
+
+    return initialize(args.coordinator, args.num_processes, args.process_id)
+
+
+def cmd_sweep(args, stop, startup) -> int:
+    from jaxfalsify import sweep
+
+    if args.resume is not None:
+        _no_flags_with_resume(args, SWEEP_FLAGS)
+        config, _ = sweep.resume_config(args.resume)
+        out = args.resume
+    else:
+        config = sweep.SweepConfig(
+            **{k: getattr(args, k) for k in ("space", "space_seed", "sut", "seed", "chunk",
+                                             "rows") if getattr(args, k) is not None},
+            sut_params=_assignments(args.sut_param, "--sut-param", many=True))
+        space, _ = config.build()
+        out = args.out or sweep.default_out(space, config.sut, config.space_seed)
+    pid, n_proc = _start_distributed(args)
+    s = sweep.execute(config, out, resume=args.resume is not None, force=args.force,
+                      progress=_progress(args.quiet), stop=stop, process_id=pid,
+                      num_processes=n_proc, startup_seconds=startup)
+    if pid != 0:
+        print(f"process {pid}: done ({out})")
+        return 0
+    rows = s.get("calibrations") or [s]
+    for r in rows:
+        label = ("calibration " + ", ".join(f"{k}={r[k]:g}" for k in r if k in
+                                            dict(config.sut_params)) + ": ") if "calibration" in r else ""
+        best = r["global_max_scenario"] or {}
+        print(f"{label}{r['n_scenarios']:,} scenarios, {r['n_collisions']:,} collisions "
+              f"({r['collision_rate']:.3g}); global maximum reward {r['global_max_reward']:.4f}"
+              f" reached by {r['global_max_ties']} scenario(s), first at "
+              + ", ".join(f"{k}={v:g}" for k, v in best.get("values", {}).items()))
+    from jaxfalsify.progress import timing_line
+    print(f"wall time {timing_line(s)}")
+    print(f"wrote {out}/{', '.join(s['parts'] + ['summary.json', 'timing.json', 'config.toml'])}")
     return 0
 
 
-def cmd_export(args) -> int:
-    from jaxfalsify.export import export
-
-    if args.scenario not in ("best", "critical"):
-        raise UsageError(f"--scenario {args.scenario!r}: expected best or critical")
-    _check_out(args.out, "crossing.xodr", args.force)
-    try:
-        files = export(args.run_dir, args.out, args.scenario)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    print(f"wrote {len(files) - 1} .xosc and crossing.xodr to {args.out}/")
-    return 0
-
-
-def cmd_figures(args) -> int:
-    from jaxfalsify.figures import make_figures
-    from jaxfalsify.report import write_report
-
-    try:
-        files = make_figures(args.run_dir)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    report = write_report(args.run_dir)
-    print(f"wrote {len(files)} figures to {args.run_dir}/figures/ and {report}")
-    return 0
-
-
-def cmd_compare(args) -> int:
+def cmd_compare(args, stop, startup) -> int:
     import time
 
     from jaxfalsify import compare
-    from jaxfalsify.config import jsonable, write_atomic
-    from jaxfalsify.runs import RunConfig
-    from jaxfalsify.search import STRATEGIES
+    from jaxfalsify.progress import timing_line
 
-    names = [s.strip() for s in args.strategies.split(",") if s.strip()]
-    bad = [n for n in names if n.split("/")[0] not in STRATEGIES
-           or ("/" in n and not n.startswith("reinforce/"))]
-    if bad or not names:
-        raise UsageError(f"--strategies: unknown strategy '{bad[0] if bad else ''}' "
-                         f"(from {', '.join(STRATEGIES)})")
+    names = tuple(n.strip() for n in args.strategies.split(",") if n.strip())
     if args.distributed and not args.out:
         raise UsageError("compare --distributed needs --out (a folder all processes share)")
-    pid, n_proc = _start_distributed(args)  # before anything touches the JAX backend
-    base = RunConfig(space=args.space, space_seed=args.space_seed, sut=args.sut,
-                     preset=args.preset, episodes=args.budget)
-    try:
-        base.build()
-        from jaxfalsify.reinforce import get_preset
-        get_preset(args.preset)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
+    config = compare.CompareConfig(strategies=names, seeds=args.seeds,
+                                   evaluations=args.evaluations, space=args.space,
+                                   space_seed=args.space_seed, sut=args.sut or "carla-tm",
+                                   sut_params=_assignments(args.sut_param, "--sut-param"))
+    config.check()
     out = args.out or Path("runs") / f"compare-{time.strftime('%Y%m%d-%H%M%S')}"
-    _check_out(out, "compare.json", args.force)
-    result = compare.run_compare(names, args.seeds, args.budget, base, args.sweep,
-                                 progress=lambda row: print(f"  {row['strategy']}: done in "
-                                                            f"{row['wall_seconds']:.1f} s",
-                                                            flush=True),
-                                 process_id=pid, num_processes=n_proc, out_dir=out)
+    pid, n_proc = _start_distributed(args)
+    result = compare.execute(config, out, force=args.force, progress=_progress(args.quiet),
+                             process_id=pid, num_processes=n_proc, startup_seconds=startup)
     if pid != 0:
         print(f"process {pid}: done")
         return 0
-    table = compare.table_markdown(result)
-    print(f"{result['space']} space, {result['sut']}, budget {args.budget}, {args.seeds} seeds; "
-          f"global max reward {result['global_max_reward']:.4f}, "
-          f"{result['all_critical']} critical of {result['n_scenarios']} scenarios")
-    print(table)
-    out.mkdir(parents=True, exist_ok=True)
-    write_atomic(out / "compare.json", json.dumps(jsonable(result), indent=2) + "\n")
-    write_atomic(out / "compare.md", table + "\n")
+    print(f"{result['space']} space, {result['sut']}, {args.evaluations} evaluations, "
+          f"{args.seeds} seeds; global max reward {result['global_max_reward']:.4f} "
+          f"({result['global_max_ties']} scenarios), {result['n_collisions']} critical of "
+          f"{result['n_scenarios']} scenarios")
+    print(compare.table_markdown(result))
+    print(f"wall time {timing_line(result['timing'])}")
     print(f"wrote {out}/compare.json, compare.md")
     return 0
 
 
-def cmd_simulate(args) -> int:
+def cmd_simulate(args, stop, startup) -> int:
     import numpy as np
 
     import jaxfalsify as jf
-    from jaxfalsify.space import KNOWN_PARAMETERS
+    from jaxfalsify.config import jsonable
+    from jaxfalsify.space import KNOWN_PARAMETERS, check_scenario_values
 
     scenario = {}
     for item in args.params:
@@ -496,33 +338,103 @@ def cmd_simulate(args) -> int:
             scenario[name] = float(value)
         except ValueError:
             raise UsageError(f"{name}={value!r} is not a number") from None
-        if not np.isfinite(scenario[name]):
-            raise UsageError(f"{name}={value} is not finite")
-    try:
-        out = jf.evaluate(scenario, sut=args.sut)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    from jaxfalsify.config import jsonable
-    print(json.dumps(jsonable({k: np.asarray(v).item() for k, v in vars(out).items()}), indent=2))
+    full = check_scenario_values(scenario)
+    out = jf.evaluate(full, sut=args.sut or "carla-tm",
+                      sut_params=_assignments(args.sut_param, "--sut-param"), key=args.seed)
+    print(json.dumps(jsonable({"scenario": full, "sut": args.sut or "carla-tm",
+                               "outcome": {k: np.asarray(v).item()
+                                           for k, v in vars(out).items()}}), indent=2))
     return 0
 
 
-def main(argv=None) -> int:
-    parser = build_parser()
+def cmd_replay(args, stop, startup) -> int:
+    from jaxfalsify.replay import record
+
+    if args.save is not None and args.save.suffix != ".rrd":
+        raise UsageError(f"--save {args.save}: the file name must end in .rrd")
+    path = record(args.run_dir, args.scenario, save=args.save, spawn=args.spawn,
+                  overlay=args.scenarios)
+    print(f"wrote {path}" if path else "sent to the rerun viewer")
+    return 0
+
+
+def cmd_export(args, stop, startup) -> int:
+    from jaxfalsify.export import export
+    from jaxfalsify.store import check_out_plain
+
+    if args.scenario not in ("best", "critical"):
+        raise UsageError(f"--scenario {args.scenario!r}: expected best or critical")
+    check_out_plain(args.out, "crossing.xodr", args.force)
+    files = export(args.run_dir, args.out, args.scenario)
+    print(f"wrote {len(files) - 1} .xosc and crossing.xodr to {args.out}/")
+    return 0
+
+
+def cmd_figures(args, stop, startup) -> int:
+    from jaxfalsify.figures import make_figures
+    from jaxfalsify.report import write_report
+
+    files = make_figures(args.run_dir)
+    report = write_report(args.run_dir)
+    print(f"wrote {len(files)} figures to {args.run_dir}/figures/ and {report}")
+    return 0
+
+
+COMMANDS = {"run": cmd_run, "sweep": cmd_sweep, "compare": cmd_compare,
+            "simulate": cmd_simulate, "replay": cmd_replay, "export": cmd_export,
+            "figures": cmd_figures}
+
+
+def main(argv=None, startup: float = 0.0) -> int:
+    """Run the command line ``argv``; returns the exit code. ``startup``: seconds the process
+    spent before (the console script passes its start-up, for ``timing.json``)."""
+    import os
+
+    stop = StopFlag().install()
     try:
-        args = parser.parse_args(argv)
-        handler = {"run": cmd_run, "compare": cmd_compare, "figures": cmd_figures,
-                   "replay": cmd_replay, "export": cmd_export,
-                   "sweep": cmd_sweep, "simulate": cmd_simulate}[args.command]
-        return handler(args)
-    except UsageError as e:
-        print(f"jaxfalsify: error: {e}", file=sys.stderr)
+        args = build_parser().parse_args(argv)
+        if args.no_cache:
+            os.environ["JAXFALSIFY_NO_CACHE"] = "1"
+            from jaxfalsify.cache import enable_compilation_cache
+            enable_compilation_cache()
+        return COMMANDS[args.command](args, stop, startup)
+    except (UsageError, ValueError) as e:
+        print(f"jaxfalsify: error: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
+              file=sys.stderr)
         return 2
+    except OSError as e:
+        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        print(f"jaxfalsify: error: {where}{e.strerror or e} (free space, permissions or the "
+              "path; nothing was left half-written)", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("jaxfalsify: interrupted; nothing was written in place of earlier results",
               file=sys.stderr)
         return 130
+    except Exception as e:  # noqa: BLE001 - the Interrupted of runs/sweeps, by name
+        from jaxfalsify.runs import Interrupted
+
+        if isinstance(e, Interrupted):
+            print(f"jaxfalsify: {e}", file=sys.stderr)
+            return stop.exit_code
+        raise
+    finally:
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, signal.SIG_DFL if s == signal.SIGTERM else signal.default_int_handler)
+
+
+def entry() -> None:
+    """The console script: :func:`main`, then exit without the interpreter's teardown (JAX's
+    takes about half a second; every file is already written and closed)."""
+    import os
+
+    from jaxfalsify.progress import process_age
+
+    code = main(startup=process_age())
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

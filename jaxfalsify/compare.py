@@ -1,49 +1,72 @@
-"""``jaxfalsify compare``: every strategy on the same space and SUT, many seeds, against the
-exhaustive sweep as ground truth.
+"""``jaxfalsify compare``: strategies on the same space and SUT, many seeds, against the
+exhaustive sweep as ground truth (from the per-user cache, see :func:`jaxfalsify.sweep.ground_truth`).
 
-Per strategy (seeds run at once, vmapped): share of seeds that found a collision; median and
-IQR of evaluations to the first collision (over the seeds that found one); best reward over
+Per strategy (its seeds in one compiled call): share of seeds that found a collision; median
+and IQR of evaluations to the first collision (over the seeds that found one); best reward over
 the global maximum (median over seeds) and how many seeds reached the global maximum;
 distinct critical scenarios found over all critical scenarios of the space (median); wall
-seconds for all seeds together, compilation included.
+seconds for all seeds together, compilation included. ``compare.json`` holds per-seed rows.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
+from typing import Any, Mapping
 
 import numpy as np
 
-from jaxfalsify import campaign, config as cfg
-from jaxfalsify import sut as sut_lib
+from jaxfalsify import analysis, campaign, config as cfg, search, store
+from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.runs import RunConfig
-from jaxfalsify.space import Space
 
 TOL = 1e-6  # reward equality with the global maximum (rewards are float32 sums)
+DEFAULT_STRATEGIES = ("reinforce/default", "reinforce/paper", "random", "grid", "cem",
+                      "anneal", "cmaes")
 
 
-def ground_truth(sp: Space, sut: sut_lib.SUT, sweep_dir: Path | None, quiet: bool = True
-                 ) -> dict:
-    """Load the sweep's summary (running the sweep into ``sweep_dir`` if it is missing)."""
-    from jaxfalsify.sweep import run_sweep
+@dataclasses.dataclass(frozen=True)
+class CompareConfig:
+    strategies: tuple[str, ...] = DEFAULT_STRATEGIES
+    seeds: int = 10
+    evaluations: int = 4000
+    space: Any = "paper"
+    space_seed: int = 0
+    sut: str = "carla-tm"
+    sut_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
-    d = sweep_dir or Path("sweeps") / f"{Path(sp.name).stem}-{sut.name}-s{sp.seed}"
-    summary_file = d / "summary.json"
-    if summary_file.exists():
-        s = json.loads(summary_file.read_text())
-        if (s.get("n_scenarios") == sp.size and s.get("sut") == sut.name
-                and s.get("seed") == sp.seed):
-            return {**s, "dir": str(d), "loaded": True}
-    s = run_sweep(sp, sut.name, d)
-    return {**cfg.jsonable(s), "dir": str(d), "loaded": False}
+    def run_config(self, strategy: str) -> RunConfig:
+        return RunConfig(space=self.space, space_seed=self.space_seed, sut=self.sut,
+                         sut_params=self.sut_params, strategy=strategy,
+                         evaluations=self.evaluations)
+
+    def check(self) -> None:
+        from jaxfalsify.runs import check_int
+
+        check_int("seeds", self.seeds, 1, 10_000)
+        if not self.strategies:
+            raise ValueError("strategies: none given")
+        for s in self.strategies:
+            search.canonical(s)
+        self.run_config(self.strategies[0]).build()
+
+    def to_toml(self) -> str:
+        return cfg.dumps_toml({"kind": "compare", "strategies": list(self.strategies),
+                               "seeds": self.seeds, "evaluations": self.evaluations,
+                               "space_seed": self.space_seed, "sut": self.sut,
+                               "sut_params": dict(self.sut_params),
+                               "space": self.space if isinstance(self.space, Mapping)
+                               else self.space})
 
 
-def seed_stats(seed: int, r: campaign.Result) -> dict:
-    return {"seed": seed, "first_collision": campaign.first_collision_evaluation(r),
-            "best": float(r.ranked_reward().max()),
-            "distinct": len(campaign.distinct_critical(r))}
+def seed_stats(seed: int, r: campaign.Result, gmax: float) -> dict:
+    b = analysis.best(r.fields)
+    best = float(analysis.ranked_reward(r.fields)[b])
+    return {"seed": seed, "first_collision": analysis.first_collision(r.fields),
+            "best": best, "reached_global_max": bool(best >= gmax - TOL),
+            "distinct": len(analysis.distinct_critical(r.indices, r.fields))}
 
 
 def strategy_row(name: str, stats: list[dict], truth: dict, wall: float) -> dict:
@@ -57,59 +80,94 @@ def strategy_row(name: str, stats: list[dict], truth: dict, wall: float) -> dict
             "first_collision_median": float(q[1]), "first_collision_iqr": [float(q[0]),
                                                                            float(q[2])],
             "best_over_global_max_median": float(np.median(best / gmax)),
-            "seeds_reaching_global_max": int(np.sum(best >= gmax - TOL)),
+            "seeds_reaching_global_max": int(sum(s["reached_global_max"] for s in stats)),
             "distinct_critical_median": float(np.median(distinct)),
             "all_critical": int(truth["n_collisions"]),
-            "wall_seconds": wall}
+            "wall_seconds": wall, "per_seed": stats}
 
 
-def run_compare(strategies: list[str], seeds: int, budget: int, base: RunConfig,
-                sweep_dir: Path | None = None, progress=None, process_id: int = 0,
-                num_processes: int = 1, out_dir: Path | None = None) -> dict:
-    """Every strategy on seeds 0..seeds-1. With several processes (``jax.distributed``),
-    process i runs its contiguous share of the seeds and writes a part; process 0 merges."""
+def truth_summary(sp, b) -> dict:
+    from jaxfalsify.sweep import ground_truth
+
+    t = ground_truth(sp, b.sut, b.sut_params)
+    r = np.where(np.isnan(t["reward"]), -np.inf, t["reward"]).astype(np.float64)
+    gmax = float(r.max())
+    return {"n_scenarios": int(len(r)), "n_collisions": int(np.sum(t["collision"])),
+            "global_max_reward": gmax, "global_max_ties": int(np.sum(r == gmax))}
+
+
+def execute(config: CompareConfig, out: Path | str, *, force: bool = False,
+            progress: Progress | None = None, process_id: int = 0, num_processes: int = 1,
+            startup_seconds: float = 0.0) -> dict:
+    """Run every strategy on seeds 0..seeds-1 and write ``compare.json``/``compare.md`` to
+    ``out``. With several processes (``jax.distributed``), process i runs its contiguous share
+    of the seeds and writes a part; process 0 merges. Returns the result."""
     from jaxfalsify.distributed import barrier, share
 
-    sp, sut, _, _ = base.build()
-    if process_id == 0:
-        truth = ground_truth(sp, sut, sweep_dir)
-    barrier("jaxfalsify-compare-truth")
-    if process_id != 0:
-        truth = ground_truth(sp, sut, sweep_dir)  # written by process 0: just loads it
-    lo, hi = share(seeds, process_id, num_processes)
+    clock = Clock(startup_seconds)
+    progress = progress or Progress()
+    out = Path(out)
+    config.check()
+    store.check_out(out, "compare", force=force)
+    base = config.run_config(config.strategies[0]).build()
+    sp = base.space
+    progress.phase(f"ground truth: every scenario of {sp.name} ({sp.size:,}) x {config.sut}")
+    with clock("ground_truth"):
+        truth = truth_summary(sp, base) if process_id == 0 else None
+        barrier("jaxfalsify-compare-truth")
+        if truth is None:
+            truth = truth_summary(sp, base)  # cached by process 0: a load
+    lo, hi = share(config.seeds, process_id, num_processes)
     mine = list(range(lo, hi))
     parts: dict[str, dict] = {}
-    for entry in strategies:
-        name, _, preset = entry.partition("/")  # reinforce/paper picks a preset
-        rc = RunConfig(space=base.space, space_seed=base.space_seed, sut=base.sut,
-                       strategy=name,
-                       preset=(preset or base.preset) if name == "reinforce" else None,
-                       episodes=budget)
-        sp, sut, strat, plan = rc.build()
-        label = f"reinforce/{rc.resolved().preset}" if name == "reinforce" else name
+    for k, entry in enumerate(config.strategies):
+        b = config.run_config(entry).build()
+        label = search.canonical(entry)
         t0 = time.perf_counter()
-        results = campaign.run_seeds(sp, sut, strat, plan, mine) if mine else []
-        parts[label] = {"stats": [seed_stats(s, r) for s, r in zip(mine, results)],
-                        "wall": time.perf_counter() - t0}
-        if progress and num_processes == 1:
-            progress(strategy_row(label, parts[label]["stats"], truth, parts[label]["wall"]))
+        progress.phase(f"[{k + 1}/{len(config.strategies)}] {label}: compiling "
+                       f"{len(mine)} seeds x {config.evaluations} evaluations")
+        started = {}
+
+        def chunk_done(done, records, label=label):
+            if not started:
+                progress.start(b.plan.budget, done, "eval", f"{label} ({len(mine)} seeds)")
+                started["yes"] = True
+            progress.update(done)
+
+        results = campaign.run_seeds(sp, b.sut, b.sut_params, b.strategy, b.strategy_params,
+                                     b.plan, mine, progress=chunk_done) if mine else []
+        progress.close()
+        wall = time.perf_counter() - t0
+        stats = [seed_stats(s, r, truth["global_max_reward"]) for s, r in zip(mine, results)]
+        parts[label] = {"stats": stats, "wall": wall,
+                        "compile": results[0].compile_seconds if results else 0.0}
+        clock.add("compile", parts[label]["compile"])
+        clock.add("search", wall - parts[label]["compile"])
     if num_processes > 1:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        cfg.write_atomic(out_dir / f".compare.part-{process_id:05d}.json",
-                         json.dumps(cfg.jsonable(parts)) + "\n")
+        out.mkdir(parents=True, exist_ok=True)
+        store.write_json(out / f".compare.part-{process_id:05d}.json", parts)
         barrier("jaxfalsify-compare-parts")
-        all_parts = [json.loads((out_dir / f".compare.part-{i:05d}.json").read_text())
+        all_parts = [json.loads((out / f".compare.part-{i:05d}.json").read_text())
                      for i in range(num_processes)]
         merged = {k: {"stats": sum((p[k]["stats"] for p in all_parts), []),
                       "wall": max(p[k]["wall"] for p in all_parts)} for k in parts}
     else:
         merged = parts
     rows = [strategy_row(k, v["stats"], truth, v["wall"]) for k, v in merged.items()]
-    return {"space": sp.name, "space_seed": sp.seed, "sut": sut.name, "budget": budget,
-            "seeds": seeds, "processes": num_processes,
-            "global_max_reward": truth["global_max_reward"],
-            "n_scenarios": truth["n_scenarios"], "all_critical": truth["n_collisions"],
-            "ground_truth": truth["dir"], "rows": rows, "versions": cfg.versions()}
+    result = {"space": sp.name, "space_seed": config.space_seed, "sut": config.sut,
+              "evaluations": config.evaluations, "seeds": config.seeds,
+              "processes": num_processes, **truth, "rows": rows, "versions": cfg.versions()}
+    if process_id == 0:
+        with clock("writing"):
+            out.mkdir(parents=True, exist_ok=True)
+            store.write_atomic(out / "config.toml", config.to_toml())
+            store.write_json(out / "compare.json", result, indent=2)
+            store.write_atomic(out / "compare.md", table_markdown(result) + "\n")
+            store.write_json(out / "timing.json", clock.summary(), indent=2)
+        for i in range(num_processes if num_processes > 1 else 0):
+            (out / f".compare.part-{i:05d}.json").unlink(missing_ok=True)
+    result["timing"] = clock.summary()
+    return result
 
 
 def table_markdown(result: dict) -> str:

@@ -1,10 +1,9 @@
-"""Run configuration I/O: resolved configs as TOML, summaries as JSON, atomic writes."""
+"""Configuration I/O: resolved configs as TOML, JSON-safe values, package versions, and
+``NAME=VALUE`` option lists (``--sut-param``, ``--strategy-param``)."""
 
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -13,7 +12,7 @@ from typing import Any
 def versions() -> dict[str, str]:
     """Versions of the packages a result depends on."""
     out = {}
-    for pkg in ("jaxfalsify", "jax", "jaxlib", "flax", "optax", "numpy", "pyarrow"):
+    for pkg in ("jaxfalsify", "jax", "jaxlib", "optax", "evosax", "numpy", "pyarrow"):
         try:
             out[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
@@ -66,18 +65,51 @@ def dumps_toml(doc: dict[str, Any], _prefix: str = "") -> str:
     return out + ("\n" if out and not out.endswith("\n") else "")
 
 
-def write_atomic(path: Path, text: str) -> None:
-    """Write text to path via a temporary file in the same folder and a rename."""
+def read_toml(path: Path, what: str = "") -> dict[str, Any]:
+    """Parse a TOML file; one-line ValueError naming the file on any problem."""
+    import tomllib
+
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    label = f"{what} {path}".strip()
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        return tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{label}: no such file") from None
+    except IsADirectoryError:
+        raise ValueError(f"{label}: is a folder, not a TOML file") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{label}: not UTF-8 text") from None
+    except OSError as e:
+        raise ValueError(f"{label}: cannot read ({e.strerror})") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{path}: malformed TOML: {e}") from None
+
+
+def parse_assignments(items: list[str] | None, flag: str, many: bool = False
+                      ) -> dict[str, Any]:
+    """``["NAME=VALUE", ...]`` -> ``{name: value}``: numbers where they parse (a list of them
+    for ``NAME=V1,V2,...`` when ``many``), else the text. One-line ValueError naming the flag."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        name, eq, text = item.partition("=")
+        name = name.strip()
+        if not eq or not name or not text.strip():
+            raise ValueError(f"{flag} {item!r}: expected NAME=VALUE")
+        if name in out:
+            raise ValueError(f"{flag} {name} given twice")
+        parts = [t.strip() for t in text.split(",")] if many else [text.strip()]
+        vals = []
+        for t in parts:
+            try:
+                v: Any = int(t) if t.lstrip("+-").isdigit() else float(t)
+            except ValueError:
+                if len(parts) > 1:
+                    raise ValueError(f"{flag} {name}={text!r}: {t!r} is not a number") from None
+                v = t
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"{flag} {name}={t}: not a finite number")
+            vals.append(v)
+        if many and len(vals) > 1 and len(set(vals)) != len(vals):
+            raise ValueError(f"{flag} {name}={text}: repeated values")
+        out[name] = vals if many and len(vals) > 1 else vals[0]
+    return out

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from jaxfalsify import weather as weather_lib
-from jaxfalsify.figures import indices_of, load_run, pick
+from jaxfalsify import analysis
+from jaxfalsify.figures import indices_of, load_run
 
 X_OFFSET = 30.0  # m: our x = -30 is the road's start
 ROAD_LENGTH = 80.0  # m
@@ -44,8 +45,8 @@ def schema_path(kind: str = "xosc") -> Path:
 def write_road(path: Path, world) -> Path:
     from scenariogeneration import xodr
 
-    road = xodr.create_road(xodr.Line(ROAD_LENGTH), id=0, left_lanes=world.lanes_left,
-                            right_lanes=world.lanes_right, lane_width=world.lane_width)
+    road = xodr.create_road(xodr.Line(ROAD_LENGTH), id=0, left_lanes=int(world.lanes_left),
+                            right_lanes=int(world.lanes_right), lane_width=world.lane_width)
     road.add_object(xodr.Object(s=world.crosswalk_x + X_OFFSET, t=0.0,
                                 Type=xodr.ObjectType.crosswalk, id="1", name="crosswalk",
                                 width=world.road_left - world.road_right, length=3.0,
@@ -134,18 +135,16 @@ def export(run_dir: Path, out: Path, which: str = "best") -> list[Path]:
         raise ValueError(f"--scenario {which!r}: expected best or critical")
     sp, rc, summary, ep = load_run(run_dir)
     if which == "best":
-        rows = [pick(ep, sp)["best"]]
+        rows = [analysis.best(ep)]
     else:
-        hit = np.nonzero(ep["collision"] & ~ep["nonfinite"])[0]
-        if hit.size == 0:
+        rows = [c["row"] for c in analysis.distinct_critical(*analysis.from_episodes(ep, sp))]
+        if not rows:
             raise ValueError(f"{run_dir}: the run found no critical scenario to export")
-        _, first = np.unique(indices_of(ep, sp, hit), axis=0, return_index=True)
-        rows = list(hit[first][np.argsort(-ep["reward"][hit[first]], kind="stable")])
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     road = write_road(out / "crossing.xodr", jf.WORLD)
     full = sp.scenario(indices_of(ep, sp, rows))
-    traj = jf.simulate(full, sut=rc.sut)
+    traj = jf.simulate(full, sut=rc.sut, sut_params=dict(rc.sut_params))
     files = [road]
     for k, row in enumerate(rows):
         tr = {f: np.asarray(getattr(traj, f))[k] for f in ("t", "ego_x", "ego_y", "ped_x",

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxfalsify import analysis
+
 FIGSIZE = (8, 4.5)
 DPI = 100
 
@@ -35,36 +37,43 @@ def _plt():
 
 
 def load_run(run_dir: Path):
-    """(space, config, summary, episodes columns) of a run folder."""
+    """(space, resolved config, summary, episodes columns) of a finished run folder."""
     import pyarrow.parquet as pq
 
-    from jaxfalsify.runs import config_from_toml
+    from jaxfalsify.runs import RunConfig
 
     run_dir = Path(run_dir)
     missing = [f for f in ("config.toml", "summary.json", "episodes.parquet")
                if not (run_dir / f).exists()]
     if missing:
-        raise ValueError(f"{run_dir} is not a run folder (missing {', '.join(missing)})")
-    rc = config_from_toml(run_dir / "config.toml")
-    sp, *_ = rc.build()
+        raise ValueError(f"{run_dir} is not a finished run folder (missing "
+                         f"{', '.join(missing)})")
+    rc = RunConfig.from_toml(run_dir / "config.toml")
+    sp = rc.build().space
     summary = json.loads((run_dir / "summary.json").read_text())
     ep = {k: np.asarray(v) for k, v in pq.read_table(run_dir / "episodes.parquet")
           .to_pydict().items()}
     return sp, rc, summary, ep
 
 
-def pick(ep: dict, space) -> dict[str, int]:
-    """Row numbers of the best evaluation and of a typical (median-reward) non-critical one."""
-    r = np.where(np.isnan(ep["reward"]), -np.inf, ep["reward"])
-    best = int(np.argmax(r))
-    ok = np.nonzero(~ep["collision"] & ~ep["nonfinite"])[0]
-    typical = int(ok[np.argsort(ep["reward"][ok], kind="stable")[len(ok) // 2]]) if ok.size \
-        else best
-    return {"best": best, "typical": typical}
+def pick(ep: dict) -> dict[str, int | None]:
+    """Rows of the best evaluation and of a typical (median-reward) non-critical one."""
+    return {"best": analysis.best(ep), "typical": analysis.typical_non_critical(ep)}
 
 
 def indices_of(ep: dict, space, rows) -> np.ndarray:
     return np.stack([ep[f"{n}_idx"][rows] for n in space.names], -1)
+
+
+def fig10_rows(ep: dict, n: int = 14, n_collisions: int = 3) -> list[int]:
+    """Up to ``n`` evaluated scenarios, ``n_collisions`` of them collisions (paper Fig. 10);
+    a fixed draw so redrawing gives the same figure."""
+    rng = np.random.default_rng(0)
+    col = np.nonzero(analysis.collided(ep))[0]
+    oth = np.nonzero(~ep["collision"] & ~ep["nonfinite"])[0]
+    k = min(n_collisions, col.size)
+    return [int(r) for r in rng.choice(col, k, replace=False)] + \
+        [int(r) for r in rng.choice(oth, min(n - k, oth.size), replace=False)]
 
 
 def _distance_panel(ax, traj, k, title):
@@ -82,11 +91,14 @@ def _distance_panel(ax, traj, k, title):
     ax.set_ylim(bottom=0)
 
 
-def make_figures(run_dir: Path, sweep: dict | None = None) -> list[Path]:
-    """Draw every figure into ``run_dir/figures``; returns the files written."""
+def make_figures(run_dir: Path, world=None) -> list[Path]:
+    """Draw every figure into ``run_dir/figures``; returns the files written. The scenarios
+    shown are re-simulated in one call; the critical-region map uses the cached ground truth
+    (:func:`jaxfalsify.sweep.ground_truth`) for spaces of up to 5e6 scenarios."""
     import jaxfalsify as jf
-    from jaxfalsify.sweep import sweep_arrays
+    from jaxfalsify.sweep import ground_truth
 
+    world = world or jf.WORLD
     plt = _plt()
     run_dir = Path(run_dir)
     sp, rc, summary, ep = load_run(run_dir)
@@ -94,16 +106,14 @@ def make_figures(run_dir: Path, sweep: dict | None = None) -> list[Path]:
     out.mkdir(exist_ok=True)
     written = []
 
-    def save(fig, name, tight=True):
+    def save(fig, name):
         path = out / name
-        if tight:
-            fig.tight_layout()
         fig.savefig(path, dpi=DPI)
         plt.close(fig)
         written.append(path)
 
     # Fig. 7: reward per episode
-    fig, ax = plt.subplots(figsize=FIGSIZE)
+    fig, ax = plt.subplots(figsize=FIGSIZE, layout="constrained")
     e, r = ep["evaluation"], ep["reward"]
     ax.plot(e, r, ".", ms=2, color="tab:blue", alpha=0.4, label="reward per evaluation")
     w = max(1, min(100, len(r) // 10))
@@ -111,24 +121,30 @@ def make_figures(run_dir: Path, sweep: dict | None = None) -> list[Path]:
     ax.plot(e[w - 1:], ma, color="tab:orange", lw=2, label=f"moving average ({w})")
     ax.set_xlabel("evaluation (episode)")
     ax.set_ylabel("reward")
-    ax.set_title(f"{rc.strategy}{'/' + rc.preset if rc.preset else ''} on {sp.name}, "
-                 f"{rc.sut}, seed {rc.seed}")
+    ax.set_title(f"{rc.strategy} on {sp.name}, {rc.sut}, seed {rc.seed}")
     ax.legend(loc="lower right")
     save(fig, "reward_per_episode.png")
 
+    # every scenario shown below, simulated in one call
+    rows = pick(ep)
+    typical = rows["typical"] if rows["typical"] is not None else rows["best"]
+    chosen = fig10_rows(ep)
+    traj = jf.simulate(sp.scenario(indices_of(ep, sp, [rows["best"], typical] + chosen)),
+                       sut=rc.sut, sut_params=dict(rc.sut_params), world=world)
+
     # Fig. 8/9: the best critical scenario vs a typical non-critical one
-    rows = pick(ep, sp)
-    idx = indices_of(ep, sp, [rows["best"], rows["typical"]])
-    traj = jf.simulate(sp.scenario(idx), sut=rc.sut)
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), sharey=True)
-    _distance_panel(axes[0], traj, 0, "challenging (best)")
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), sharey=True, layout="constrained")
+    best_label = "challenging (best)" if analysis.collided(ep)[rows["best"]] else \
+        "best (no collision)"
+    _distance_panel(axes[0], traj, 0, best_label)
     _distance_panel(axes[1], traj, 1, "non-challenging (typical)")
     axes[0].legend(loc="upper right")
     save(fig, "distance_challenging.png")
 
-    fig, ax = plt.subplots(figsize=(5, 4.5))
-    shares = [100 * ep["high_risk_share_second_half"][rows[k]] for k in ("best", "typical")]
-    ax.bar(["challenging", "non-challenging"], shares, color=["tab:red", "tab:green"])
+    fig, ax = plt.subplots(figsize=(5, 4.5), layout="constrained")
+    shares = [100 * ep["high_risk_share_second_half"][r] for r in (rows["best"], typical)]
+    ax.bar([best_label.split(" (")[0], "non-challenging"], shares,
+           color=["tab:red", "tab:green"])
     ax.set_ylabel("high-risk steps in the second half [%]")
     ax.set_ylim(0, 100)
     for i, s in enumerate(shares):
@@ -136,17 +152,11 @@ def make_figures(run_dir: Path, sweep: dict | None = None) -> list[Path]:
     save(fig, "high_risk_second_half.png")
 
     # Fig. 10: 14 scenarios, collisions red
-    rng = np.random.default_rng(0)
-    col = np.nonzero(ep["collision"])[0]
-    oth = np.nonzero(~ep["collision"] & ~ep["nonfinite"])[0]
-    chosen = list(rng.choice(col, min(3, col.size), replace=False)) + \
-        list(rng.choice(oth, min(14 - min(3, col.size), oth.size), replace=False))
-    traj = jf.simulate(sp.scenario(indices_of(ep, sp, chosen)), sut=rc.sut)
-    fig, ax = plt.subplots(figsize=FIGSIZE)
+    fig, ax = plt.subplots(figsize=FIGSIZE, layout="constrained")
     ax.axhspan(0, 1.0, color="0.85")
     for k, row in enumerate(chosen):
-        v = np.asarray(traj.valid[k])
-        ax.plot(np.asarray(traj.t[k])[v], np.asarray(traj.distance[k])[v],
+        v = np.asarray(traj.valid[2 + k])
+        ax.plot(np.asarray(traj.t[2 + k])[v], np.asarray(traj.distance[2 + k])[v],
                 color="tab:red" if ep["collision"][row] else "tab:green", lw=1.2)
     ax.set_xlabel("time [s]")
     ax.set_ylabel("Euclidean distance [m]")
@@ -155,21 +165,21 @@ def make_figures(run_dir: Path, sweep: dict | None = None) -> list[Path]:
     save(fig, "distance_14_scenarios.png")
 
     # Critical-region maps from the exhaustive sweep
-    if sweep is None and sp.size <= 5_000_000:
-        sweep = sweep_arrays(sp, rc.sut)
-    if sweep is not None:
-        save(critical_region_figure(plt, sp, sweep, ep), "critical_regions.png", tight=False)
+    if sp.size <= 5_000_000:
+        truth = ground_truth(sp, rc.sut, dict(rc.sut_params), world)
+        save(critical_region_figure(plt, sp, truth, ep), "critical_regions.png")
     return written
 
 
 def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None):
-    """Collision share over every pair of parameters (marginalising the others)."""
+    """Collision share over every pair of parameters (marginalising the others); ``sweep``
+    holds ``collision`` ``(N,)`` in scenario order."""
     P = len(sp.names)
     pairs = list(itertools.combinations(range(P), 2))
     cols = min(4, len(pairs))
     rows = -(-len(pairs) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.2 * rows), squeeze=False)
-    idx = np.stack([sweep[f"{n}_idx"] for n in sp.names], -1)
+    idx = np.asarray(sp.unravel(np.arange(sp.size)))
     col = sweep["collision"].astype(np.float64)
     for ax, (a, b) in zip(axes.ravel(), pairs):
         na, nb = sp.shape[a], sp.shape[b]

@@ -14,7 +14,7 @@ import numpy as np
 
 from jaxfalsify.sim import WORLD, World
 from jaxfalsify.space import KNOWN_PARAMETERS
-from jaxfalsify.sut import SUTS
+from jaxfalsify.sut import REGISTRY
 
 
 def _rss(v):
@@ -38,8 +38,8 @@ def reference_evaluate(scenario: dict, sut: str = "carla-tm", world: World = WOR
     B = len(np.atleast_1d(next(iter(scenario.values()))))
     p = {k: np.broadcast_to(np.asarray(scenario.get(k, spec["default"]), np.float64), (B,))
          for k, spec in KNOWN_PARAMETERS.items()}
-    cruise = SUTS["carla-tm"].params.cruise if sut == "carla-tm" else SUTS["none"].params
-    tm = SUTS["carla-tm"].params
+    cruise = REGISTRY[sut].default_params
+    tm = REGISTRY["carla-tm"].default_params
     dt = w.dt
     L, W, PL, PW = w.ego_length, w.ego_width, w.ped_length, w.ped_width
     ego_y = -w.lane_width / 2

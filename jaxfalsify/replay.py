@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfalsify.figures import indices_of, load_run, pick
+from jaxfalsify import analysis
+from jaxfalsify.figures import indices_of, load_run
 
 RED, GREEN, BLUE, GREY = (220, 40, 40), (40, 160, 60), (40, 90, 220), (150, 150, 150)
 
@@ -35,7 +36,7 @@ def resolve_scenario(spec: str, ep: dict, space) -> int:
     """Row of ``best``, ``critical:K`` (K-th distinct collision by reward, 1-based) or
     ``eval:N`` (evaluation number N)."""
     if spec == "best":
-        return pick(ep, space)["best"]
+        return analysis.best(ep)
     kind, _, num = spec.partition(":")
     try:
         n = int(num)
@@ -46,13 +47,11 @@ def resolve_scenario(spec: str, ep: dict, space) -> int:
             raise ValueError(f"--scenario {spec}: the run has evaluations 1..{len(ep['evaluation'])}")
         return n - 1
     if kind == "critical":
-        rows = np.nonzero(ep["collision"] & ~ep["nonfinite"])[0]
-        keys, first = np.unique(indices_of(ep, space, rows), axis=0, return_index=True)
-        ranked = rows[first][np.argsort(-ep["reward"][rows[first]], kind="stable")]
-        if not 1 <= n <= len(ranked):
-            raise ValueError(f"--scenario {spec}: the run found {len(ranked)} distinct "
+        crit = analysis.distinct_critical(*analysis.from_episodes(ep, space))
+        if not 1 <= n <= len(crit):
+            raise ValueError(f"--scenario {spec}: the run found {len(crit)} distinct "
                              "critical scenarios")
-        return int(ranked[n - 1])
+        return crit[n - 1]["row"]
     raise ValueError(f"--scenario {spec!r}: expected best, critical:K or eval:N")
 
 
@@ -63,7 +62,6 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
     import rerun.blueprint as rrb
 
     import jaxfalsify as jf
-    from jaxfalsify.sut import SUTS
 
     sp, rc, summary, ep = load_run(run_dir)
     row = resolve_scenario(scenario, ep, sp)
@@ -90,10 +88,10 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
             static=True)
 
     idx = indices_of(ep, sp, [row])
-    traj = jf.simulate(sp.scenario(idx), sut=rc.sut)
+    traj = jf.simulate(sp.scenario(idx), sut=rc.sut, sut_params=dict(rc.sut_params))
     tr = {k: np.asarray(v)[0] for k, v in vars(traj).items()}
     valid = tr["valid"]
-    tm = SUTS["carla-tm"].params
+    tm = rc.sut_params
     for k in np.nonzero(valid)[0]:
         rec.set_time("sim_time", duration=float(tr["t"][k]))
         braking = bool(tr["braking"][k])
@@ -104,7 +102,7 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
                                                sizes=[[w.ped_length, w.ped_width]],
                                                colors=[(240, 160, 0)]))
         if rc.sut == "carla-tm":
-            length = tm.boundary_min + tm.boundary_rate * float(tr["ego_speed"][k])
+            length = tm["boundary_min"] + tm["boundary_rate"] * float(tr["ego_speed"][k])
             front = float(tr["ego_x"][k]) + w.ego_length / 2
             rec.log("world/detection_zone",
                     rr.Boxes2D(centers=[[front + length / 2, tr["ego_y"][k]]],
@@ -137,7 +135,8 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
     if overlay:
         rng = np.random.default_rng(0)
         rows = rng.choice(len(ep["reward"]), min(overlay, len(ep["reward"])), replace=False)
-        ov = jf.simulate(sp.scenario(indices_of(ep, sp, rows)), sut=rc.sut)
+        ov = jf.simulate(sp.scenario(indices_of(ep, sp, rows)), sut=rc.sut,
+                         sut_params=dict(rc.sut_params))
         for j, r in enumerate(rows):
             color = RED if ep["collision"][r] else GREEN
             rec.log(f"overlay/{j}/distance", rr.SeriesLines(colors=[color],

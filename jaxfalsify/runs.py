@@ -1,20 +1,21 @@
-"""Run configurations, run directories and the closing report of ``jaxfalsify run``.
+"""Falsification runs: the main job as a library call, ``execute(config, out, ...)``.
 
-A run directory holds:
+A run folder holds:
 
-* ``config.toml`` — everything resolved (the space's full description included), so
-  ``jaxfalsify run --config RUN/config.toml`` repeats the run;
-* ``episodes.parquet`` — every evaluated concrete scenario;
-* ``summary.json`` — the run's outcome (see README, 'The main job');
-* ``critical.csv`` — the distinct collision scenarios found, ranked by reward;
-* ``timing.json`` — wall and compile seconds (kept out of ``summary.json``, which is
-  bit-identical between runs of the same config and seed);
+* ``config.toml`` — everything resolved (the space's full description, the SUT's and the
+  strategy's full parameter sets), so ``jaxfalsify run --config RUN/config.toml`` repeats it;
 * ``status.json`` — ``running``, ``interrupted`` or ``complete``, and how to resume;
-* ``checkpoint/`` — while the run is unfinished: the state to resume from
-  (see :mod:`jaxfalsify.checkpoint`); removed once the results are written.
+* ``checkpoint/`` — while the run is unfinished (see :class:`jaxfalsify.store.CampaignCheckpoint`);
+* ``episodes.parquet`` — every evaluated concrete scenario;
+* ``summary.json`` — the run's outcome, bit-identical between runs of the same config and seed;
+* ``critical.csv`` — the distinct collision scenarios found, ranked by reward;
+* ``timing.json`` — wall time from start to exit, split into start-up, compile, search,
+  writing and figures;
+* ``figures/``, ``report.md`` (and ``best.rrd`` if asked).
 
-``config.toml`` and ``status.json`` are written when the run starts; the results when it ends.
-Files are written under temporary names and renamed, so nothing is left half-written.
+``config.toml`` and ``status.json`` are written when the run starts, the results when it ends,
+``status.json`` last. The CLI's ``jaxfalsify run`` only maps flags to a :class:`RunConfig` and
+exceptions to exit codes; a Python user gets exactly the same folder from :func:`execute`.
 """
 
 from __future__ import annotations
@@ -24,95 +25,151 @@ import dataclasses
 import io
 import json
 import time
-import tomllib
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from jaxfalsify import campaign, config as cfg, search
+from jaxfalsify import analysis, campaign, config as cfg, search, store
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.space import Space, space as load_space, space_from_dict
+from jaxfalsify.progress import Clock, Progress, timing_line
+from jaxfalsify.sim import WORLD
+from jaxfalsify.space import Space, load_space, space_from_dict
 
 PAPER_BUDGET = 4000
+SEED_LIMIT = 2**64  # seeds are 64-bit (see sim.seed_key_data)
+
+
+def check_int(key: str, v, minimum: int = 0, maximum: int | None = None) -> int:
+    """``v`` as an int within bounds, or a one-line ValueError naming ``key``."""
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+        raise ValueError(f"{key} must be an integer (got {v!r})")
+    if v < minimum or (maximum is not None and v > maximum):
+        hi = f"..{maximum}" if maximum is not None else " or more"
+        raise ValueError(f"{key} must be in {minimum}{hi} (got {v})")
+    return int(v)
+
+
+def build_space(space: Any, space_seed: int) -> Space:
+    if isinstance(space, Space):
+        return space
+    if isinstance(space, Mapping):
+        return space_from_dict(dict(space), space_seed)
+    if isinstance(space, str):
+        return load_space(space, space_seed)
+    raise ValueError(f"space must be a name, a TOML path or a table (got {space!r})")
+
+
+def check_mapping(key: str, m) -> dict:
+    if not isinstance(m, Mapping):
+        raise ValueError(f"{key} must be a table of NAME = VALUE (got {m!r})")
+    return dict(m)
+
+
+@dataclasses.dataclass(frozen=True)
+class Built:
+    """A run's configuration, validated and built."""
+
+    space: Space
+    sut: sut_lib.SUT
+    sut_params: Any
+    strategy: search.Strategy
+    strategy_params: Any
+    plan: campaign.Plan
 
 
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
-    """What a run needs; ``resolved()`` fills defaults that depend on other fields."""
+    """What a run needs. Defaults: the paper's space (space seed 0), ``carla-tm``,
+    ``reinforce/default``, search seed 0, the paper's 4000 evaluations."""
 
     space: Any = "paper"  # built-in name, TOML path, or a space description table
-    space_seed: int = 0
-    sut: str = "carla-tm"
-    strategy: str = "reinforce"
-    preset: str | None = "default"
-    episodes: int = PAPER_BUDGET
-    batch: int | None = None
-    seed: int = 0
+    space_seed: int = 0  # discretisation seed of the space
+    sut: str = "carla-tm"  # registry name or import path module:attr
+    sut_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    strategy: str = "reinforce/default"
+    strategy_params: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    evaluations: int = PAPER_BUDGET  # the budget, in evaluated scenarios
+    batch: int | None = None  # scenarios per update (None: the strategy's default)
+    seed: int = 0  # search seed
     checkpoint_every: int | None = None  # updates between checkpoints (None: ~1/20 of the run)
 
-    def resolved(self) -> "RunConfig":
-        preset = self.preset if self.strategy == "reinforce" else None
-        if self.strategy == "reinforce" and preset is None:
-            preset = "default"
-        batch = self.batch or search.default_batch(self.strategy, preset or "default")
-        return dataclasses.replace(self, preset=preset, batch=batch)
-
-    def build(self) -> tuple[Space, sut_lib.SUT, search.Strategy, campaign.Plan]:
+    def build(self) -> Built:
         """Validate and build everything; ValueError (one line) on bad values."""
-        _check_int("seed", self.seed, minimum=0)
-        _check_int("space_seed", self.space_seed, minimum=0)
-        _check_int("episodes", self.episodes, minimum=1)
+        check_int("seed", self.seed, 0, SEED_LIMIT - 1)
+        check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
+        check_int("evaluations", self.evaluations, 1, 10**9)
         if self.batch is not None:
-            _check_int("batch", self.batch, minimum=1)
+            check_int("batch", self.batch, 1, 10**6)
         if self.checkpoint_every is not None:
-            _check_int("checkpoint_every", self.checkpoint_every, minimum=1)
-        if isinstance(self.space, dict):
-            sp = space_from_dict(self.space, self.space_seed)
-        else:
-            sp = load_space(self.space, self.space_seed)
-        sut = sut_lib.get(self.sut)
-        r = self.resolved()
-        if r.batch > sp.size and r.strategy == "grid":
-            raise ValueError(f"batch={r.batch} exceeds the space's {sp.size} scenarios "
-                             "(strategy 'grid' would repeat scenarios within one batch)")
-        strat = search.make(r.strategy, sp.shape, r.batch, r.preset or "default")
-        return sp, sut, strat, campaign.plan(r.episodes, r.batch, every=r.checkpoint_every)
+            check_int("checkpoint_every", self.checkpoint_every, 1)
+        if not isinstance(self.sut, str) or not isinstance(self.strategy, str):
+            raise ValueError("sut and strategy must be names")
+        sp = build_space(self.space, self.space_seed)
+        sut, sut_params = sut_lib.make(self.sut, **check_mapping("sut_params",
+                                                                 self.sut_params))
+        name = search.canonical(self.strategy)
+        strat, strat_params = search.make(name, sp.shape, self.batch,
+                                          **check_mapping("strategy_params",
+                                                          self.strategy_params))
+        return Built(sp, sut, sut_params, strat, strat_params,
+                     campaign.plan(self.evaluations, strat.batch, every=self.checkpoint_every))
 
-    def to_toml(self, sp: Space) -> str:
-        r = self.resolved()
-        doc = {"strategy": r.strategy, "preset": r.preset, "sut": r.sut, "seed": r.seed,
-               "episodes": r.episodes, "batch": r.batch, "space_seed": r.space_seed,
-               "checkpoint_every": r.checkpoint_every, "space": sp.describe()}
+    def resolved(self, built: Built | None = None) -> "RunConfig":
+        """Every default filled in: the canonical strategy name, its batch and full options,
+        the SUT's full parameters, the space's full description."""
+        b = built or self.build()
+        return dataclasses.replace(
+            self, space=b.space.describe(), strategy=search.canonical(self.strategy),
+            batch=b.strategy.batch, sut_params=sut_lib.params_dict(b.sut_params),
+            strategy_params=_strategy_options(b))
+
+    def to_toml(self) -> str:
+        """``config.toml`` text (call on a :meth:`resolved` config)."""
+        doc = {"kind": "run", "strategy": self.strategy, "sut": self.sut, "seed": self.seed,
+               "evaluations": self.evaluations, "batch": self.batch,
+               "space_seed": self.space_seed, "checkpoint_every": self.checkpoint_every,
+               "sut_params": dict(self.sut_params),
+               "strategy_params": dict(self.strategy_params),
+               "space": self.space if isinstance(self.space, Mapping) else self.space}
         return cfg.dumps_toml(doc)
 
+    @classmethod
+    def from_toml(cls, path: Path) -> "RunConfig":
+        """Read a run's ``config.toml``; unknown keys and wrong types give one-line errors."""
+        doc = cfg.read_toml(path, "--config")
+        kind = doc.pop("kind", "run")
+        if kind != "run":
+            raise ValueError(f"{path}: a {kind}'s config, not a run's")
+        return cls.from_dict(doc, where=str(path))
 
-def _check_int(key: str, v, minimum: int) -> None:
-    if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
-        raise ValueError(f"{key} must be an integer >= {minimum} (got {v!r})")
+    @classmethod
+    def from_dict(cls, doc: Mapping, where: str = "config") -> "RunConfig":
+        unknown = set(doc) - CONFIG_KEYS
+        if unknown:
+            raise ValueError(f"{where}: unknown key '{sorted(unknown)[0]}' "
+                             f"(allowed: {', '.join(sorted(CONFIG_KEYS))})")
+        for key in ("sut", "strategy"):
+            if key in doc and not isinstance(doc[key], str):
+                raise ValueError(f"{where}: {key} must be a string (got {doc[key]!r})")
+        for key in ("sut_params", "strategy_params"):
+            if key in doc and not isinstance(doc[key], dict):
+                raise ValueError(f"{where}: [{key}] must be a table (got {doc[key]!r})")
+        if "space" in doc and not isinstance(doc["space"], (str, dict)):
+            raise ValueError(f"{where}: space must be a name, a path or a table")
+        return cls(**doc)
 
 
 CONFIG_KEYS = {f.name for f in dataclasses.fields(RunConfig)}
 
 
-def config_from_toml(path: Path) -> RunConfig:
-    """Read a run's ``config.toml``; unknown keys and wrong types give one-line errors."""
-    try:
-        doc = tomllib.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise ValueError(f"--config {path}: no such file") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"{path}: malformed TOML: {e}") from None
-    unknown = set(doc) - CONFIG_KEYS
-    if unknown:
-        raise ValueError(f"{path}: unknown key '{sorted(unknown)[0]}' "
-                         f"(allowed: {', '.join(sorted(CONFIG_KEYS))})")
-    for key in ("sut", "strategy", "preset"):
-        if key in doc and not isinstance(doc[key], str):
-            raise ValueError(f"{path}: {key} must be a string (got {doc[key]!r})")
-    if "space" in doc and not isinstance(doc["space"], (str, dict)):
-        raise ValueError(f"{path}: space must be a name, a path or a table")
-    return RunConfig(**doc)
+def _strategy_options(b: Built) -> dict:
+    s = b.strategy
+    out = {f.name: getattr(s, f.name) for f in dataclasses.fields(s)
+           if f.name not in ("shape", "batch")}
+    out.update({k: float(getattr(b.strategy_params, k))
+                for k in (f.name for f in dataclasses.fields(b.strategy_params))})
+    return out
 
 
 # ----------------------------------------------------------------------------- outputs
@@ -127,22 +184,21 @@ def episodes_table(res: campaign.Result) -> dict[str, np.ndarray]:
 
 
 def summary_dict(res: campaign.Result, rc: RunConfig) -> dict:
-    r = rc.resolved()
-    b = campaign.best_index(res)
-    crit = campaign.distinct_critical(res)
-    best = {"params": campaign.scenario_values(res.space, res.indices[b]),
+    """``summary.json`` (``rc`` resolved): bit-identical for the same config and seed."""
+    b = analysis.best(res.fields)
+    crit = analysis.distinct_critical(res.indices, res.fields)
+    best = {"params": res.space.values_at(res.indices[b]),
             "indices": [int(i) for i in res.indices[b]], "evaluation": b + 1,
             **{k: res.fields[k][b].item() for k in
                ("reward", "collision", "min_distance", "final_distance",
                 "high_risk_share_second_half")}}
-    return {"strategy": r.strategy, "preset": r.preset, "space": res.space.name,
-            "space_seed": r.space_seed, "sut": r.sut, "seed": r.seed,
-            "evaluations": res.n, "batch": r.batch,
-            "first_collision_evaluation": campaign.first_collision_evaluation(res),
-            "n_collisions": int(np.sum(res.fields["collision"])),
+    return {"strategy": rc.strategy, "space": res.space.name, "space_seed": rc.space_seed,
+            "sut": rc.sut, "seed": rc.seed, "evaluations": res.n, "batch": rc.batch,
+            "first_collision_evaluation": analysis.first_collision(res.fields),
+            "n_collisions": int(np.sum(analysis.collided(res.fields))),
             "n_distinct_critical": len(crit),
             "n_nonfinite": int(np.sum(res.fields["nonfinite"])),
-            "best": best, "convergence_evaluation": campaign.convergence_evaluation(res),
+            "best": best, "best_reached_evaluation": analysis.best_reached(res.fields),
             "versions": cfg.versions()}
 
 
@@ -152,102 +208,187 @@ def critical_csv(res: campaign.Result) -> str:
     names = list(res.space.names)
     w.writerow(["rank", *names, "reward", "min_distance", "high_risk_share_second_half",
                 "first_evaluation", "times_evaluated"])
-    for rank, c in enumerate(campaign.distinct_critical(res), 1):
-        vals = campaign.scenario_values(res.space, c["indices"])
+    for rank, c in enumerate(analysis.distinct_critical(res.indices, res.fields), 1):
+        vals = res.space.values_at(c["indices"])
         w.writerow([rank, *(f"{vals[n]:g}" for n in names), f"{c['reward']:.6f}",
                     f"{c['min_distance']:.4f}", f"{c['high_risk_share_second_half']:.4f}",
                     c["first_evaluation"], c["times_evaluated"]])
     return buf.getvalue()
 
 
-RESULT_FILES = ("episodes.parquet", "summary.json", "critical.csv", "timing.json",
-                "report.md", "best.rrd")
+def fingerprint(rc: RunConfig, p: campaign.Plan) -> dict:
+    """What a checkpoint must have been written under: the resolved config and the plan."""
+    return json.loads(json.dumps({"config": rc.to_toml(), "plan": list(p)}))
 
 
-def checkpoint_for(out: Path, rc: RunConfig, p: campaign.Plan, sp: Space):
-    """The run's checkpoint folder, fingerprinted by the resolved config and the plan."""
-    from jaxfalsify.checkpoint import CampaignCheckpoint
-
-    fp = {"config": rc.to_toml(sp), "plan": list(p)}
-    return CampaignCheckpoint(out / "checkpoint", json.loads(json.dumps(fp)))
-
-
-def write_status(out: Path, state: str, **extra) -> None:
-    doc = {"state": state, **extra}
-    if state != "complete":
-        doc["resume"] = f"jaxfalsify run --resume {out}"
-    cfg.write_atomic(out / "status.json", json.dumps(cfg.jsonable(doc), indent=2) + "\n")
-
-
-def start_run(out: Path, rc: RunConfig, sp: Space, budget: int, force: bool) -> None:
-    """Create the run folder with config.toml and status.json; with ``force``, first remove
-    an earlier run's results and checkpoint from it."""
-    import shutil
-
-    if force:
-        for name in RESULT_FILES + ("status.json", "config.toml"):
-            (out / name).unlink(missing_ok=True)
-        for name in ("checkpoint", "figures"):
-            shutil.rmtree(out / name, ignore_errors=True)
-    out.mkdir(parents=True, exist_ok=True)
-    cfg.write_atomic(out / "config.toml", rc.to_toml(sp))
-    write_status(out, "running", budget=budget)
+def restore(ckpt: store.CampaignCheckpoint, b: Built, seed: int):
+    """``(carry, records)`` saved in ``ckpt`` for this run (``(None, [])`` if none yet);
+    raises :class:`~jaxfalsify.store.CheckpointError` if unusable."""
+    template = campaign.carry_avals(b.space, b.sut, b.sut_params, b.strategy,
+                                    b.strategy_params, b.plan)
+    carry, records = ckpt.load(template)
+    want = campaign.record_shapes(b.space, b.plan)
+    if len(records) > b.plan.n_chunks or any(
+            set(r) != set(want) or any(r[k].shape != want[k] for k in want) for r in records):
+        raise store.CheckpointError(f"checkpoint {ckpt.folder}: its records do not fit this "
+                                    "run's plan")
+    return carry, records
 
 
-def write_run(out: Path, res: campaign.Result, rc: RunConfig,
-              resumed_from: int = 0) -> dict:
-    """Write the run's results (atomically), mark it complete and drop its checkpoint;
-    returns the summary."""
-    import shutil
+class Interrupted(Exception):
+    """A run or sweep stopped on request (Ctrl-C, SIGTERM, ``stop()``); everything done is
+    committed and ``resume`` continues it."""
 
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / ".episodes.parquet.partial"
-    pq.write_table(pa.table(episodes_table(res)), tmp)
-    summary = summary_dict(res, rc)
-    timing = {"wall_seconds": res.wall_seconds, "compile_seconds": res.compile_seconds,
-              "resumed_from_evaluation": resumed_from}
-    cfg.write_atomic(out / "config.toml", rc.to_toml(res.space))
-    cfg.write_atomic(out / "critical.csv", critical_csv(res))
-    tmp.replace(out / "episodes.parquet")
-    cfg.write_atomic(out / "timing.json", json.dumps(cfg.jsonable(timing), indent=2) + "\n")
-    cfg.write_atomic(out / "summary.json", json.dumps(cfg.jsonable(summary), indent=2) + "\n")
-    write_status(out, "complete", evaluations_done=res.n, budget=res.n)
-    shutil.rmtree(out / "checkpoint", ignore_errors=True)
-    return {**summary, **timing}
+    def __init__(self, kind: str, out: Path, done: int, total: int, unit: str):
+        self.kind, self.out, self.done, self.total = kind, Path(out), done, total
+        self.resume = f"jaxfalsify {kind} --resume {out}"
+        super().__init__(f"interrupted after {done} of {total} {unit}; {out} is resumable: "
+                         f"{self.resume}")
 
 
-def closing_report(res: campaign.Result, summary: dict) -> str:
-    """The best critical scenario beside a typical non-critical one (paper Table II layout)."""
-    b = campaign.best_index(res)
-    t = campaign.typical_non_critical(res)
-    names = res.space.names
-    units = dict(zip(names, res.space.units))
-    best_vals = campaign.scenario_values(res.space, res.indices[b])
-    typ_vals = campaign.scenario_values(res.space, res.indices[t]) if t is not None else {}
-    head = "Challenging (best)" if res.fields["collision"][b] else "Best (no collision)"
-    lines = [f"{'parameter':<28}{head:>20}{'Non-challenging':>20}"]
-    for n in names:
-        u = f" {units[n]}" if units[n] in ("m", "m/s") else ""
-        typ = f"{typ_vals[n]:.3f}{u}" if t is not None else "-"
-        lines.append(f"{n:<28}{f'{best_vals[n]:.3f}{u}':>20}{typ:>20}")
-    for f, fmt in (("reward", ".4f"), ("collision", ""), ("min_distance", ".2f"),
-                   ("high_risk_share_second_half", ".2f")):
-        bv = format(res.fields[f][b].item(), fmt)
-        tv = format(res.fields[f][t].item(), fmt) if t is not None else "-"
-        lines.append(f"{f:<28}{bv:>20}{tv:>20}")
-    fc = summary["first_collision_evaluation"]
-    lines.append("")
-    lines.append(f"{summary['evaluations']} evaluations, {summary['n_collisions']} collisions, "
-                 f"{summary['n_distinct_critical']} distinct critical scenarios; first collision "
-                 f"at evaluation {fc if fc is not None else '-'}; best reward reached at "
-                 f"{summary['best']['evaluation']}, converged at "
-                 f"{summary['convergence_evaluation']}; {summary['wall_seconds']:.1f} s "
-                 f"({summary['compile_seconds']:.1f} s compile)")
-    return "\n".join(lines)
+@dataclasses.dataclass
+class RunOutcome:
+    out: Path
+    config: RunConfig  # resolved
+    result: campaign.Result
+    summary: dict
+    timing: dict
+
+
+def _stats_progress(progress: Progress, total: int, desc: str):
+    """The campaign's per-chunk callback: start the bar after the first (compiling) chunk and
+    show the best reward and collisions so far."""
+    state = {"best": -np.inf, "collisions": 0, "seen": 0, "started": False}
+
+    def update(done, records):
+        for rec in records[state["seen"]:]:
+            r = np.where(np.isnan(rec["reward"]), -np.inf, rec["reward"])
+            state["best"] = max(state["best"], float(r.max()))
+            state["collisions"] += int(np.sum(rec["collision"] & ~rec["nonfinite"]))
+        state["seen"] = len(records)
+        if not state["started"]:
+            progress.start(total, done, "eval", desc)
+            state["started"] = True
+        progress.update(done, best=f"{state['best']:.4f}", collisions=state["collisions"])
+
+    return update
+
+
+def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: bool = False,
+            progress: Progress | None = None, stop: Callable[[], bool] | None = None,
+            figures: bool = True, rerun: bool = False, startup_seconds: float = 0.0
+            ) -> RunOutcome:
+    """Run a falsification campaign into the folder ``out``; the library form of
+    ``jaxfalsify run``.
+
+    Args:
+      config: what to run (validated here: ValueError with one line on bad values).
+      out: the run folder.
+      resume: continue the unfinished run in ``out`` (its ``config.toml`` must equal
+        ``config`` resolved; use :func:`resume_config` to read it).
+      force: discard earlier results in ``out`` first.
+      progress: a :class:`~jaxfalsify.progress.Progress` (default: silent).
+      stop: checked between chunks; when it returns True the run commits its checkpoint,
+        marks itself interrupted and raises :class:`Interrupted`. A KeyboardInterrupt does
+        the same (at whatever point it lands, the checkpoint on disk stays consistent).
+      figures: draw ``figures/`` and write ``report.md``.
+      rerun: also write ``best.rrd``.
+      startup_seconds: time spent before this call (process start-up), for ``timing.json``.
+    Returns:
+      :class:`RunOutcome` (results in memory, the summary and the timing written).
+    Raises:
+      ValueError (a :class:`~jaxfalsify.store.FolderError` or
+      :class:`~jaxfalsify.store.CheckpointError` among them) before anything is written;
+      :class:`Interrupted`.
+    """
+    clock = Clock(startup_seconds)
+    progress = progress or Progress()
+    out = Path(out)
+    b = config.build()
+    rc = config.resolved(b)
+    store.check_out(out, "run", force=force, resume=resume)
+    ckpt = store.CampaignCheckpoint(out / "checkpoint", fingerprint(rc, b.plan))
+    resumed = None
+    if resume:
+        on_disk = RunConfig.from_toml(out / "config.toml").resolved()
+        if on_disk.to_toml() != rc.to_toml():
+            raise store.CheckpointError(f"--resume {out}: config.toml does not match the run "
+                                        "configuration given")
+        resumed = restore(ckpt, b, rc.seed)
+    start_from = b.plan.done_after(len(resumed[1])) if resumed else 0
+    if resumed is None:
+        if force:
+            store.clear(out, "run")
+        out.mkdir(parents=True, exist_ok=True)
+        store.write_atomic(out / "config.toml", rc.to_toml())
+    store.write_status(out, "run", "running", budget=b.plan.budget,
+                       resumed_from_evaluation=start_from)
+    if start_from:
+        progress.message(f"resuming {out} at evaluation {start_from} of {b.plan.budget}")
+    progress.phase(f"compiling {rc.strategy} x {rc.sut} on {b.space.name}")
+    try:
+        res = campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan,
+                           rc.seed, progress=_stats_progress(progress, b.plan.budget,
+                                                             f"{rc.strategy} on {b.space.name}"),
+                           checkpoint=ckpt, resumed=resumed, stop=stop)
+    except (campaign.Stopped, KeyboardInterrupt):
+        progress.close()
+        done = ckpt.evaluations_done()
+        store.write_status(out, "run", "interrupted", evaluations_done=done,
+                           budget=b.plan.budget)
+        raise Interrupted("run", out, done, b.plan.budget, "evaluations") from None
+    progress.close()
+    clock.add("compile", res.compile_seconds)
+    clock.add("search", res.search_seconds)
+    with clock("writing"):
+        summary = summary_dict(res, rc)
+        store.write_parquet(out / "episodes.parquet", episodes_table(res))
+        store.write_atomic(out / "critical.csv", critical_csv(res))
+        store.write_json(out / "summary.json", summary, indent=2)
+    if figures:
+        progress.phase("drawing figures")
+        from jaxfalsify.figures import make_figures
+
+        with clock("figures"):
+            make_figures(out, world=WORLD)
+    if rerun:
+        from jaxfalsify.replay import record
+
+        with clock("rerun"):
+            record(out, "best", save=out / "best.rrd", overlay=14)
+    timing = {**clock.summary(), "resumed_from_evaluation": start_from}
+    store.write_json(out / "timing.json", timing, indent=2)
+    if figures:
+        from jaxfalsify.report import write_report
+
+        write_report(out)
+    store.write_status(out, "run", "complete", evaluations_done=res.n, budget=res.n)
+    ckpt.remove()
+    return RunOutcome(out, rc, res, summary, timing)
+
+
+def resume_config(out: Path | str) -> RunConfig:
+    """The configuration of the run in ``out`` (for ``execute(..., resume=True)``)."""
+    out = Path(out)
+    store.check_out(out, "run", resume=True)
+    return RunConfig.from_toml(out / "config.toml")
+
+
+def closing_report(o: RunOutcome) -> str:
+    """The best scenario beside a typical non-critical one (paper Table II layout) and the
+    run's numbers."""
+    res, s = o.result, o.summary
+    head, rows = analysis.table_ii(res.space, res.indices, res.fields)
+    fc = s["first_collision_evaluation"]
+    found = (f"{s['n_collisions']} collisions, {s['n_distinct_critical']} distinct critical "
+             f"scenarios, the first at evaluation {fc}" if fc is not None else
+             "no collision found")
+    return "\n".join([analysis.text_table(head, rows), "",
+                      f"{s['evaluations']} evaluations: {found}; best reward "
+                      f"{s['best']['reward']:.4f} first reached at evaluation "
+                      f"{s['best']['evaluation']}",
+                      f"wall time {timing_line(o.timing)}"])
 
 
 def default_run_dir(strategy: str) -> Path:
-    return Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{strategy}"
+    return Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{strategy.replace('/', '-')}"

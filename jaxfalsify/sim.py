@@ -26,28 +26,28 @@ of the crosswalk.
 
 from __future__ import annotations
 
-import dataclasses
-from typing import NamedTuple
+import functools
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
-from jaxfalsify import metrics, reward
+from jaxfalsify import metrics, pytree, reward
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.space import KNOWN_PARAMETERS
 
 
-@dataclasses.dataclass(frozen=True)
+@pytree.dataclass
 class World:
-    """Static world constants (hashable; a static argument of the jitted functions)."""
+    """World constants: a pytree whose numbers are traced (a geometry study vmaps over them);
+    ``horizon`` is static (it fixes shapes). Check a hand-made world with :meth:`check`."""
 
     dt: float = 0.1  # s
-    horizon: int = 300  # steps (30 s)
+    horizon: int = pytree.static(300)  # steps (30 s)
     lane_width: float = 3.5  # m
-    lanes_right: int = 2  # lanes in the ego's direction; the ego uses the inner one
-    lanes_left: int = 2  # lanes in the other direction
+    lanes_right: float = 2.0  # lanes in the ego's direction; the ego uses the inner one
+    lanes_left: float = 2.0  # lanes in the other direction
     crosswalk_x: float = 11.0  # m ahead of the ego's base start (box centre)
     end_x: float = 30.0  # m: the ego has travelled 30 m + ego_offset
     ego_length: float = 4.6  # m, BMW Gran Tourer-class box incl. mirrors
@@ -58,34 +58,42 @@ class World:
     max_brake: float = 9.0  # m/s^2, vehicle limit on the SUT's command
     epsilon: float = 1.0  # m, the STL requirement's clash distance (paper Eq. 1)
 
-    def __post_init__(self):
-        if not isinstance(self.horizon, int) or self.horizon < 2:
+    def check(self) -> "World":
+        """Host-side validation; ValueError naming the bad field."""
+        if isinstance(self.horizon, bool) or not isinstance(self.horizon, int) \
+                or self.horizon < 2:
             raise ValueError(f"world.horizon must be an integer >= 2 steps (got {self.horizon!r})")
-        for name in ("dt", "lane_width", "ego_length", "ego_width", "ped_length", "ped_width",
-                     "max_accel", "max_brake", "epsilon"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
-                raise ValueError(f"world.{name} must be a positive number (got {v!r})")
-        if self.lanes_right < 1 or self.lanes_left < 0:
-            raise ValueError("world needs lanes_right >= 1 and lanes_left >= 0")
+        for f in pytree.field_names(self):
+            v = getattr(self, f)
+            if f == "horizon" or isinstance(v, jax.core.Tracer):
+                continue
+            try:
+                a = np.asarray(v, np.float64)
+            except (TypeError, ValueError):
+                raise ValueError(f"world.{f} must be a number (got {v!r})") from None
+            low_ok = np.all(a >= 0) if f in ("lanes_left", "crosswalk_x", "end_x") else \
+                np.all(a > 0)
+            if isinstance(v, bool) or not np.all(np.isfinite(a)) or not low_ok:
+                raise ValueError(f"world.{f} must be a finite {'non-negative' if f in ('lanes_left', 'crosswalk_x', 'end_x') else 'positive'} number (got {v!r})")
+        return self
 
     @property
-    def ego_y(self) -> float:
+    def ego_y(self):
         return -self.lane_width / 2.0
 
     @property
-    def road_right(self) -> float:
+    def road_right(self):
         return -self.lane_width * self.lanes_right
 
     @property
-    def road_left(self) -> float:
+    def road_left(self):
         return self.lane_width * self.lanes_left
 
 
 WORLD = World()
 
 
-@struct.dataclass
+@pytree.dataclass
 class Trajectory:
     """Per-step record of one episode; each field ``(T,)`` (leading batch dims if batched).
 
@@ -109,7 +117,7 @@ class Trajectory:
     ttc: jax.Array  # s, constant-velocity time-to-collision (inf: none)
 
 
-@struct.dataclass
+@pytree.dataclass
 class Outcome:
     """Per-scenario result; each field a scalar (leading batch dims if batched)."""
 
@@ -182,14 +190,22 @@ def _scenario_scalars(scenario: dict) -> dict:
     return {k: jnp.asarray(scenario[k], jnp.float32) for k in KNOWN_PARAMETERS}
 
 
-def rollout(scenario: dict, sut: sut_lib.SUT, world: World = WORLD, record: bool = False):
+def rollout(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array,
+            world: World = WORLD, record: bool = False):
     """Simulate one concrete scenario (all values scalars).
 
+    Args:
+      scenario: ``{name: scalar}`` for every known parameter.
+      sut: the system under test (static); ``params`` its parameter pytree (traced).
+      key: typed PRNG key of this rollout (the SUT's ``init`` and per-step ``act`` keys are
+        derived from it).
+      world: world constants (traced, ``horizon`` static).
     Returns ``(Outcome, Trajectory | None)``; the trajectory only if ``record``.
     """
     s = _scenario_scalars(scenario)
     w = world
-    dt = jnp.float32(w.dt)
+    dt = jnp.asarray(w.dt, jnp.float32)
+    k_init, k_act = jax.random.split(key)
     half_x = (w.ego_length + w.ped_length) / 2
     half_y = (w.ego_width + w.ped_width) / 2
     start_x = -s["ego_offset"]
@@ -203,13 +219,17 @@ def rollout(scenario: dict, sut: sut_lib.SUT, world: World = WORLD, record: bool
         vp = _profile_at(kf, p_start, p_grow, s["ped_accel"], s["ped_speed_change"],
                          s["ped_change_step"])
         obs = sut_lib.Observation(
-            t=kf * dt, ego_x=c.ego_x, ego_y=jnp.float32(w.ego_y), ego_speed=c.ego_v,
-            ego_length=jnp.float32(w.ego_length), ego_width=jnp.float32(w.ego_width),
-            ped_x=jnp.float32(w.crosswalk_x), ped_y=c.ped_y, ped_vx=jnp.float32(0.0), ped_vy=vp,
-            ped_length=jnp.float32(w.ped_length), ped_width=jnp.float32(w.ped_width),
-            road_right=jnp.float32(w.road_right), road_left=jnp.float32(w.road_left),
+            t=kf * dt, dt=dt, ego_x=c.ego_x, ego_y=jnp.asarray(w.ego_y, jnp.float32), ego_speed=c.ego_v,
+            ego_length=jnp.asarray(w.ego_length, jnp.float32),
+            ego_width=jnp.asarray(w.ego_width, jnp.float32),
+            ped_x=jnp.asarray(w.crosswalk_x, jnp.float32), ped_y=c.ped_y, ped_vx=jnp.float32(0.0),
+            ped_vy=vp,
+            ped_length=jnp.asarray(w.ped_length, jnp.float32),
+            ped_width=jnp.asarray(w.ped_width, jnp.float32),
+            road_right=jnp.asarray(w.road_right, jnp.float32),
+            road_left=jnp.asarray(w.road_left, jnp.float32),
             weather=weather_idx)
-        cmd, new_sut_state = sut.act(obs, c.sut_state, sut.params)
+        cmd, new_sut_state = sut.act(obs, c.sut_state, params, jax.random.fold_in(k_act, k))
         cmd = jnp.asarray(cmd, jnp.float32)
 
         # --- metrics at this step (state before integration)
@@ -258,15 +278,16 @@ def rollout(scenario: dict, sut: sut_lib.SUT, world: World = WORLD, record: bool
         rec = None
         if record:
             rec = Trajectory(
-                t=kf * dt, ego_x=c.ego_x, ego_y=jnp.float32(w.ego_y), ego_speed=c.ego_v,
+                t=kf * dt, ego_x=c.ego_x, ego_y=jnp.asarray(w.ego_y, jnp.float32), ego_speed=c.ego_v,
                 ego_accel=jnp.where(valid & alive, (ego_v - c.ego_v) / dt, 0.0),
-                ped_x=jnp.float32(w.crosswalk_x), ped_y=c.ped_y, ped_speed=jnp.where(valid, vp, 0.0),
+                ped_x=jnp.asarray(w.crosswalk_x, jnp.float32), ped_y=c.ped_y,
+                ped_speed=jnp.where(valid, vp, 0.0),
                 distance=dist, rss_distance=d_min, high_risk=hr, braking=valid & (cmd < 0),
                 collided=collided_now, valid=valid, ttc=ttc)
         return new, rec
 
     init = _Carry(
-        ego_x=start_x, ego_v=jnp.float32(0.0), ped_y=ped_y0, sut_state=sut.init(sut.params),
+        ego_x=start_x, ego_v=jnp.float32(0.0), ped_y=jnp.asarray(ped_y0, jnp.float32), sut_state=sut.init(k_init, params),
         alive=jnp.bool_(True), nonfinite=jnp.bool_(False), n_valid=jnp.int32(0),
         hr_count=jnp.int32(0), hr_word=jnp.uint32(0),
         min_dist=jnp.float32(jnp.inf), last_dist=jnp.float32(jnp.nan),
@@ -340,14 +361,13 @@ def _check_scenario(scenario: dict) -> dict:
     if unknown:
         raise ValueError(f"unknown scenario parameter '{sorted(unknown)[0]}' "
                          f"(known: {', '.join(KNOWN_PARAMETERS)})")
-    arrs = {k: np.asarray(v, np.float32) if not isinstance(v, jax.Array) else v
-            for k, v in scenario.items()}
+    arrs = {k: np.asarray(v, np.float32) for k, v in scenario.items()}
     try:
         shape = np.broadcast_shapes(*(np.shape(v) for v in arrs.values())) if arrs else ()
     except ValueError:
         raise ValueError("scenario arrays have incompatible shapes: "
                          + ", ".join(f"{k}{tuple(np.shape(v))}" for k, v in arrs.items())) from None
-    full = {k: jnp.broadcast_to(jnp.asarray(arrs.get(k, spec["default"]), jnp.float32), shape)
+    full = {k: np.broadcast_to(np.asarray(arrs.get(k, spec["default"]), np.float32), shape)
             for k, spec in KNOWN_PARAMETERS.items()}
     return full
 
@@ -357,46 +377,136 @@ def _flat(full: dict):
     return {k: v.reshape(-1) for k, v in full.items()}, shape
 
 
-def batch_rollout(flat: dict, sut: sut_lib.SUT, world: World = WORLD, record: bool = False):
-    """vmap of :func:`rollout` over a flat batch ``{name: (B,)}``; not jitted (jit at the edge)."""
-    return jax.vmap(lambda sc: rollout(sc, sut, world, record))(flat)
+def batch_rollout(flat: dict, offsets: jax.Array, key: jax.Array, sut: sut_lib.SUT,
+                  params: Any, world: World = WORLD, record: bool = False):
+    """vmap of :func:`rollout` over a flat batch ``{name: (B,)}``; not jitted (jit at the edge).
+
+    Rollout ``i`` draws from ``fold_in(key, offsets[i])``: pass scenario or evaluation numbers
+    as ``offsets`` so a scenario's randomness does not depend on how batches are cut.
+    """
+    keys = jax.vmap(lambda o: jax.random.fold_in(key, o))(offsets)
+    return jax.vmap(lambda sc, k: rollout(sc, sut, params, k, world, record))(flat, keys)
 
 
-_jit_batch = jax.jit(batch_rollout, static_argnames=("sut", "world", "record"))
+def _f32(tree):
+    return jax.tree.map(lambda x: np.asarray(x, np.float32), tree)
 
 
-def simulate(scenario: dict, *, sut="carla-tm", world: World = WORLD) -> Trajectory:
+@functools.lru_cache(maxsize=128)
+def _batch_program(sut: sut_lib.SUT, record: bool, n: int, params_tree, params_avals: tuple,
+                   world_tree):
+    """The compiled batch rollout for ``n`` scenarios (cached in-process and per machine)."""
+    from jaxfalsify import cache
+
+    def fn(flat, offsets, key_data, params_leaves, world_leaves):
+        params = jax.tree.unflatten(params_tree, params_leaves)
+        world = jax.tree.unflatten(world_tree, world_leaves)
+        out, traj = batch_rollout(flat, offsets, jax.random.wrap_key_data(key_data), sut,
+                                  params, world, record)
+        return vars(out), (vars(traj) if record else None)
+
+    f32 = jax.ShapeDtypeStruct((n,), jnp.float32)
+    key_args = ({k: f32 for k in KNOWN_PARAMETERS}, jax.ShapeDtypeStruct((n,), jnp.int32),
+                list(params_avals))
+
+    def example():
+        zeros = np.zeros(n, np.float32)
+        return ({k: zeros for k in KNOWN_PARAMETERS}, np.zeros(n, np.int32),
+                np.zeros(2, np.uint32), [np.zeros(a.shape, a.dtype) for a in params_avals],
+                [np.float32(0)] * world_tree.num_leaves)
+
+    key = sut_lib.cache_key(sut)
+    static = None if key is None else {"sut": key, "record": record, "params": str(params_tree),
+                                       "world": str(world_tree)}
+    return cache.exported_jit(fn, "rollout", static, key_args, example)
+
+
+def run_batch(flat: dict, offsets, key_data, sut: sut_lib.SUT, params, world: World,
+              record: bool = False):
+    """:func:`batch_rollout` compiled: host arrays in, ``(Outcome, Trajectory | None)`` of
+    NumPy arrays out."""
+    p_leaves, p_tree = jax.tree.flatten(_f32(params))
+    w_leaves, w_tree = jax.tree.flatten(_f32(world))
+    avals = tuple(jax.ShapeDtypeStruct(x.shape, x.dtype) for x in p_leaves)
+    n = int(np.shape(offsets)[0])
+    prog = _batch_program(sut, record, n, p_tree, avals, w_tree)
+    out, traj = prog(flat, offsets, key_data, p_leaves, w_leaves)
+    host = lambda d: {k: np.asarray(v) for k, v in d.items()}  # noqa: E731
+    return Outcome(**host(out)), (Trajectory(**host(traj)) if record else None)
+
+
+def _resolve(sut, sut_params, world: World):
+    s = sut_lib.resolve(sut)
+    return s, sut_lib.with_params(s, sut_params), world.check()
+
+
+def seed_key_data(seed: int) -> np.ndarray:
+    """Key data ``(2,)`` uint32 of a 64-bit seed for the default threefry keys: the seed's high
+    and low words. (``jax.random.key`` keeps only the low 32 bits when 64-bit types are off,
+    so seeds 0 and 2**32 would collide; computed with NumPy, it also compiles nothing.)"""
+    seed = int(seed)
+    if not 0 <= seed < 2**64:
+        raise ValueError(f"seed must be in 0..2**64-1 (got {seed})")
+    if jax.config.jax_default_prng_impl != "threefry2x32":
+        return np.asarray(jax.random.key_data(jax.random.key(seed)))
+    return np.array([seed >> 32, seed & 0xFFFFFFFF], np.uint32)
+
+
+def seed_key(seed: int) -> jax.Array:
+    """A typed PRNG key from a 64-bit seed (see :func:`seed_key_data`)."""
+    return jax.random.wrap_key_data(seed_key_data(seed))
+
+
+def _key_data(seed_or_key) -> np.ndarray:
+    if isinstance(seed_or_key, jax.Array) and jax.dtypes.issubdtype(seed_or_key.dtype,
+                                                                     jax.dtypes.prng_key):
+        return np.asarray(jax.random.key_data(seed_or_key))
+    return seed_key_data(seed_or_key)
+
+
+def simulate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = WORLD,
+             key=0) -> Trajectory:
     """Per-step trajectories of concrete scenarios.
 
     Args:
       scenario: parameter name -> scalar or array (shapes broadcast); undeclared parameters
         take their defaults (``space.KNOWN_PARAMETERS``).
-      sut: a registry name, a :class:`~jaxfalsify.sut.SUT`, or an ``act`` function.
+      sut: a registry name, an import path ``module:attr``, a :class:`~jaxfalsify.sut.SUT`,
+        or an ``act`` function.
+      sut_params: the SUT's parameter pytree, or ``{name: value}`` overrides of its defaults.
+      world: world constants.
+      key: a typed PRNG key or an integer seed (the SUT's randomness; scenario ``i`` of the
+        flattened batch draws from ``fold_in(key, i)``).
     Returns:
       :class:`Trajectory` with fields ``(*batch, T)``.
     """
+    s, params, world = _resolve(sut, sut_params, world)
     full = _check_scenario(scenario)
     flat, shape = _flat(full)
-    _, traj = _jit_batch(flat, sut_lib.get(sut), world, True)
+    n = int(np.prod(shape, dtype=np.int64))
+    _, traj = run_batch(flat, np.arange(n, dtype=np.int32), _key_data(key), s, params, world,
+                        record=True)
     return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), traj)
 
 
-def evaluate(scenario: dict, *, sut="carla-tm", world: World = WORLD,
-             chunk_size: int = 1 << 17) -> Outcome:
+def evaluate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = WORLD,
+             key=0, chunk_size: int = 1 << 17) -> Outcome:
     """Per-scenario outcomes (metrics and the paper's reward) of concrete scenarios.
 
-    Batches larger than ``chunk_size`` are evaluated chunk by chunk (the last chunk padded to
-    the same shape, so nothing recompiles) so memory stays flat.
+    Arguments as :func:`simulate`. Batches larger than ``chunk_size`` are evaluated chunk by
+    chunk (the last chunk padded to the same shape, so nothing recompiles) so memory stays
+    flat; results do not depend on the chunking.
     """
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size <= 0:
         raise ValueError(f"chunk_size must be a positive integer (got {chunk_size!r})")
+    s, params, world = _resolve(sut, sut_params, world)
     full = _check_scenario(scenario)
     flat, shape = _flat(full)
-    s = sut_lib.get(sut)
+    key = _key_data(key)
     n = int(np.prod(shape, dtype=np.int64))
     n_dev = jax.local_device_count()
     if n <= chunk_size and n_dev == 1:
-        out, _ = _jit_batch(flat, s, world, False)
+        out, _ = run_batch(flat, np.arange(n, dtype=np.int32), key, s, params, world)
     else:
         # equal chunks (a multiple of the device count), the batch split over local devices
         size = min(chunk_size, n)
@@ -406,14 +516,15 @@ def evaluate(scenario: dict, *, sut="carla-tm", world: World = WORLD,
         for b in range(0, n, size):
             e = min(b + size, n)
             chunk = {k: v[b:e] for k, v in flat.items()}
+            offsets = np.arange(b, b + size, dtype=np.int32)
             if e - b < size:
-                chunk = {k: jnp.pad(v, (0, size - (e - b)), mode="edge")
+                chunk = {k: np.pad(v, (0, size - (e - b)), mode="edge")
                          for k, v in chunk.items()}
             if sharding is not None:
-                chunk = jax.device_put(chunk, sharding)
-            o, _ = _jit_batch(chunk, s, world, False)
+                chunk, offsets = jax.device_put((chunk, offsets), sharding)
+            o, _ = run_batch(chunk, offsets, key, s, params, world)
             parts.append(jax.tree.map(lambda x, m=e - b: np.asarray(x[:m]), o))
-        out = jax.tree.map(lambda *xs: jnp.asarray(np.concatenate(xs)), *parts)
+        out = jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
     return jax.tree.map(lambda x: x.reshape(shape), out)
 
 

@@ -6,8 +6,12 @@ did (draws rounded to 3 decimals, then kept for the whole run). A *concrete scen
 per parameter, addressed by an integer index vector ``(P,)`` into those value sets. The space is
 their Cartesian product, enumerated in C order (the last parameter varies fastest).
 
-Everything here is host-side setup except :meth:`Space.decode`, :meth:`Space.unravel` and
-:meth:`Space.ravel`, which are vectorised jnp code usable under ``jit``.
+A discretised space splits, for compilation, into its :class:`Layout` (parameter names and
+value counts: static, fixes shapes) and its value table ``(P, max_n)`` float32 (traced): another
+space seed, or other values of the same counts, reuse the compiled code.
+
+Everything here is host-side setup except :class:`Layout`'s methods, which are vectorised jnp
+code usable under ``jit``.
 """
 
 from __future__ import annotations
@@ -158,6 +162,55 @@ def make_parameter(name: str, distribution: str, args: tuple, samples: int,
 
 
 @dataclasses.dataclass(frozen=True)
+class Layout:
+    """The static part of a space: parameter names and value counts (hashable; fixes shapes).
+
+    Its methods take the space's value ``table`` ``(P, max_n)`` float32 as a (traced) argument.
+    """
+
+    names: tuple[str, ...]
+    shape: tuple[int, ...]
+
+    @property
+    def size(self) -> int:
+        return math.prod(self.shape)
+
+    def decode(self, indices, table) -> dict[str, jnp.ndarray]:
+        """Index vectors ``(..., P)`` int -> ``{name: values (...)}`` float32 (jit-safe)."""
+        idx = jnp.asarray(indices)
+        table = jnp.asarray(table, jnp.float32)
+        picked = jnp.take_along_axis(jnp.broadcast_to(table, idx.shape[:-1] + table.shape),
+                                     idx[..., None], axis=-1)[..., 0]
+        return {n: picked[..., p] for p, n in enumerate(self.names)}
+
+    def scenario(self, indices, table) -> dict[str, jnp.ndarray]:
+        """Like :meth:`decode`, with undeclared known parameters filled by their defaults."""
+        out = self.decode(indices, table)
+        shape = jnp.shape(indices)[:-1]
+        for n, spec in KNOWN_PARAMETERS.items():
+            if n not in out:
+                out[n] = jnp.full(shape, spec["default"], jnp.float32)
+        return out
+
+    def unravel(self, flat) -> jnp.ndarray:
+        """Flat scenario numbers ``(...)`` -> index vectors ``(..., P)`` int32 (C order)."""
+        flat = jnp.asarray(flat, jnp.int32)
+        out = []
+        for n in reversed(self.shape):
+            out.append(flat % n)
+            flat = flat // n
+        return jnp.stack(out[::-1], axis=-1)
+
+    def ravel(self, indices) -> jnp.ndarray:
+        """Index vectors ``(..., P)`` -> flat scenario numbers ``(...)`` int32."""
+        idx = jnp.asarray(indices, jnp.int32)
+        flat = jnp.zeros(idx.shape[:-1], jnp.int32)
+        for p, n in enumerate(self.shape):
+            flat = flat * n + idx[..., p]
+        return flat
+
+
+@dataclasses.dataclass(frozen=True)
 class Space:
     """A discretised logical scenario: the product of per-parameter value sets.
 
@@ -213,44 +266,47 @@ class Space:
         return (np.asarray([min(v) for v in self.table], np.float32),
                 np.asarray([max(v) for v in self.table], np.float32))
 
-    def _padded(self) -> jnp.ndarray:
+    @property
+    def layout(self) -> Layout:
+        """The static part (names, value counts) for compiled code."""
+        return Layout(self.names, self.shape)
+
+    @property
+    def table_array(self) -> np.ndarray:
+        """Value table ``(P, max_n)`` float32, each row padded with its last value."""
         width = max(self.shape)
-        return jnp.asarray([list(v) + [v[-1]] * (width - len(v)) for v in self.table],
-                           dtype=jnp.float32)
+        return np.asarray([list(v) + [v[-1]] * (width - len(v)) for v in self.table],
+                          dtype=np.float32)
 
-    def decode(self, indices) -> dict[str, jnp.ndarray]:
-        """Index vectors ``(..., P)`` int -> ``{name: values (...)}`` float32 (jit-safe)."""
-        idx = jnp.asarray(indices)
-        picked = jnp.take_along_axis(
-            jnp.broadcast_to(self._padded(), idx.shape[:-1] + self._padded().shape),
-            idx[..., None], axis=-1)[..., 0]
-        return {n: picked[..., p] for p, n in enumerate(self.names)}
+    def decode(self, indices) -> dict[str, np.ndarray]:
+        """Index vectors ``(..., P)`` int -> ``{name: values (...)}`` float32 (host-side NumPy;
+        use :meth:`Layout.decode` under ``jit``)."""
+        idx = np.asarray(indices)
+        table = self.table_array
+        return {n: table[p][idx[..., p]] for p, n in enumerate(self.names)}
 
-    def scenario(self, indices) -> dict[str, jnp.ndarray]:
+    def scenario(self, indices) -> dict[str, np.ndarray]:
         """Like :meth:`decode`, with undeclared known parameters filled by their defaults."""
         out = self.decode(indices)
-        shape = jnp.shape(indices)[:-1]
+        shape = np.shape(indices)[:-1]
         for n, spec in KNOWN_PARAMETERS.items():
             if n not in out:
-                out[n] = jnp.full(shape, spec["default"], jnp.float32)
+                out[n] = np.full(shape, spec["default"], np.float32)
         return out
 
-    def unravel(self, flat) -> jnp.ndarray:
-        """Flat scenario numbers ``(...)`` -> index vectors ``(..., P)`` int32 (C order)."""
-        flat = jnp.asarray(flat, jnp.int32)
-        out = []
-        for n in reversed(self.shape):
-            out.append(flat % n)
-            flat = flat // n
-        return jnp.stack(out[::-1], axis=-1)
+    def unravel(self, flat) -> np.ndarray:
+        """Flat scenario numbers ``(...)`` -> index vectors ``(..., P)`` int32 (C order; NumPy)."""
+        return np.stack(np.unravel_index(np.asarray(flat, np.int64), self.shape),
+                        axis=-1).astype(np.int32)
 
-    def ravel(self, indices) -> jnp.ndarray:
-        """Index vectors ``(..., P)`` -> flat scenario numbers ``(...)`` int32."""
-        idx = jnp.asarray(indices, jnp.int32)
-        flat = jnp.zeros(idx.shape[:-1], jnp.int32)
-        for p, n in enumerate(self.shape):
-            flat = flat * n + idx[..., p]
-        return flat
+    def ravel(self, indices) -> np.ndarray:
+        """Index vectors ``(..., P)`` -> flat scenario numbers ``(...)`` int64 (NumPy)."""
+        idx = np.asarray(indices, np.int64)
+        return np.ravel_multi_index(tuple(np.moveaxis(idx, -1, 0)), self.shape)
+
+    def values_at(self, indices) -> dict[str, float]:
+        """``{name: value}`` of one index vector ``(P,)`` (host-side, float64 of the table)."""
+        return {n: float(self.table[p][int(indices[p])]) for p, n in enumerate(self.names)}
 
     def nearest(self, scenario: dict[str, float]) -> np.ndarray:
         """Index vector ``(P,)`` of the concrete values nearest to ``scenario`` (host-side)."""
@@ -377,7 +433,7 @@ def space_from_dict(doc: dict[str, Any], seed: int = 0, default_name: str = "cus
     return build(str(doc.get("name", default_name)), parsed, seed)
 
 
-def space(name_or_path: str | Path | Space, seed: int = 0) -> Space:
+def load_space(name_or_path: str | Path | Space, seed: int = 0) -> Space:
     """A built-in space by name (``paper``, ``paper-extended``) or a user TOML file.
 
     Raises ``ValueError`` with a one-line message naming the bad key or value.
@@ -399,3 +455,27 @@ def space(name_or_path: str | Path | Space, seed: int = 0) -> Space:
         return space_from_dict(doc, seed, default_name=path.stem)
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from None
+
+
+def check_scenario_values(scenario: dict[str, float]) -> dict[str, float]:
+    """One concrete scenario, validated like a space's values (known names, finite, inside
+    each parameter's domain, integers where integer) and completed with the defaults."""
+    full = {}
+    for name, spec in KNOWN_PARAMETERS.items():
+        v = scenario.get(name, spec["default"])
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
+            raise ValueError(f"{name}={v!r} is not a number")
+        v = float(v)
+        lo, hi = spec["domain"]
+        if not math.isfinite(v):
+            raise ValueError(f"{name}={v} is not finite")
+        if not lo <= v <= hi:
+            raise ValueError(f"{name}={v:g} outside the allowed [{lo:g}, {hi:g}] {spec['unit']}")
+        if spec["integer"] and v != round(v):
+            raise ValueError(f"{name}={v:g} must be an integer ({spec['doc']})")
+        full[name] = v
+    unknown = set(scenario) - set(KNOWN_PARAMETERS)
+    if unknown:
+        raise ValueError(f"unknown parameter '{sorted(unknown)[0]}' "
+                         f"(known: {', '.join(KNOWN_PARAMETERS)})")
+    return full

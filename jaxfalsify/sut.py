@@ -1,33 +1,43 @@
 """Systems under test: longitudinal controllers of the ego vehicle, black boxes to the search.
 
-A SUT is a pure function ``act(obs, state, params) -> (accel_command, new_state)`` plus an
-initial state: it sees one :class:`Observation` per 0.1 s step and returns a longitudinal
-acceleration command [m/s^2] (negative = braking), which the simulator applies during the next
-step (one step of actuation latency) within the vehicle's limits. Written for one scenario;
-the simulator vmaps it.
+A SUT is a pair of pure functions over one scenario (the simulator vmaps them):
 
-Built-ins (``SUTS``):
+* ``init(key, params) -> state``
+* ``act(obs, state, params, key) -> (accel_command, new_state)``: called every step with an
+  :class:`Observation` (its ``dt`` is the world's step); the longitudinal acceleration command
+  [m/s^2] (negative = braking) acts during the next step, within the vehicle's limits.
+
+``params`` is a pytree (a :func:`jaxfalsify.pytree.dataclass` of floats) passed *traced*: a
+calibration change does not recompile, and a sweep can vmap over calibrations. ``key`` is a
+typed PRNG key (sensor noise); the built-ins are deterministic and ignore it.
+
+Registry (gymnax / jumanji style): ``register(SUT(...))``, ``make(name, **params) -> (sut,
+params)``; a user's SUT is named by import path, ``my_pkg.my_aeb:AEB`` or
+``path/to/file.py:AEB`` (a :class:`SUT`, a function returning one, or a bare ``act``).
+
+Built-ins:
 
 * ``carla-tm`` (default): CARLA's Traffic Manager autopilot with its ground-truth emergency
-  stop, the SUT of the paper. Weather does not change it (CARLA's weather is visual only), so
-  in the paper's experiment the weather parameter is a distractor the search must learn to
-  ignore.
+  stop, the SUT of the paper. Weather does not change it (CARLA's weather is visual only).
 * ``sensor-aeb``: a perception-based AEB whose detection degrades with weather, with staged
   braking on time-to-collision and friction-limited braking on wet roads.
 * ``none``: the autopilot's cruise control without any emergency braking.
-
-Users can pass their own :class:`SUT` (or a bare ``act`` function, stateless) to
-``simulate``/``evaluate``.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple
+import importlib
+import importlib.util
+import math
+import sys
+from pathlib import Path
+from typing import Any, Callable, Mapping, NamedTuple
 
+import jax
 import jax.numpy as jnp
 
-from jaxfalsify import metrics, weather
+from jaxfalsify import metrics, pytree, weather
 
 G = 9.81  # m/s^2
 
@@ -36,40 +46,53 @@ class Observation(NamedTuple):
     """What a SUT sees at one step (ground truth; a perception SUT filters it itself).
 
     Positions are box centres [m] in the road frame (x along the ego's lane, y to the left);
-    speeds [m/s]; sizes are full box lengths [m]. ``weather`` is the CARLA preset index.
+    speeds [m/s]; sizes are full box lengths [m]; ``dt`` the step [s]; ``weather`` the CARLA
+    preset index.
     """
 
-    t: jnp.ndarray
-    ego_x: jnp.ndarray
-    ego_y: jnp.ndarray
-    ego_speed: jnp.ndarray
-    ego_length: jnp.ndarray
-    ego_width: jnp.ndarray
-    ped_x: jnp.ndarray
-    ped_y: jnp.ndarray
-    ped_vx: jnp.ndarray
-    ped_vy: jnp.ndarray
-    ped_length: jnp.ndarray
-    ped_width: jnp.ndarray
-    road_right: jnp.ndarray
-    road_left: jnp.ndarray
-    weather: jnp.ndarray
+    t: jax.Array
+    dt: jax.Array
+    ego_x: jax.Array
+    ego_y: jax.Array
+    ego_speed: jax.Array
+    ego_length: jax.Array
+    ego_width: jax.Array
+    ped_x: jax.Array
+    ped_y: jax.Array
+    ped_vx: jax.Array
+    ped_vy: jax.Array
+    ped_length: jax.Array
+    ped_width: jax.Array
+    road_right: jax.Array
+    road_left: jax.Array
+    weather: jax.Array
+
+
+def _no_state(key, params):
+    return jnp.bool_(False)
 
 
 @dataclasses.dataclass(frozen=True)
 class SUT:
-    """A system under test: ``act(obs, state, params) -> (accel, state)``; ``init(params)``.
+    """A system under test (hashable: a static argument of compiled code).
 
-    ``params`` must be hashable (a NamedTuple of floats) so a SUT can be a static argument.
+    Attributes:
+      name: registry name or import path.
+      act: ``act(obs, state, params, key) -> (accel [m/s^2], state)``.
+      init: ``init(key, params) -> state``.
+      default_params: the parameter pytree with its defaults (``None``: no parameters). Not
+        part of the hash: parameters are traced.
     """
 
     name: str
-    act: Callable[[Observation, Any, Any], tuple[jnp.ndarray, Any]]
-    init: Callable[[Any], Any]
-    params: Any = None
+    act: Callable[[Observation, Any, Any, jax.Array], tuple[jax.Array, Any]]
+    init: Callable[[jax.Array, Any], Any] = _no_state
+    default_params: Any = dataclasses.field(default=None, compare=False, hash=False)
 
 
-class CruiseParams(NamedTuple):
+# ----------------------------------------------------------------------------- cruise
+@pytree.dataclass
+class CruiseParams:
     """The autopilot's speed keeping (a P controller standing in for CARLA's PID).
 
     CARLA's Traffic Manager drives 30 % below the speed limit by default; Town05's urban
@@ -82,13 +105,19 @@ class CruiseParams(NamedTuple):
     decel_max: float = 3.0  # m/s^2, normal (non-emergency) braking
 
 
-def cruise_command(speed, p: CruiseParams) -> jnp.ndarray:
-    """Speed-keeping acceleration command [m/s^2]."""
+def cruise_command(speed, p) -> jax.Array:
+    """Speed-keeping acceleration command [m/s^2] (``p`` has the :class:`CruiseParams` fields)."""
     return jnp.clip(p.gain * (p.cruise_speed - speed), -p.decel_max, p.accel_max)
 
 
+def none_act(obs: Observation, state, p: CruiseParams, key):
+    """Cruise control only: no emergency braking at all."""
+    return cruise_command(obs.ego_speed, p), state
+
+
 # ----------------------------------------------------------------------------- carla-tm
-class CarlaTMParams(NamedTuple):
+@pytree.dataclass
+class CarlaTMParams(CruiseParams):
     """CARLA Traffic Manager collision stage (facts.md, 'CARLA Traffic Manager').
 
     The hazard boundary extends ahead of the vehicle's box by
@@ -96,14 +125,13 @@ class CarlaTMParams(NamedTuple):
     ``walker_time * its speed`` along its heading. Overlap -> emergency stop (full brake).
     """
 
-    cruise: CruiseParams = CruiseParams()
     boundary_min: float = 2.5  # m
     boundary_rate: float = 4.35  # s
     walker_time: float = 1.5  # s
     full_brake: float = 8.0  # m/s^2, full brake pedal on dry asphalt
 
 
-def carla_tm_act(obs: Observation, state, p: CarlaTMParams):
+def carla_tm_act(obs: Observation, state, p: CarlaTMParams, key):
     """Traffic Manager step. State: ``hold`` (bool), set by an emergency stop for a walker.
 
     A stateless check would chatter (stop, boundary shrinks to 2.5 m, walker no longer inside,
@@ -125,22 +153,13 @@ def carla_tm_act(obs: Observation, state, p: CarlaTMParams):
     crossed = jnp.where(heading_up, obs.ped_y - obs.ped_width / 2 > obs.road_left,
                         obs.ped_y + obs.ped_width / 2 < obs.road_right)
     hold = hazard | (hold & ~crossed & ~behind)
-    accel = jnp.where(hold, -p.full_brake, cruise_command(obs.ego_speed, p.cruise))
+    accel = jnp.where(hold, -p.full_brake, cruise_command(obs.ego_speed, p))
     return accel, hold
 
 
-def _false(_params):
-    return jnp.bool_(False)
-
-
-# ----------------------------------------------------------------------------- none
-def none_act(obs: Observation, state, p: CruiseParams):
-    """Cruise control only: no emergency braking at all."""
-    return cruise_command(obs.ego_speed, p), state
-
-
 # ----------------------------------------------------------------------------- sensor-aeb
-class SensorAEBParams(NamedTuple):
+@pytree.dataclass
+class SensorAEBParams(CruiseParams):
     """A perception-based AEB (camera + radar class), degraded by weather.
 
     Detection: the pedestrian's centre within ``range`` metres and ``fov`` degrees of the
@@ -154,7 +173,6 @@ class SensorAEBParams(NamedTuple):
     water deposits go from 0 to 100 %.
     """
 
-    cruise: CruiseParams = CruiseParams()
     range: float = 40.0  # m, clear day
     fov: float = 50.0  # deg, full angle
     latency: float = 0.2  # s, clear day
@@ -181,7 +199,7 @@ def sensor_capability(weather_index, p: SensorAEBParams):
     return rng, latency, mu * G
 
 
-def sensor_aeb_act(obs: Observation, state, p: SensorAEBParams):
+def sensor_aeb_act(obs: Observation, state, p: SensorAEBParams, key):
     """State: consecutive steps the pedestrian has been detected (int32)."""
     seen_for = state
     rng, latency, decel = sensor_capability(obs.weather, p)
@@ -191,7 +209,7 @@ def sensor_aeb_act(obs: Observation, state, p: SensorAEBParams):
     in_fov = (dx > 0) & (jnp.abs(jnp.arctan2(dy, jnp.maximum(dx, 1e-6))) <= jnp.deg2rad(p.fov / 2))
     detected = in_fov & (dx * dx + dy * dy <= rng * rng)
     seen_for = jnp.where(detected, seen_for + 1, 0)
-    confirmed = seen_for.astype(jnp.float32) * 0.1 >= latency
+    confirmed = seen_for.astype(jnp.float32) * obs.dt >= latency - 1e-6
     gap_x, gap_y = metrics.box_gaps(obs.ped_x - obs.ego_x, obs.ped_y - obs.ego_y,
                                     (obs.ego_length + obs.ped_length) / 2,
                                     (obs.ego_width + obs.ped_width) / 2)
@@ -201,29 +219,163 @@ def sensor_aeb_act(obs: Observation, state, p: SensorAEBParams):
                                     obs.ego_width + obs.ped_width)
     brake = jnp.where(ttc <= p.ttc_full, decel, jnp.where(ttc <= p.ttc_partial,
                                                           jnp.minimum(p.partial_brake, decel), 0.0))
-    accel = jnp.where(confirmed & (brake > 0), -brake, cruise_command(obs.ego_speed, p.cruise))
+    accel = jnp.where(confirmed & (brake > 0), -brake, cruise_command(obs.ego_speed, p))
     return accel, seen_for
 
 
-def _zero(_params):
+def _zero_steps(key, params):
     return jnp.int32(0)
 
 
-SUTS: dict[str, SUT] = {
-    "carla-tm": SUT("carla-tm", carla_tm_act, _false, CarlaTMParams()),
-    "sensor-aeb": SUT("sensor-aeb", sensor_aeb_act, _zero, SensorAEBParams()),
-    "none": SUT("none", none_act, _false, CruiseParams()),
-}
+# ----------------------------------------------------------------------------- registry
+REGISTRY: dict[str, SUT] = {}
 
 
-def get(sut: str | SUT | Callable) -> SUT:
-    """Resolve a SUT by registry name, or wrap a user function ``act(obs, state, params)``."""
-    if isinstance(sut, SUT):
-        return sut
-    if isinstance(sut, str):
-        if sut not in SUTS:
-            raise ValueError(f"unknown SUT '{sut}' (one of {', '.join(SUTS)})")
-        return SUTS[sut]
-    if callable(sut):
-        return SUT(getattr(sut, "__name__", "custom"), sut, _false, None)
-    raise ValueError(f"sut must be a name, a SUT or a function (got {type(sut).__name__})")
+def register(sut: SUT) -> SUT:
+    """Add a SUT to the registry under ``sut.name`` (replacing one of the same name)."""
+    if not isinstance(sut, SUT):
+        raise ValueError(f"register() takes a SUT (got {type(sut).__name__})")
+    REGISTRY[sut.name] = sut
+    return sut
+
+
+register(SUT("carla-tm", carla_tm_act, _no_state, CarlaTMParams()))
+register(SUT("sensor-aeb", sensor_aeb_act, _zero_steps, SensorAEBParams()))
+register(SUT("none", none_act, _no_state, CruiseParams()))
+
+
+def _load_attr(spec: str):
+    """``module:attr`` or ``path/file.py:attr`` -> the attribute (one-line ValueError)."""
+    mod_name, _, attr = spec.rpartition(":")
+    if not mod_name or not attr:
+        raise ValueError(f"SUT '{spec}': expected a registry name ({', '.join(REGISTRY)}) or "
+                         "an import path module:attr")
+    try:
+        if mod_name.endswith(".py"):
+            path = Path(mod_name).resolve()
+            if not path.is_file():
+                raise ValueError(f"SUT '{spec}': no such file {mod_name}")
+            import hashlib
+
+            name = "jaxfalsify_user_sut_" + hashlib.sha256(str(path).encode()).hexdigest()[:12]
+            module = sys.modules.get(name)
+            if module is None:
+                loader = importlib.util.spec_from_file_location(name, path)
+                module = importlib.util.module_from_spec(loader)
+                sys.modules[name] = module
+                try:
+                    loader.loader.exec_module(module)
+                except BaseException:
+                    del sys.modules[name]
+                    raise
+        else:
+            if "" not in sys.path and str(Path.cwd()) not in sys.path:
+                sys.path.insert(0, str(Path.cwd()))  # like `python -m`: the working folder
+            module = importlib.import_module(mod_name)
+    except ValueError:
+        raise
+    except Exception as e:  # noqa: BLE001 - a user module can raise anything on import
+        raise ValueError(f"SUT '{spec}': cannot import {mod_name} "
+                         f"({type(e).__name__}: {e})".splitlines()[0]) from None
+    try:
+        return getattr(module, attr)
+    except AttributeError:
+        raise ValueError(f"SUT '{spec}': {mod_name} has no attribute '{attr}'") from None
+
+
+def resolve(spec: str | SUT | Callable) -> SUT:
+    """A :class:`SUT` from a registry name, an import path, a SUT, or a bare ``act`` function
+    (stateless: ``act(obs, state, params, key)``). Raises ValueError listing the known names."""
+    if isinstance(spec, SUT):
+        return spec
+    if isinstance(spec, str):
+        if spec in REGISTRY:
+            return REGISTRY[spec]
+        if ":" not in spec:
+            raise ValueError(f"unknown SUT '{spec}' (one of {', '.join(REGISTRY)}, or an "
+                             "import path module:attr)")
+        obj = _load_attr(spec)
+        if isinstance(obj, type) or (callable(obj) and not isinstance(obj, SUT)
+                                     and getattr(obj, "__code__", None) is not None
+                                     and obj.__code__.co_argcount == 0):
+            obj = obj()  # a factory returning a SUT
+        if isinstance(obj, SUT):
+            return dataclasses.replace(obj, name=spec) if obj.name != spec else obj
+        if callable(obj):
+            return SUT(spec, obj, _no_state, None)
+        raise ValueError(f"SUT '{spec}' is a {type(obj).__name__}, not a SUT or act function")
+    if callable(spec):
+        return SUT(getattr(spec, "__name__", "custom"), spec, _no_state, None)
+    raise ValueError(f"sut must be a name, an import path, a SUT or a function "
+                     f"(got {type(spec).__name__})")
+
+
+def cache_key(sut: SUT) -> str | None:
+    """What identifies a SUT's code across processes, for the per-user program cache: the
+    built-ins by name, a module-level SUT by its functions' qualified names and its source
+    file's hash. None (never cached) for closures or functions without a source file."""
+    from jaxfalsify import cache
+
+    fns = (sut.act, sut.init)
+    if any(getattr(f, "__closure__", True) is not None for f in fns):
+        return None
+    if all(getattr(f, "__module__", "").startswith("jaxfalsify.") for f in fns):
+        return f"builtin:{sut.name}"
+    hashes = [cache.source_hash(f) for f in fns]
+    if None in hashes:
+        return None
+    return ":".join([sut.name] + [f"{f.__module__}.{f.__qualname__}" for f in fns] + hashes)
+
+
+def param_names(sut: SUT) -> tuple[str, ...]:
+    p = sut.default_params
+    if p is None:
+        return ()
+    if dataclasses.is_dataclass(p):
+        return pytree.field_names(p)
+    if isinstance(p, Mapping):
+        return tuple(p)
+    return ()
+
+
+def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
+    """The SUT's parameters: its defaults, a full parameter pytree, or a mapping of overrides
+    ``{name: number}`` applied to the defaults. One-line ValueError naming a bad name/value."""
+    if params is None:
+        return sut.default_params
+    if not isinstance(params, Mapping):
+        return params
+    if not params:
+        return sut.default_params
+    known = param_names(sut)
+    for name, value in params.items():
+        if name not in known:
+            raise ValueError(f"{where}: SUT '{sut.name}' has no parameter '{name}' "
+                             f"(known: {', '.join(known) or 'none'})")
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{where}: {name}={value!r} is not a number")
+        if not math.isfinite(value):
+            raise ValueError(f"{where}: {name}={value!r} is not finite")
+    p = sut.default_params
+    if dataclasses.is_dataclass(p):
+        return dataclasses.replace(p, **{k: float(v) for k, v in params.items()})
+    return {**p, **{k: float(v) for k, v in params.items()}}
+
+
+def make(spec: str | SUT | Callable = "carla-tm", **params) -> tuple[SUT, Any]:
+    """``(sut, params)``: a SUT by name or import path, and its parameters with ``params``
+    overriding the defaults (``make("sensor-aeb", ttc_full=0.8)``)."""
+    sut = resolve(spec)
+    return sut, with_params(sut, params, where=f"SUT '{sut.name}'")
+
+
+def params_dict(params: Any) -> dict[str, float]:
+    """``{name: value}`` of a flat parameter pytree (host-side; for config files and tables)."""
+    if params is None:
+        return {}
+    if dataclasses.is_dataclass(params):
+        return {f: float(getattr(params, f)) for f in pytree.field_names(params)}
+    if isinstance(params, Mapping):
+        return {k: float(v) for k, v in params.items()}
+    return {}
+

@@ -5,42 +5,46 @@ scenario's indices, values and outcome in ``sweep.parquet``, plus ``summary.json
 for the same space, seed and SUT whatever the chunk size), ``timing.json`` and the resolved
 ``config.toml`` (written first).
 
+A *calibration sweep* gives SUT parameters several values (``sut_params={"ttc_full": [0.8,
+1.0, 1.2]}``): every combination of values is a calibration, and each chunk evaluates all
+calibrations x its scenarios in one compiled call (``vmap`` over the parameter pytree). Rows
+then carry a ``calibration`` number and a column per swept parameter, and ``summary.json`` a
+row per calibration.
+
 Each chunk is committed to ``checkpoint/`` as it finishes (its rows as ``rows-<c>.parquet``, then
-the running totals in ``state.json``; see :mod:`jaxfalsify.checkpoint`), so memory stays flat and
-an interrupted sweep — Ctrl-C, SIGKILL, a lost machine — resumes where it stopped
-(``jaxfalsify sweep --resume OUT``). At the end the chunk files are merged into ``sweep.parquet``
-under a temporary name and renamed, and the checkpoint is removed: no half-written result is
-ever left under a final name.
+the running totals in ``state.json``), so memory stays flat and an interrupted sweep — Ctrl-C,
+SIGKILL, a lost machine — resumes where it stopped. At the end the chunk files are merged into
+``sweep.parquet`` under a temporary name and renamed, and the checkpoint is removed.
+
+:func:`ground_truth` keeps the outcome of every scenario of a (space, SUT) pair in the per-user
+cache, so figures and comparisons sweep a space once per machine.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import itertools
 import json
 import math
 import os
+import shutil
 import time
-from functools import partial
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Mapping
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfalsify import sim
+from jaxfalsify import cache, config as cfg, sim, store
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.space import Space
+from jaxfalsify.progress import Clock, Progress
+from jaxfalsify.space import Layout, Space
 
 OUTCOME_FIELDS = tuple(f.name for f in dataclasses.fields(sim.Outcome))
-
-
 DEFAULT_CHUNK = 1 << 17
-
-
-def batch_sharding():
-    """Sharding of a sweep chunk over the local devices (see ``sim.local_batch_sharding``)."""
-    return sim.local_batch_sharding()
+ROWS = ("all", "collisions", "none")
 
 
 def plan_chunks(size: int, chunk: int = DEFAULT_CHUNK) -> int:
@@ -53,58 +57,155 @@ def plan_chunks(size: int, chunk: int = DEFAULT_CHUNK) -> int:
     return -(-per // align) * align
 
 
-@partial(jax.jit, static_argnames=("space", "sut", "world", "chunk", "sharding"))
-def evaluate_chunk(start, *, space: Space, sut: sut_lib.SUT, world: sim.World = sim.WORLD,
-                   chunk: int = DEFAULT_CHUNK, sharding=None):
+def sweep_chunk(start, table, params, key, world, *, layout: Layout, sut: sut_lib.SUT,
+                chunk: int, sharding=None):
     """Outcomes of the concrete scenarios numbered ``[start, start + chunk)`` (clamped to the
-    space; rows past its end repeat the last scenario and must be dropped by the caller).
-    With a ``sharding`` (see :func:`batch_sharding`) the batch is split over devices.
+    space; rows past its end repeat the last scenario and must be dropped by the caller) under
+    every calibration of ``params`` (a parameter pytree with a leading axis ``(C,)``). With a
+    ``sharding`` (see :func:`jaxfalsify.sim.local_batch_sharding`) the batch is split over
+    devices. Scenario ``n`` draws from ``fold_in(key, n)`` whatever the chunking. Pure; jit it.
 
-    Returns ``(indices (chunk, P) int32, Outcome with (chunk,) fields)``.
+    Returns ``(indices (chunk, P) int32, Outcome with (C, chunk) fields)``.
     """
-    flat = jnp.minimum(start + jnp.arange(chunk, dtype=jnp.int32), space.size - 1)
+    flat = jnp.minimum(start + jnp.arange(chunk, dtype=jnp.int32), layout.size - 1)
     if sharding is not None:
         flat = jax.lax.with_sharding_constraint(flat, sharding)
-    idx = space.unravel(flat)
-    out, _ = sim.batch_rollout(space.scenario(idx), sut, world, False)
+    idx = layout.unravel(flat)
+    sc = layout.scenario(idx, table)
+    out = jax.vmap(lambda p: sim.batch_rollout(sc, flat, key, sut, p, world)[0])(params)
     return idx, out
 
 
-def chunk_table(space: Space, begin: int, idx: np.ndarray, out) -> dict[str, np.ndarray]:
-    """Host-side columns of one chunk: scenario number, indices, values, outcome fields."""
-    n = idx.shape[0]
-    cols: dict[str, np.ndarray] = {"scenario": np.arange(begin, begin + n, dtype=np.int64)}
+@functools.lru_cache(maxsize=32)
+def _chunk_program(layout: Layout, sut: sut_lib.SUT, chunk: int, params_tree,
+                   params_avals: tuple, world_tree):
+    sharding = sim.local_batch_sharding()
+
+    def fn(start, table, params_leaves, key_data, world_leaves):
+        idx, out = sweep_chunk(start, table, jax.tree.unflatten(params_tree, params_leaves),
+                               jax.random.wrap_key_data(key_data),
+                               jax.tree.unflatten(world_tree, world_leaves), layout=layout,
+                               sut=sut, chunk=chunk, sharding=sharding)
+        return idx, vars(out)
+
+    table = jax.ShapeDtypeStruct((len(layout.shape), max(layout.shape)), jnp.float32)
+    key_args = (table, list(params_avals))
+
+    def example():
+        return (np.int32(0), np.zeros(table.shape, np.float32),
+                [np.zeros(a.shape, a.dtype) for a in params_avals], np.zeros(2, np.uint32),
+                [np.float32(0)] * world_tree.num_leaves)
+
+    key = sut_lib.cache_key(sut)
+    static = None if key is None else {"layout": repr(layout), "sut": key, "chunk": chunk,
+                                       "params": str(params_tree), "world": str(world_tree)}
+    return cache.exported_jit(fn, "sweep", static, key_args, example)
+
+
+def evaluate_chunk(start: int, table, params, key_data, world, *, layout: Layout,
+                   sut: sut_lib.SUT, chunk: int):
+    """:func:`sweep_chunk`, compiled (cached per machine): NumPy ``(indices, outcome dict)``."""
+    p_leaves, p_tree = jax.tree.flatten(sim._f32(params))
+    w_leaves, w_tree = jax.tree.flatten(sim._f32(world))
+    avals = tuple(jax.ShapeDtypeStruct(x.shape, x.dtype) for x in p_leaves)
+    prog = _chunk_program(layout, sut, chunk, p_tree, avals, w_tree)
+    idx, out = prog(np.int32(start), table, p_leaves, key_data, w_leaves)
+    return np.asarray(idx), {k: np.asarray(v) for k, v in out.items()}
+
+
+def chunk_table(space: Space, begin: int, idx: np.ndarray, out, calib: "Calibrations"
+                ) -> dict[str, np.ndarray]:
+    """Host-side columns of one chunk (calibration-major): [calibration, swept parameters],
+    scenario number, indices, values, outcome fields."""
+    n, C = idx.shape[0], calib.count
+    cols: dict[str, np.ndarray] = {}
+    if C > 1:
+        cols["calibration"] = np.repeat(np.arange(C, dtype=np.int32), n)
+        for name, vals in calib.columns().items():
+            cols[name] = np.repeat(vals, n)
+    cols["scenario"] = np.tile(np.arange(begin, begin + n, dtype=np.int64), C)
     for p, name in enumerate(space.names):
-        cols[f"{name}_idx"] = idx[:, p].astype(np.int32)
+        cols[f"{name}_idx"] = np.tile(idx[:, p].astype(np.int32), C)
     for p, name in enumerate(space.names):
-        cols[name] = space.values[p][idx[:, p]]
+        cols[name] = np.tile(space.values[p][idx[:, p]], C)
     for f in OUTCOME_FIELDS:
-        cols[f] = np.asarray(getattr(out, f))[:n]
+        cols[f] = out[f][:, :n].reshape(-1)
     return cols
 
 
-def iter_sweep(space: Space, sut: sut_lib.SUT, world: sim.World = sim.WORLD,
+@dataclasses.dataclass(frozen=True)
+class Calibrations:
+    """The SUT parameter sets of a sweep: every combination of the swept values."""
+
+    sut: sut_lib.SUT
+    instances: tuple  # parameter pytrees, one per calibration
+    swept: tuple[tuple[str, tuple[float, ...]], ...]  # (name, values) with several values
+
+    @property
+    def count(self) -> int:
+        return len(self.instances)
+
+    def stacked(self):
+        if self.instances[0] is None:
+            return np.zeros((self.count,), np.float32)  # no parameters: vmap over a dummy
+        return jax.tree.map(lambda *xs: np.asarray(xs, np.float32), *self.instances)
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The swept parameters' value per calibration, ``{name: (C,) float32}``."""
+        return {name: np.asarray([sut_lib.params_dict(p)[name] for p in self.instances],
+                                 np.float32) for name, _ in self.swept}
+
+    def describe(self, c: int) -> dict[str, float]:
+        return {name: float(v[c]) for name, v in self.columns().items()}
+
+
+def calibrations(sut: sut_lib.SUT, sut_params: Mapping[str, Any]) -> Calibrations:
+    """Expand ``{name: value or [values]}`` into the calibrations (C order, the last named
+    parameter fastest); one-line ValueError naming a bad name or value."""
+    fixed, swept = {}, []
+    for name, v in dict(sut_params).items():
+        if isinstance(v, (list, tuple)):
+            if len(v) == 0:
+                raise ValueError(f"sut_params.{name}: an empty list of values")
+            if len(v) == 1:
+                fixed[name] = v[0]
+            else:
+                swept.append((name, tuple(v)))
+        else:
+            fixed[name] = v
+    instances = []
+    for combo in itertools.product(*(vals for _, vals in swept)):
+        over = {**fixed, **{n: c for (n, _), c in zip(swept, combo)}}
+        instances.append(sut_lib.with_params(sut, over, where="sut_params"))
+    if len(instances) > 4096:
+        raise ValueError(f"sut_params: {len(instances)} calibrations; at most 4096 per sweep")
+    return Calibrations(sut, tuple(instances),
+                        tuple((n, tuple(float(x) for x in vals)) for n, vals in swept))
+
+
+def iter_sweep(space: Space, calib: Calibrations, world: sim.World = sim.WORLD,
                chunk: int = DEFAULT_CHUNK, start: int = 0, stop: int | None = None,
-               planned: int | None = None):
+               planned: int | None = None, key=None):
     """Yield ``(begin, end, columns)`` for consecutive chunks of scenarios ``[start, stop)``
     (host-side loop; each chunk is one call of the same compiled function, sharded over the
-    local devices). ``planned`` fixes the compiled chunk size (default: planned from
-    ``chunk`` and the range)."""
+    local devices). ``planned`` fixes the compiled chunk size."""
     stop = space.size if stop is None else stop
-    chunk = planned or plan_chunks(max(stop - start, 1), chunk)
-    sharding = batch_sharding()
+    chunk = planned or plan_chunks(max(stop - start, 1), max(256, chunk // calib.count))
+    table, params = space.table_array, calib.stacked()
+    key_data = sim.seed_key_data(0) if key is None else key
     for b in range(start, stop, chunk):
         e = min(b + chunk, stop)
-        idx, out = evaluate_chunk(jnp.int32(b), space=space, sut=sut, world=world, chunk=chunk,
-                                  sharding=sharding)
-        idx = np.asarray(idx)[: e - b]
-        yield b, e, chunk_table(space, b, idx, out)
+        idx, out = evaluate_chunk(b, table, params, key_data, world, layout=space.layout,
+                                  sut=calib.sut, chunk=chunk)
+        idx = idx[: e - b]
+        yield b, e, chunk_table(space, b, idx, out, calib)
 
 
 class Reducer:
-    """Running totals of a sweep: counts and the global maximum reward (first one on ties)."""
+    """Running totals of a sweep per calibration: counts and the global maximum reward (the
+    first scenario on ties) and how many scenarios reach it."""
 
-    FIELDS = ("n", "collisions", "nonfinite", "best_reward", "best_row")
+    FIELDS = ("n", "collisions", "nonfinite", "best_reward", "best_row", "best_ties")
 
     def __init__(self, **state):
         self.n = 0
@@ -112,8 +213,9 @@ class Reducer:
         self.nonfinite = 0
         self.best_reward = -math.inf
         self.best_row: dict | None = None
+        self.best_ties = 0
         for k, v in state.items():
-            setattr(self, k, v)
+            setattr(self, k, -math.inf if k == "best_reward" and v is None else v)
 
     def state(self) -> dict:
         return {k: getattr(self, k) for k in self.FIELDS}
@@ -122,11 +224,77 @@ class Reducer:
         self.n += len(cols["scenario"])
         self.collisions += int(np.sum(cols["collision"]))
         self.nonfinite += int(np.sum(cols["nonfinite"]))
-        r = np.where(np.isnan(cols["reward"]), -np.inf, cols["reward"])
+        r = np.where(np.isnan(cols["reward"]), -np.inf, cols["reward"]).astype(np.float64)
         i = int(np.argmax(r))
         if r[i] > self.best_reward:
             self.best_reward = float(r[i])
             self.best_row = {k: v[i].item() for k, v in cols.items()}
+            self.best_ties = int(np.sum(r == r[i]))
+        elif r[i] == self.best_reward:
+            self.best_ties += int(np.sum(r == r[i]))
+
+
+def _split_cols(cols: dict, calib: Calibrations) -> list[dict]:
+    """A chunk's columns per calibration (calibration-major rows)."""
+    if calib.count == 1:
+        return [cols]
+    n = len(cols["scenario"]) // calib.count
+    return [{k: v[c * n:(c + 1) * n] for k, v in cols.items()} for c in range(calib.count)]
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepConfig:
+    """What a sweep needs."""
+
+    space: Any = "paper"  # built-in name, TOML path, or a space description table
+    space_seed: int = 0  # discretisation seed
+    sut: str = "carla-tm"
+    sut_params: Mapping[str, Any] = dataclasses.field(default_factory=dict)  # value or list
+    seed: int = 0  # the SUT's randomness (sensor noise); deterministic SUTs ignore it
+    chunk: int = DEFAULT_CHUNK  # most scenarios (x calibrations) per compiled call
+    rows: str = "all"  # all, collisions or none (summary only)
+
+    def build(self) -> tuple[Space, Calibrations]:
+        from jaxfalsify.runs import SEED_LIMIT, build_space, check_int, check_mapping
+
+        check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
+        check_int("seed", self.seed, 0, SEED_LIMIT - 1)
+        check_int("chunk", self.chunk, 1, 1 << 24)
+        if self.rows not in ROWS:
+            raise ValueError(f"rows must be one of {', '.join(ROWS)} (got {self.rows!r})")
+        if not isinstance(self.sut, str):
+            raise ValueError(f"sut must be a name (got {self.sut!r})")
+        sp = build_space(self.space, self.space_seed)
+        sut = sut_lib.resolve(self.sut)
+        return sp, calibrations(sut, check_mapping("sut_params", self.sut_params))
+
+    def to_toml(self, space: Space, processes: int = 1) -> str:
+        doc = {"kind": "sweep", "sut": self.sut, "space_seed": self.space_seed,
+               "seed": self.seed, "chunk": self.chunk, "rows": self.rows,
+               "processes": processes, "sut_params": dict(self.sut_params),
+               "space": space.describe()}
+        return cfg.dumps_toml(doc)
+
+    @classmethod
+    def from_toml(cls, path: Path) -> tuple["SweepConfig", int]:
+        """``(config, processes)`` from a sweep's ``config.toml``."""
+        doc = cfg.read_toml(path)
+        if doc.pop("kind", None) != "sweep":
+            raise ValueError(f"{path} is not a sweep's config")
+        processes = doc.pop("processes", 1)
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(doc) - known
+        if unknown:
+            raise ValueError(f"{path}: unknown key '{sorted(unknown)[0]}'")
+        try:
+            return cls(**doc), int(processes)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{path}: {e}") from None
+
+
+def default_out(space: Space, sut_name: str, space_seed: int) -> Path:
+    sut = sut_name.replace("/", "_").replace(":", "_")
+    return Path("sweeps") / f"{Path(space.name).stem}-{sut}-s{space_seed}"
 
 
 def checkpoint_name(process_id: int = 0, num_processes: int = 1) -> str:
@@ -134,179 +302,217 @@ def checkpoint_name(process_id: int = 0, num_processes: int = 1) -> str:
             f"checkpoint-part-{process_id:05d}-of-{num_processes:05d}")
 
 
-def sweep_config(space: Space, sut_name: str, chunk: int, rows: str, num_processes: int,
-                 extra: dict | None = None) -> dict:
-    """What ``config.toml`` of a sweep holds (and ``--resume`` reads back)."""
-    return {"command": "sweep", "space": space.describe(), "seed": space.seed,
-            "sut": sut_name, "chunk": chunk, "processes": num_processes, "rows": rows,
-            **(extra or {})}
-
-
-def _layout(space: Space, sut_name: str, out_dir: Path, chunk: int, rows: str,
+def _layout(config: SweepConfig, space: Space, calib: Calibrations, out: Path,
             process_id: int, num_processes: int, world: sim.World):
     """This process's range, compiled chunk size, checkpoint folder and its fingerprint."""
     from jaxfalsify.distributed import share
 
     begin, end = share(space.size, process_id, num_processes)
-    planned = plan_chunks(max(end - begin, 1), chunk)
+    planned = plan_chunks(max(end - begin, 1), max(256, config.chunk // calib.count))
     fingerprint = json.loads(json.dumps(
-        {"space": space.describe(), "seed": space.seed, "sut": sut_name, "chunk": planned,
-         "rows": rows, "range": [begin, end], "world": repr(world)}))
-    return begin, end, planned, out_dir / checkpoint_name(process_id, num_processes), fingerprint
+        {"config": config.to_toml(space, num_processes), "chunk": planned,
+         "range": [begin, end], "world": repr(world)}))
+    return begin, end, planned, out / checkpoint_name(process_id, num_processes), fingerprint
 
 
-def check_resume(space: Space, sut_name: str, out_dir: Path, chunk: int, rows: str,
-                 process_id: int = 0, num_processes: int = 1,
-                 world: sim.World = sim.WORLD) -> int:
-    """Scenarios this process has committed in ``out_dir``'s checkpoint (0 if none); raises
-    :class:`~jaxfalsify.checkpoint.CheckpointError` if the checkpoint is unusable."""
-    begin, end, planned, ck, fp = _layout(space, sut_lib.get(sut_name).name, out_dir, chunk,
-                                          rows, process_id, num_processes, world)
-    if not (ck / "state.json").exists():
-        return 0
-    done, _ = _load_progress(ck, fp)
-    return min(done * planned, end - begin)
-
-
-def _load_progress(ck: Path, fingerprint: dict) -> tuple[int, Reducer]:
-    from jaxfalsify.checkpoint import CheckpointError, read_json
-
-    st = read_json(ck / "state.json")
+def _load_progress(ck: Path, fingerprint: dict, n_calib: int) -> tuple[int, list[Reducer]]:
+    st = store.read_json(ck / "state.json")
     if st.get("fingerprint") != fingerprint:
-        raise CheckpointError(f"checkpoint {ck / 'state.json'} was written by another sweep "
-                              "configuration")
+        raise store.CheckpointError(f"checkpoint {ck / 'state.json'} was written by another "
+                                    "sweep configuration")
     try:
         done = int(st["chunks_done"])
-        red = Reducer(**{k: st["totals"][k] for k in Reducer.FIELDS})
+        reds = [Reducer(**{k: t[k] for k in Reducer.FIELDS}) for t in st["totals"]]
     except (KeyError, TypeError, ValueError):
-        raise CheckpointError(f"checkpoint {ck / 'state.json'} is corrupt (fields)") from None
-    return done, red
+        raise store.CheckpointError(f"checkpoint {ck / 'state.json'} is corrupt "
+                                    "(fields)") from None
+    if len(reds) != n_calib or done < 0:
+        raise store.CheckpointError(f"checkpoint {ck / 'state.json'} is corrupt (totals)")
+    return done, reds
 
 
-def run_sweep(space: Space, sut_name: str, out_dir: Path, *, world: sim.World = sim.WORLD,
-              chunk: int = DEFAULT_CHUNK, progress: Callable[[int], None] | None = None,
-              extra_config: dict | None = None, process_id: int = 0,
-              num_processes: int = 1, rows: str = "all", resume: bool = False) -> dict:
-    """Sweep the whole space into ``out_dir``; returns the summary (plus timing).
+def _scenario_of(space: Space, row: dict | None) -> dict | None:
+    if row is None:
+        return None
+    return {"scenario": row["scenario"],
+            "indices": {n: row[f"{n}_idx"] for n in space.names},
+            "values": {n: row[n] for n in space.names},
+            **{f: row[f] for f in OUTCOME_FIELDS}}
 
-    ``rows`` selects what goes to Parquet: ``all`` scenarios, only ``collisions``, or ``none``
-    (summary only, for huge spaces). With ``resume``, the chunks already committed to the
-    checkpoint are skipped (a missing checkpoint starts from the beginning); without it, an
-    existing checkpoint is discarded.
 
+def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool = False,
+            force: bool = False, progress: Progress | None = None,
+            stop: Callable[[], bool] | None = None, process_id: int = 0,
+            num_processes: int = 1, world: sim.World = sim.WORLD,
+            startup_seconds: float = 0.0) -> dict:
+    """Sweep the whole space into ``out``; the library form of ``jaxfalsify sweep``. Returns
+    the summary (plus timing).
+
+    ``resume`` continues the unfinished sweep in ``out`` (chunks already committed are
+    skipped); ``stop`` is checked between chunks (see :func:`jaxfalsify.runs.execute`).
     With several processes (``jax.distributed`` initialised), process i sweeps its contiguous
     share of the scenario numbers into ``sweep.part-<i>-of-<n>.parquet`` with its own
     checkpoint; after a barrier, process 0 merges the parts' summaries into ``summary.json``.
     """
-    if rows not in ("all", "collisions", "none"):
-        raise ValueError(f"rows must be all, collisions or none (got {rows!r})")
-    import shutil
-
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    from jaxfalsify import config as cfg
-    from jaxfalsify.checkpoint import write_json, FORMAT
     from jaxfalsify.distributed import barrier
+    from jaxfalsify.runs import Interrupted
 
-    sut = sut_lib.get(sut_name)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    clock = Clock(startup_seconds)
+    progress = progress or Progress()
+    space, calib = config.build()
+    out = Path(out) if out is not None else default_out(space, config.sut, config.space_seed)
+    store.check_out(out, "sweep", force=force, resume=resume)
+    barrier("jaxfalsify-sweep-checked")  # every process checked the folder before any writes
+    if resume:
+        on_disk, procs = SweepConfig.from_toml(out / "config.toml")
+        if procs != num_processes:
+            raise store.FolderError(f"--resume {out}: the sweep ran on {procs} process(es), "
+                                    f"this is {num_processes}; resume it with the same number")
+        if on_disk.to_toml(space, procs) != config.to_toml(space, procs):
+            raise store.CheckpointError(f"--resume {out}: config.toml does not match the "
+                                        "sweep configuration given")
     multi = num_processes > 1
     name = (f"sweep.part-{process_id:05d}-of-{num_processes:05d}.parquet" if multi
             else "sweep.parquet")
-    begin, end, planned, ck, fingerprint = _layout(space, sut.name, out_dir, chunk, rows,
-                                                   process_id, num_processes, world)
-    if process_id == 0 and not resume:
-        cfg.write_atomic(out_dir / "config.toml", cfg.dumps_toml(
-            sweep_config(space, sut.name, chunk, rows, num_processes, extra_config)))
-    done, red = 0, Reducer()
+    begin, end, planned, ck, fingerprint = _layout(config, space, calib, out, process_id,
+                                                   num_processes, world)
+    done, reds = 0, [Reducer() for _ in range(calib.count)]
     if resume and (ck / "state.json").exists():
-        done, red = _load_progress(ck, fingerprint)
-    elif ck.exists():
+        done, reds = _load_progress(ck, fingerprint, calib.count)
+    if process_id == 0 and not resume:
+        if force:
+            store.clear(out, "sweep")
+        out.mkdir(parents=True, exist_ok=True)
+        store.write_atomic(out / "config.toml", config.to_toml(space, num_processes))
+    barrier("jaxfalsify-sweep-started")
+    out.mkdir(parents=True, exist_ok=True)
+    if not resume and ck.exists():
         shutil.rmtree(ck)
     ck.mkdir(parents=True, exist_ok=True)
-    resumed_from = min(begin + done * planned, end)
-    if progress and resumed_from > begin:
-        progress(resumed_from - begin)
-    t0 = time.perf_counter()
-    compile_s = 0.0
-    for c, (b, e, cols) in enumerate(iter_sweep(space, sut, world, chunk, resumed_from, end,
-                                                planned=planned), start=done):
-        if not compile_s:
-            compile_s = time.perf_counter() - t0
-        red.add(cols)
-        if rows != "none":
-            if rows == "collisions":
-                keep = cols["collision"]
-                cols = {k: v[keep] for k, v in cols.items()}
-            tmp = ck / f".rows-{c:06d}.parquet.partial"
-            pq.write_table(pa.table(cols), tmp)
-            os.replace(tmp, ck / f"rows-{c:06d}.parquet")
-        write_json(ck / "state.json", {"format": FORMAT, "chunks_done": c + 1,
-                                       "scenarios_done": e - begin,
-                                       "fingerprint": fingerprint, "totals": red.state()})
-        if progress:
-            progress(e - b)
-    wall = time.perf_counter() - t0
-    n_chunks = -(-(end - begin) // planned)
-    if rows != "none":
-        _merge_rows([ck / f"rows-{c:06d}.parquet" for c in range(n_chunks)],
-                    out_dir / f".{name}.partial", out_dir / name)
-    part = {"process_id": process_id, "n": red.n, "collisions": red.collisions,
-            "nonfinite": red.nonfinite, "best_reward": red.best_reward,
-            "best": _scenario_of(space, red.best_row), "wall": wall, "compile": compile_s}
-    if multi:
-        cfg.write_atomic(out_dir / f".summary.part-{process_id:05d}.json",
-                         json.dumps(cfg.jsonable(part)) + "\n")
-        barrier("jaxfalsify-sweep-parts-written")
-        parts = [json.loads((out_dir / f".summary.part-{i:05d}.json").read_text())
-                 for i in range(num_processes)]
-    else:
-        parts = [cfg.jsonable(part)]
-    best = max(parts, key=lambda q: (q["best_reward"] if q["best_reward"] is not None
-                                     else -math.inf, -q["process_id"]))
-    n = sum(q["n"] for q in parts)
-    collisions = sum(q["collisions"] for q in parts)
-    summary = {
-        "space": space.name, "seed": space.seed, "sut": sut.name,
-        "n_scenarios": n, "n_collisions": collisions,
-        "collision_rate": collisions / max(n, 1),
-        "n_nonfinite": sum(q["nonfinite"] for q in parts),
-        "global_max_reward": best["best_reward"],
-        "global_max_scenario": best["best"],
-        "processes": num_processes,
-        "rows": rows,
-        "parts": [] if rows == "none" else
-        ([f"sweep.part-{i:05d}-of-{num_processes:05d}.parquet" for i in range(num_processes)]
-         if multi else ["sweep.parquet"]),
-        "versions": cfg.versions(),
-    }
-    timing = {"wall_seconds": max(q["wall"] for q in parts),
-              "compile_seconds": max(q["compile"] for q in parts),
-              "chunk": planned, "devices": jax.local_device_count(),
-              "resumed_from_scenario": resumed_from - begin if process_id == 0 else None}
     if process_id == 0:
-        cfg.write_atomic(out_dir / "timing.json", json.dumps(cfg.jsonable(timing), indent=2)
-                         + "\n")
-        cfg.write_atomic(out_dir / "summary.json",
-                         json.dumps(cfg.jsonable(summary), indent=2) + "\n")
+        store.write_status(out, "sweep", "running", scenarios=space.size)
+    resumed_from = min(begin + done * planned, end)
+    total = (end - begin) * calib.count
+    progress.phase(f"compiling the sweep of {space.name} x {config.sut}"
+                   + (f" x {calib.count} calibrations" if calib.count > 1 else ""))
+    t0 = time.perf_counter()
+    compile_s, started = 0.0, False
+    try:
+        for c, (b, e, cols) in enumerate(iter_sweep(space, calib, world, config.chunk,
+                                                    resumed_from, end, planned=planned,
+                                                    key=sim.seed_key_data(config.seed)),
+                                         start=done):
+            if not started:
+                compile_s = time.perf_counter() - t0
+                progress.start(total, (resumed_from - begin) * calib.count, "scn",
+                               f"sweep {space.name} / {config.sut}"
+                               + (f" [process {process_id}/{num_processes}]" if multi else ""))
+                started = True
+            for red, part in zip(reds, _split_cols(cols, calib)):
+                red.add(part)
+            if config.rows != "none":
+                if config.rows == "collisions":
+                    cols = {k: v[cols["collision"]] for k, v in cols.items()}
+                store.write_parquet(ck / f"rows-{c:06d}.parquet", cols)
+            store.write_json(ck / "state.json", {"format": store.FORMAT, "chunks_done": c + 1,
+                                                 "scenarios_done": e - begin,
+                                                 "fingerprint": fingerprint,
+                                                 "totals": [r.state() for r in reds]})
+            hits = sum(r.collisions for r in reds)
+            progress.update((e - begin) * calib.count, collisions=f"{hits:,}",
+                            rate=f"{hits / max(1, sum(r.n for r in reds)):.3g}")
+            if stop is not None and stop() and e < end:
+                raise KeyboardInterrupt
+    except KeyboardInterrupt:
+        progress.close()
+        st = store.read_json(ck / "state.json") if (ck / "state.json").exists() else {}
+        n_done = int(st.get("scenarios_done", 0))
+        if process_id == 0:
+            store.write_status(out, "sweep", "interrupted", scenarios_done=n_done,
+                               scenarios=space.size)
+        raise Interrupted("sweep", out, n_done, end - begin, "scenarios") from None
+    progress.close()
+    search_s = time.perf_counter() - t0 - compile_s
+    clock.add("compile", compile_s)
+    clock.add("sweep", search_s)
+    with clock("writing"):
+        n_chunks = -(-(end - begin) // planned)
+        if config.rows != "none":
+            _merge_rows([ck / f"rows-{c:06d}.parquet" for c in range(n_chunks)],
+                        out / f".{name}.partial", out / name)
+        part = {"process_id": process_id,
+                "totals": [{"n": r.n, "collisions": r.collisions, "nonfinite": r.nonfinite,
+                            "best_reward": r.best_reward, "best_ties": r.best_ties,
+                            "best": _scenario_of(space, r.best_row)} for r in reds],
+                "clock": clock.summary()}
+        if multi:
+            store.write_json(out / f".summary.part-{process_id:05d}.json", part)
+            barrier("jaxfalsify-sweep-parts-written")
+            parts = [json.loads((out / f".summary.part-{i:05d}.json").read_text())
+                     for i in range(num_processes)]
+        else:
+            parts = [cfg.jsonable(part)]
+        summary = _merge_summary(space, config, calib, parts, num_processes)
+    timing = {**clock.summary(), "chunk": planned, "devices": jax.local_device_count(),
+              "resumed_from_scenario": resumed_from - begin}
+    if process_id == 0:
+        store.write_json(out / "timing.json", timing, indent=2)
+        store.write_json(out / "summary.json", summary, indent=2)
+        store.write_status(out, "sweep", "complete", scenarios=space.size)
+        for i in range(num_processes if multi else 0):
+            (out / f".summary.part-{i:05d}.json").unlink(missing_ok=True)
     if multi:
         barrier("jaxfalsify-sweep-summary-written")
     shutil.rmtree(ck, ignore_errors=True)
-    return {**summary, **timing}
+    return {**summary, **timing, "out": str(out)}
+
+
+def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts: list,
+                   num_processes: int) -> dict:
+    def merged(c):
+        ts = [(q["totals"][c], q["process_id"]) for q in parts]
+        rewards = [t["best_reward"] if t["best_reward"] is not None else -math.inf
+                   for t, _ in ts]
+        top = max(rewards)
+        best = next(t for (t, _), r in zip(ts, rewards) if r == top)  # lowest process first
+        n = sum(t["n"] for t, _ in ts)
+        col = sum(t["collisions"] for t, _ in ts)
+        return {"n_scenarios": n, "n_collisions": col, "collision_rate": col / max(n, 1),
+                "n_nonfinite": sum(t["nonfinite"] for t, _ in ts),
+                "global_max_reward": best["best_reward"],
+                "global_max_ties": sum(t["best_ties"] for (t, _), r in zip(ts, rewards)
+                                       if r == top),
+                "global_max_scenario": best["best"]}
+
+    rows = [merged(c) for c in range(calib.count)]
+    summary = {"space": space.name, "space_seed": config.space_seed, "sut": config.sut,
+               "seed": config.seed}
+    if calib.count == 1:
+        summary.update(rows[0])
+        summary["sut_params"] = sut_lib.params_dict(calib.instances[0])
+    else:
+        summary["calibrations"] = [{"calibration": c, **calib.describe(c), **r}
+                                   for c, r in enumerate(rows)]
+        summary["n_calibrations"] = calib.count
+        summary["n_scenarios"] = space.size
+    summary.update({
+        "processes": num_processes, "rows": config.rows,
+        "parts": [] if config.rows == "none" else
+        ([f"sweep.part-{i:05d}-of-{num_processes:05d}.parquet" for i in range(num_processes)]
+         if num_processes > 1 else ["sweep.parquet"]),
+        "versions": cfg.versions()})
+    return summary
 
 
 def _merge_rows(files: list[Path], tmp: Path, final: Path) -> None:
     """Concatenate the chunks' Parquet files into one, under a temporary name, then rename."""
     import pyarrow.parquet as pq
 
-    from jaxfalsify.checkpoint import CheckpointError
-
     writer = None
     try:
         for f in files:
             if not f.exists():
-                raise CheckpointError(f"checkpoint file {f} is missing")
+                raise store.CheckpointError(f"checkpoint file {f} is missing")
             table = pq.read_table(f)
             if writer is None:
                 writer = pq.ParquetWriter(tmp, table.schema)
@@ -320,17 +526,86 @@ def _merge_rows(files: list[Path], tmp: Path, final: Path) -> None:
     os.replace(tmp, final)
 
 
-def _scenario_of(space: Space, row: dict | None) -> dict | None:
-    if row is None:
-        return None
-    return {"scenario": row["scenario"],
-            "indices": {n: row[f"{n}_idx"] for n in space.names},
-            "values": {n: row[n] for n in space.names},
-            **{f: row[f] for f in OUTCOME_FIELDS}}
+def resume_config(out: Path | str) -> tuple[SweepConfig, int]:
+    """``(config, processes)`` of the unfinished sweep in ``out``."""
+    out = Path(out)
+    store.check_out(out, "sweep", resume=True)
+    return SweepConfig.from_toml(out / "config.toml")
 
 
-def sweep_arrays(space: Space, sut="carla-tm", world: sim.World = sim.WORLD,
-                 chunk: int = DEFAULT_CHUNK) -> dict[str, np.ndarray]:
-    """The whole sweep in memory (small spaces, tests, ground truth for comparisons)."""
-    parts = [cols for _, _, cols in iter_sweep(space, sut_lib.get(sut), world, chunk)]
+def committed(config: SweepConfig, out: Path, process_id: int = 0, num_processes: int = 1,
+              world: sim.World = sim.WORLD) -> int:
+    """Scenarios this process has committed in ``out``'s checkpoint (0 if none); raises
+    :class:`~jaxfalsify.store.CheckpointError` if the checkpoint is unusable."""
+    space, calib = config.build()
+    begin, end, planned, ck, fp = _layout(config, space, calib, Path(out), process_id,
+                                          num_processes, world)
+    if not (ck / "state.json").exists():
+        return 0
+    done, _ = _load_progress(ck, fp, calib.count)
+    return min(done * planned, end - begin)
+
+
+# ----------------------------------------------------------------------------- in memory
+def sweep_arrays(space: Space, sut="carla-tm", sut_params=None, world: sim.World = sim.WORLD,
+                 chunk: int = DEFAULT_CHUNK, fields=None) -> dict[str, np.ndarray]:
+    """The whole sweep in memory (small spaces, tests, ground truth): ``fields`` (default
+    all columns) ``(N,)`` in scenario order. ``sut_params`` as in :func:`calibrations`."""
+    s = sut_lib.resolve(sut)
+    calib = calibrations(s, sut_params or {})
+    parts = []
+    for _, _, cols in iter_sweep(space, calib, world, chunk):
+        parts.append({k: v for k, v in cols.items() if fields is None or k in fields})
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def _code_hash(sut: sut_lib.SUT) -> str:
+    """Hash of the source the outcomes depend on (the simulator and the SUT's module)."""
+    import hashlib
+    import inspect
+
+    here = Path(__file__).parent
+    h = hashlib.sha256()
+    for f in ("sim.py", "sut.py", "metrics.py", "reward.py", "weather.py", "space.py"):
+        h.update((here / f).read_bytes())
+    try:
+        src = inspect.getsourcefile(sut.act)
+        if src and Path(src).resolve().parent != here.resolve():
+            h.update(Path(src).read_bytes())
+    except (TypeError, OSError):
+        h.update(repr(sut.act).encode())
+    return h.hexdigest()[:16]
+
+
+TRUTH_FIELDS = ("collision", "reward", "nonfinite")
+
+
+def ground_truth(space: Space, sut="carla-tm", sut_params=None,
+                 world: sim.World = sim.WORLD) -> dict[str, np.ndarray]:
+    """``{collision, reward, nonfinite}`` ``(N,)`` of every scenario, from the per-user cache
+    (keyed by the space's values, the SUT, its parameters, the world and the simulator's
+    source) or swept once and stored there."""
+    s = sut_lib.resolve(sut)
+    params = sut_lib.with_params(s, sut_params)
+    key = cache.key_of({"space": space.describe(), "seed": space.seed, "sut": s.name,
+                        "params": sut_lib.params_dict(params), "world": repr(world),
+                        "code": _code_hash(s)})
+    path = cache.folder() / "truth" / f"{key}.npz"
+    if cache.enabled() and path.is_file():
+        try:
+            with np.load(path) as z:
+                got = {k: z[k] for k in TRUTH_FIELDS}
+            if all(len(v) == space.size for v in got.values()):
+                return got
+        except (OSError, ValueError, KeyError):
+            pass
+    got = sweep_arrays(space, s, None if params is None else
+                       {k: v for k, v in sut_lib.params_dict(params).items()},
+                       world, fields=TRUTH_FIELDS)
+    if cache.enabled():
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            store.save_npz(path, got)
+        except OSError:
+            pass
+    return got

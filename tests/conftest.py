@@ -1,7 +1,13 @@
-import numpy as np
-import pytest
+import os
+import tempfile
 
-import jaxfalsify as jf
+# one per-user cache for the whole test session (and its subprocesses), never the user's own
+os.environ["JAXFALSIFY_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxfalsify-test-cache-")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+import jaxfalsify as jf  # noqa: E402
 
 # a 32-scenario space (Table I values around Table II) for CLI tests
 TINY_SPACE = """name = "tiny"
@@ -46,4 +52,48 @@ def table_ii():
 def paper_sweep():
     """The exhaustive sweep of the paper space (100,000 scenarios, default SUT)."""
     from jaxfalsify.sweep import sweep_arrays
-    return sweep_arrays(jf.space("paper"))
+    return sweep_arrays(jf.load_space("paper"))
+
+
+def run_campaign(space, strategy="random", batch=16, evaluations=64, seed=0, sut="carla-tm",
+                 every=None, **drive_kw):
+    """A campaign through the library (``campaign.run``) with a registry strategy."""
+    from jaxfalsify import campaign, search
+    from jaxfalsify import sut as sut_lib
+
+    s, sp_ = sut_lib.make(sut)
+    strat, params = search.make(strategy, space.shape, batch)
+    return campaign.run(space, s, sp_, strat, params,
+                        campaign.plan(evaluations, batch, every=every), seed, **drive_kw)
+
+
+_EVENTS: list | None = None
+
+
+def _on_event(event: str, duration: float, **kw) -> None:
+    if _EVENTS is not None and event in ("/jax/core/compile/jaxpr_trace_duration",
+                                         "/jax/core/compile/backend_compile_duration"):
+        _EVENTS.append(event)
+
+
+import jax.monitoring  # noqa: E402
+
+jax.monitoring.register_event_duration_secs_listener(_on_event)
+
+
+@pytest.fixture
+def compile_events():
+    """``with compile_events() as events:`` collects JAX's public tracing and backend-compile
+    events inside the block (an empty list: nothing was traced or compiled)."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def collect():
+        global _EVENTS
+        _EVENTS = []
+        try:
+            yield _EVENTS
+        finally:
+            _EVENTS = None
+
+    return collect

@@ -10,24 +10,14 @@ from pathlib import Path
 
 import pytest
 
-from jaxfalsify import campaign
+from jaxfalsify import runs, sweep
 from jaxfalsify.cli import main
-from jaxfalsify.runs import RunConfig, checkpoint_for, start_run
-from jaxfalsify.sweep import run_sweep
-import jaxfalsify as jf
 from conftest import TINY_SPACE
 
 
-
-class Stop(Exception):
-    pass
-
-
-def _stop_after(n):
-    def progress(done, records=None):
-        if records is None or len(records) >= n:
-            raise Stop
-    return progress
+def _stopper(n):
+    calls = iter(range(10_000))
+    return lambda: next(calls) >= n
 
 
 @pytest.fixture(scope="module")
@@ -37,9 +27,9 @@ def world(tmp_path_factory):
     (w / "tiny.toml").write_text(TINY_SPACE)
     (w / "afile").write_text("not a folder\n")
     files = {
-        "malformed.toml": 'strategy = "random"\nepisodes = \n',
+        "malformed.toml": 'strategy = "random"\nevaluations = \n',
         "unknown_key.toml": 'strategy = "random"\nlearning_rate = 3\n',
-        "wrong_type.toml": 'strategy = "random"\nepisodes = "many"\n',
+        "wrong_type.toml": 'strategy = "random"\nevaluations = "many"\n',
         "float_seed.toml": "seed = 1.5\n",
         "zero_batch.toml": 'strategy = "random"\nbatch = 0\n',
         "space_malformed.toml": "[parameters.ped_speed\nvalues = [1]\n",
@@ -62,20 +52,16 @@ def world(tmp_path_factory):
         (w / name).write_text(text)
     # a finished run and sweep
     assert main(["run", "--space", str(w / "tiny.toml"), "--strategy", "random",
-                 "--episodes", "40", "--batch", "8", "--out", str(w / "done"), "--quiet",
+                 "--evaluations", "40", "--batch", "8", "--out", str(w / "done"), "--quiet",
                  "--no-figures"]) == 0
     assert main(["sweep", "--space", str(w / "tiny.toml"), "--out", str(w / "sweep_done"),
                  "--quiet"]) == 0
     # an unfinished run, interrupted after 2 of 5 checkpointed chunks (what the CLI leaves)
-    rc = RunConfig(space=str(w / "tiny.toml"), strategy="random", episodes=40, batch=8,
-                   checkpoint_every=1)
-    sp, sut, strat, plan = rc.build()
-    rc = rc.resolved()
+    rc = runs.RunConfig(space=str(w / "tiny.toml"), strategy="random", evaluations=40,
+                        batch=8, checkpoint_every=1)
     out = w / "unfinished"
-    start_run(out, rc, sp, plan.budget, force=False)
-    with pytest.raises(Stop):
-        campaign.run(sp, sut, strat, plan, rc.seed, progress=_stop_after(2),
-                     checkpoint=checkpoint_for(out, rc, plan, sp))
+    with pytest.raises(runs.Interrupted):
+        runs.execute(rc, out, stop=_stopper(2), figures=False)
     ck = Path("checkpoint")
     for name, damage in {
         "corrupt_carry": lambda d: (d / ck / "carry-000002.npz").write_bytes(
@@ -89,9 +75,8 @@ def world(tmp_path_factory):
         shutil.copytree(out, w / name)
         damage(w / name)
     # an unfinished sweep (1 of 98 chunks committed) and a corrupted copy
-    with pytest.raises(Stop):
-        run_sweep(jf.space("paper"), "carla-tm", w / "sweep_unfinished", chunk=1024,
-                  progress=_stop_after(1))
+    with pytest.raises(runs.Interrupted):
+        sweep.execute(sweep.SweepConfig(chunk=1024), w / "sweep_unfinished", stop=_stopper(1))
     shutil.copytree(w / "sweep_unfinished", w / "sweep_corrupt")
     (w / "sweep_corrupt" / "checkpoint" / "state.json").write_text('{"format": 1}')
     return w
@@ -108,10 +93,10 @@ CASES = [
     (["sweep", "--space", "space_unknown_key.toml"], "colour"),
     (["run", "--bogus"], "--bogus"),
     # wrong types
-    (["run", "--config", "wrong_type.toml"], "episodes must be an integer"),
+    (["run", "--config", "wrong_type.toml"], "evaluations must be an integer"),
     (["run", "--config", "float_seed.toml"], "seed must be an integer"),
     (["sweep", "--space", "space_wrong_type.toml"], "'fast'"),
-    (["run", "--episodes", "ten"], "--episodes must be an integer"),
+    (["run", "--evaluations", "ten"], "--evaluations must be an integer"),
     (["sweep", "--chunk", "x"], "--chunk must be an integer"),
     (["simulate", "ped_speed=abc"], "ped_speed='abc'"),
     # empty or inverted ranges
@@ -124,17 +109,17 @@ CASES = [
     (["simulate", "ped_speed=inf"], "not finite"),
     (["simulate", "ped_speed=nan"], "not finite"),
     # zero or negative budgets, batches, sizes
-    (["run", "--episodes", "0"], "--episodes must be positive"),
-    (["run", "--episodes", "-5"], "--episodes must be positive"),
-    (["run", "--batch", "0"], "--batch must be positive"),
-    (["run", "--batch", "-4"], "--batch must be positive"),
-    (["run", "--checkpoint-every", "0"], "--checkpoint-every must be positive"),
-    (["run", "--config", "zero_batch.toml"], "batch must be an integer >= 1"),
+    (["run", "--evaluations", "0"], "--evaluations must be >= 1"),
+    (["run", "--evaluations", "-5"], "--evaluations must be >= 1"),
+    (["run", "--batch", "0"], "--batch must be >= 1"),
+    (["run", "--batch", "-4"], "--batch must be >= 1"),
+    (["run", "--checkpoint-every", "0"], "--checkpoint-every must be >= 1"),
+    (["run", "--config", "zero_batch.toml"], "batch must be in 1..1000000"),
     (["run", "--seed", "-1"], "--seed"),
-    (["sweep", "--chunk", "0"], "--chunk must be positive"),
+    (["sweep", "--chunk", "0"], "--chunk must be >= 1"),
     (["sweep", "--space", "space_zero_samples.toml"], "samples must be a positive integer"),
-    (["compare", "--budget", "0"], "--budget must be positive"),
-    (["compare", "--seeds", "0"], "--seeds must be positive"),
+    (["compare", "--evaluations", "0"], "--evaluations must be >= 1"),
+    (["compare", "--seeds", "0"], "--seeds must be >= 1"),
     # a batch larger than the space where that matters
     (["run", "--space", "tiny.toml", "--strategy", "grid", "--batch", "64"],
      "exceeds the space's 32 scenarios"),
@@ -142,8 +127,11 @@ CASES = [
     (["run", "--sut", "tesla"], "unknown SUT 'tesla'"),
     (["run", "--strategy", "ga"], "unknown strategy 'ga'"),
     (["run", "--space", "moon"], "unknown space 'moon'"),
-    (["run", "--preset", "fast"], "unknown preset 'fast'"),
-    (["run", "--strategy", "random", "--preset", "paper"], "--preset applies"),
+    (["run", "--strategy", "reinforce/fast"], "unknown strategy 'reinforce/fast'"),
+    (["run", "--strategy-param", "elite=3"], "no option 'elite'"),
+    (["run", "--sut-param", "wings=2"], "has no parameter 'wings'"),
+    (["run", "--sut-param", "full_brake"], "expected NAME=VALUE"),
+    (["run", "--sut", "no_such_module:AEB"], "cannot import no_such_module"),
     (["sweep", "--sut", "tesla"], "unknown SUT 'tesla'"),
     (["sweep", "--space", "moon"], "unknown space 'moon'"),
     (["sweep", "--rows", "some"], "--rows"),
@@ -165,8 +153,10 @@ CASES = [
     (["run", "--resume", "nowhere"], "no config.toml"),
     (["run", "--resume", "done"], "already complete"),
     (["run", "--resume", "unfinished", "--seed", "3"], "--seed cannot be combined"),
+    (["run", "--out", "sweep_done"], "holds a sweep"),
     (["run", "--resume", "unfinished", "--force"], "--force cannot be combined"),
     (["run", "--resume", "corrupt_carry"], "carry-000002.npz is corrupt"),
+    (["sweep", "--resume", "done"], "holds a run, not a sweep"),
     (["run", "--resume", "corrupt_state"], "state.json is corrupt"),
     (["run", "--resume", "missing_records"], "records-000000.npz is missing"),
     (["run", "--resume", "foreign_checkpoint"], "another configuration"),

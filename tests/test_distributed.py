@@ -51,7 +51,7 @@ def test_two_process_sweep_union_equals_single_process(tmp_path):
     parts = sorted(out.glob("sweep.part-*-of-00002.parquet"))
     assert len(parts) == 2
     union = pa.concat_tables([pq.read_table(p) for p in parts]).to_pydict()
-    sp = jf.space(space)
+    sp = jf.load_space(space)
     single = sweep_arrays(sp)
     assert union["scenario"] == list(range(sp.size))  # no gaps, no duplicates, in order
     for k, v in single.items():
@@ -78,10 +78,8 @@ def test_two_process_compare_equals_single_process(tmp_path):
 
     space = tmp_path / "space.toml"
     space.write_text(SPACE)
-    sweep = tmp_path / "sweep"
-    common = ["compare", "--strategies", "random,cem", "--seeds", "3", "--budget", "40",
-              "--space", str(space), "--sweep", str(sweep)]
-    assert main(["sweep", "--space", str(space), "--out", str(sweep), "--quiet"]) == 0
+    common = ["compare", "--strategies", "random,cem", "--seeds", "3", "--evaluations", "40",
+              "--space", str(space), "--quiet"]
     port = _free_port()
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     env.pop("XLA_FLAGS", None)
@@ -100,7 +98,7 @@ def test_two_process_compare_equals_single_process(tmp_path):
     assert multi["processes"] == 2
     for a, b in zip(single["rows"], multi["rows"]):
         a.pop("wall_seconds"), b.pop("wall_seconds")
-        assert a == b
+        assert a == b and len(a["per_seed"]) == 3
 
 
 @pytest.mark.slow
@@ -144,7 +142,7 @@ def test_two_process_sweep_killed_and_resumed_equals_single_process(tmp_path):
         assert p.returncode == 0, err[-2000:]
     parts = sorted(out.glob("sweep.part-*-of-00002.parquet"))
     union = pa.concat_tables([pq.read_table(p) for p in parts]).to_pydict()
-    single = sweep_arrays(jf.space("paper"))
+    single = sweep_arrays(jf.load_space("paper"))
     assert union["scenario"] == list(range(100_000))
     for k, v in single.items():
         np.testing.assert_array_equal(np.asarray(union[k]), v, err_msg=k)

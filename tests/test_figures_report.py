@@ -15,7 +15,7 @@ SIZES = {"reward_per_episode.png": (450, 800), "distance_challenging.png": (450,
 @pytest.fixture(scope="module")
 def run_with_figures(tmp_path_factory):
     out = tmp_path_factory.mktemp("fig") / "run"
-    assert main(["run", "--strategy", "cem", "--episodes", "200", "--batch", "50",
+    assert main(["run", "--strategy", "cem", "--evaluations", "200", "--batch", "50",
                  "--out", str(out), "--quiet"]) == 0
     return out
 
@@ -54,7 +54,7 @@ def test_figures_command_regenerates_and_rejects_non_runs(run_with_figures, tmp_
     assert target.is_file()
     assert main(["figures", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
-    assert "is not a run folder" in err and len(err.splitlines()) == 1
+    assert "is not a finished run folder" in err and len(err.splitlines()) == 1
 
 
 def _read_rrd(path):
@@ -95,7 +95,7 @@ def test_replay_recording_reads_back_with_simulated_values(run_with_figures, tmp
         assert ent in cols, ent
     # the logged series are the simulation of the run's best scenario
     ep = pq.read_table(run_with_figures / "episodes.parquet").to_pydict()
-    sp = jf.space("paper")
+    sp = jf.load_space("paper")
     r = np.asarray(ep["reward"])
     best = int(np.argmax(r))
     idx = np.array([[ep[f"{n}_idx"][best] for n in sp.names]])
@@ -137,7 +137,7 @@ def test_export_validates_against_the_xsd_and_matches_the_trajectory(run_with_fi
                  "--out", str(out)]) == 0
     xosc_files = sorted(out.glob("*.xosc"))
     ep = pq.read_table(run_with_figures / "episodes.parquet").to_pydict()
-    sp = jf.space("paper")
+    sp = jf.load_space("paper")
     idx = np.stack([ep[f"{n}_idx"] for n in sp.names], -1)[np.asarray(ep["collision"])]
     assert len(xosc_files) == len({tuple(i) for i in idx}) > 0
     xsd = xmlschema.XMLSchema(str(schema_path("xosc")))

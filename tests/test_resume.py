@@ -16,38 +16,30 @@ import pyarrow.parquet as pq
 import pytest
 
 import jaxfalsify as jf
-from jaxfalsify import campaign, search
-from jaxfalsify import sut as sut_lib
-from jaxfalsify.checkpoint import CampaignCheckpoint
+from jaxfalsify import campaign, runs, search
 from jaxfalsify.cli import main
+from jaxfalsify.store import CampaignCheckpoint
+from conftest import TINY_SPACE, run_campaign  # noqa: F401
 
 
-class Stop(Exception):
-    pass
-
-
-@pytest.mark.parametrize("strategy", sorted(search.STRATEGIES))
+@pytest.mark.parametrize("strategy", list(search.REGISTRY))
 def test_every_strategy_resumes_bit_identically(strategy, tmp_path):
-    """Interrupt after 2 of 4 chunks, restore the carry (strategy + optimiser state, PRNG key,
+    """Stop after 2 of 4 chunks, restore the carry (strategy + optimiser state, PRNG keys,
     update count) from disk, continue: every recorded field equals the uninterrupted run's."""
-    sp = jf.space("paper")
-    sut = sut_lib.get("carla-tm")
-    strat = search.make(strategy, sp.shape, 16)
-    p = campaign.plan(16 * 8 - 5, 16, every=2)  # 8 updates, 4 chunks, a partial last batch
-    ref = campaign.run(sp, sut, strat, p, seed=5)
-
+    rc = runs.RunConfig(strategy=strategy, evaluations=16 * 8 - 5, batch=16,
+                        checkpoint_every=2, seed=5)  # 8 updates, 4 chunks, a partial batch
+    b = rc.build()
+    ref = campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan, 5)
     ck = CampaignCheckpoint(tmp_path / "checkpoint", {"test": strategy})
-
-    def stop_after_two(done, records):
-        if len(records) == 2:
-            raise Stop
-
-    with pytest.raises(Stop):
-        campaign.run(sp, sut, strat, p, seed=5, checkpoint=ck, progress=stop_after_two)
+    chunks = iter(range(100))
+    with pytest.raises(campaign.Stopped):
+        campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan, 5,
+                     checkpoint=ck, stop=lambda: next(chunks) == 2)
     assert json.loads((ck.folder / "state.json").read_text())["chunks_done"] == 2
-    resumed = campaign.restore(ck, sp, sut, strat, p, seed=5)
+    resumed = runs.restore(ck, b, 5)
     assert len(resumed[1]) == 2
-    res = campaign.run(sp, sut, strat, p, seed=5, checkpoint=ck, resumed=resumed)
+    res = campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan, 5,
+                       checkpoint=ck, resumed=resumed)
     np.testing.assert_array_equal(res.indices, ref.indices)
     for f in campaign.RECORD_FIELDS:
         np.testing.assert_array_equal(res.fields[f], ref.fields[f], err_msg=f)
@@ -56,11 +48,9 @@ def test_every_strategy_resumes_bit_identically(strategy, tmp_path):
 @pytest.mark.parametrize("strategy", ["random", pytest.param("reinforce", marks=pytest.mark.slow)])
 def test_results_do_not_depend_on_chunking(strategy):
     """Checkpointing every update or every 5 updates scans the same update function."""
-    sp = jf.space("paper")
-    sut = sut_lib.get("carla-tm")
-    strat = search.make(strategy, sp.shape, 20)
-    a = campaign.run(sp, sut, strat, campaign.plan(200, 20, every=1), seed=2)
-    b = campaign.run(sp, sut, strat, campaign.plan(200, 20, every=5), seed=2)
+    sp = jf.load_space("paper")
+    a = run_campaign(sp, strategy, batch=20, evaluations=200, seed=2, every=1)
+    b = run_campaign(sp, strategy, batch=20, evaluations=200, seed=2, every=5)
     np.testing.assert_array_equal(a.indices, b.indices)
     for f in campaign.RECORD_FIELDS:
         np.testing.assert_array_equal(a.fields[f], b.fields[f], err_msg=f)
@@ -81,29 +71,24 @@ def _wait_for_chunks(proc, state: Path, n: int, what: str):
     raise AssertionError(f"{what} wrote no checkpoint within 300 s")
 
 
-@pytest.fixture(scope="module")
-def compile_cache(tmp_path_factory):
-    """A persistent compilation cache shared by this module's subprocesses (same programs)."""
-    return tmp_path_factory.mktemp("jax-cache")
-
-
-def _cli(args, cache, **kw):
-    env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(cache))
+def _cli(args, **kw):
+    """``jaxfalsify ARGS`` in a subprocess (sharing the test session's per-user cache)."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
     return subprocess.Popen([sys.executable, "-m", "jaxfalsify.cli", *args], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
 
 
-def _interrupt(args, out: Path, cache, chunks: int, sig) -> tuple[int, str]:
+def _interrupt(args, out: Path, chunks: int, sig) -> tuple[int, str]:
     """Start ``jaxfalsify ARGS --out OUT`` in a subprocess, send ``sig`` once its checkpoint
     holds ``chunks`` chunks; returns (exit code, stderr)."""
-    proc = _cli([*args, "--out", str(out)], cache)
+    proc = _cli([*args, "--out", str(out)])
     _wait_for_chunks(proc, out / "checkpoint" / "state.json", chunks, " ".join(args[:1]))
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=120)
     return proc.returncode, err
 
 
-RUN_ARGS = ["run", "--episodes", "3000", "--batch", "20", "--checkpoint-every", "1",
+RUN_ARGS = ["run", "--evaluations", "3000", "--batch", "20", "--checkpoint-every", "1",
             "--seed", "7", "--no-figures", "--quiet"]
 
 
@@ -125,16 +110,16 @@ def _same_run(a: Path, b: Path):
     assert (a / "config.toml").read_text() == (b / "config.toml").read_text()
 
 
-def test_sigkilled_run_resumes_to_identical_results(tmp_path, capsys, compile_cache):
+def test_sigkilled_run_resumes_to_identical_results(tmp_path, capsys):
     reference, out = tmp_path / "reference", tmp_path / "killed"
-    uninterrupted = _cli([*RUN_ARGS, "--out", str(reference)], compile_cache)  # side by side
-    rc, _ = _interrupt(RUN_ARGS, out, compile_cache, 3, signal.SIGKILL)
+    uninterrupted = _cli([*RUN_ARGS, "--out", str(reference)])  # side by side
+    rc, _ = _interrupt(RUN_ARGS, out, 3, signal.SIGKILL)
     assert rc == -signal.SIGKILL
     assert not (out / "summary.json").exists() and not (out / "episodes.parquet").exists()
     # the unfinished folder is neither reused nor silently overwritten
     assert main([*RUN_ARGS, "--out", str(out)]) == 2
     assert f"--resume {out}" in capsys.readouterr().err
-    resume = _cli(["run", "--resume", str(out), "--quiet", "--no-figures"], compile_cache)
+    resume = _cli(["run", "--resume", str(out), "--quiet", "--no-figures"])
     for p in (uninterrupted, resume):
         _, err = p.communicate(timeout=600)
         assert p.returncode == 0, err[-2000:]
@@ -146,13 +131,14 @@ def test_sigkilled_run_resumes_to_identical_results(tmp_path, capsys, compile_ca
     assert "already complete" in capsys.readouterr().err
 
 
-def test_ctrl_c_leaves_a_resumable_run(tmp_path, compile_cache):
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_sigint_or_sigterm_leaves_a_resumable_run(tmp_path, sig, code):
     args = [*RUN_ARGS, "--strategy", "random"]
     reference = tmp_path / "reference"
     assert main([*args, "--out", str(reference)]) == 0
     out = tmp_path / "interrupted"
-    rc, err = _interrupt(args, out, compile_cache, 2, signal.SIGINT)
-    assert rc == 130
+    rc, err = _interrupt(args, out, 2, sig)
+    assert rc == code
     assert err.strip().splitlines()[-1].endswith(f"resumable: jaxfalsify run --resume {out}")
     status = json.loads((out / "status.json").read_text())
     saved = json.loads((out / "checkpoint" / "state.json").read_text())
@@ -166,11 +152,11 @@ def test_ctrl_c_leaves_a_resumable_run(tmp_path, compile_cache):
 SWEEP_ARGS = ["sweep", "--space", "paper", "--chunk", "1024", "--quiet"]
 
 
-def test_sigkilled_sweep_resumes_to_identical_results(tmp_path, capsys, compile_cache):
+def test_sigkilled_sweep_resumes_to_identical_results(tmp_path, capsys):
     ref = tmp_path / "reference"
     assert main([*SWEEP_ARGS, "--out", str(ref)]) == 0
     out = tmp_path / "killed"
-    assert _interrupt(SWEEP_ARGS, out, compile_cache, 3, signal.SIGKILL)[0] == -signal.SIGKILL
+    assert _interrupt(SWEEP_ARGS, out, 3, signal.SIGKILL)[0] == -signal.SIGKILL
     assert not (out / "summary.json").exists() and not (out / "sweep.parquet").exists()
     assert main([*SWEEP_ARGS, "--out", str(out)]) == 2
     assert f"--resume {out}" in capsys.readouterr().err
@@ -180,8 +166,9 @@ def test_sigkilled_sweep_resumes_to_identical_results(tmp_path, capsys, compile_
     assert b.column("scenario").to_pylist() == list(range(100_000))
     _same_table(ref / "sweep.parquet", out / "sweep.parquet")
     assert json.loads((out / "timing.json").read_text())["resumed_from_scenario"] > 0
-    assert sorted(os.listdir(out)) == ["config.toml", "summary.json", "sweep.parquet",
-                                       "timing.json"]
+    assert sorted(os.listdir(out)) == ["config.toml", "status.json", "summary.json",
+                                       "sweep.parquet", "timing.json"]
+    assert json.loads((out / "status.json").read_text())["state"] == "complete"
 
 
 def test_sweep_summary_does_not_depend_on_chunk_size(tmp_path):
@@ -190,3 +177,31 @@ def test_sweep_summary_does_not_depend_on_chunk_size(tmp_path):
     assert main(["sweep", "--space", "paper", "--quiet", "--out", str(b)]) == 0
     assert (a / "summary.json").read_bytes() == (b / "summary.json").read_bytes()
     _same_table(a / "sweep.parquet", b / "sweep.parquet")
+
+
+def test_library_run_interrupt_resume_equals_cli(tmp_path):
+    """``runs.execute`` stopped between chunks and resumed gives exactly the files the CLI
+    writes for the same configuration in one go."""
+    space = tmp_path / "tiny.toml"
+    space.write_text(TINY_SPACE)
+    cli_out, lib = tmp_path / "cli", tmp_path / "lib"
+    assert main(["run", "--space", str(space), "--strategy", "reinforce", "--evaluations",
+                 "200", "--batch", "20", "--checkpoint-every", "1", "--seed", "3", "--out",
+                 str(cli_out), "--quiet"]) == 0
+    rc = runs.RunConfig(space=str(space), strategy="reinforce", evaluations=200, batch=20,
+                        checkpoint_every=1, seed=3)
+    calls = iter(range(100))
+    with pytest.raises(runs.Interrupted) as e:
+        runs.execute(rc, lib, stop=lambda: next(calls) == 4)
+    assert e.value.done == 80 and e.value.resume == f"jaxfalsify run --resume {lib}"
+    assert json.loads((lib / "status.json").read_text())["state"] == "interrupted"
+    o = runs.execute(runs.resume_config(lib), lib, resume=True)
+    assert o.timing["resumed_from_evaluation"] == 80
+    assert (cli_out / "summary.json").read_bytes() == (lib / "summary.json").read_bytes()
+    for f in ("config.toml", "critical.csv"):
+        assert (cli_out / f).read_text() == (lib / f).read_text(), f
+    _same_table(cli_out / "episodes.parquet", lib / "episodes.parquet")
+    assert sorted(os.listdir(cli_out / "figures")) == sorted(os.listdir(lib / "figures"))
+    strip = lambda t: [ln for ln in t.splitlines()  # noqa: E731  (paths and times differ)
+                       if not any(w in ln for w in ("wall time", "jaxfalsify", "run `"))]
+    assert strip((cli_out / "report.md").read_text()) == strip((lib / "report.md").read_text())

@@ -13,8 +13,8 @@ import jaxfalsify as jf
 from jaxfalsify.cli import main
 from conftest import TINY_SPACE
 
-SUMMARY_KEYS = {"strategy", "preset", "space", "sut", "seed", "evaluations",
-                "first_collision_evaluation", "best", "convergence_evaluation", "n_nonfinite",
+SUMMARY_KEYS = {"strategy", "space", "sut", "seed", "evaluations",
+                "first_collision_evaluation", "best", "best_reached_evaluation", "n_nonfinite",
                 "versions"}
 BEST_KEYS = {"params", "reward", "collision", "min_distance", "final_distance",
              "high_risk_share_second_half"}
@@ -23,7 +23,7 @@ BEST_KEYS = {"params", "reward", "collision", "min_distance", "final_distance",
 @pytest.fixture(scope="module")
 def random_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("runs") / "r"
-    assert main(["run", "--strategy", "random", "--episodes", "70", "--batch", "30",
+    assert main(["run", "--strategy", "random", "--evaluations", "70", "--batch", "30",
                  "--seed", "3", "--out", str(out), "--quiet"]) == 0
     return out
 
@@ -31,7 +31,7 @@ def random_run(tmp_path_factory):
 def test_run_directory_schema(random_run):
     out = random_run
     ep = pq.read_table(out / "episodes.parquet").to_pydict()
-    sp = jf.space("paper")
+    sp = jf.load_space("paper")
     assert ep["evaluation"] == list(range(1, 71))
     assert ep["update"] == [i // 30 for i in range(70)]
     for name in sp.names:
@@ -48,7 +48,7 @@ def test_run_directory_schema(random_run):
     assert SUMMARY_KEYS <= set(s) and BEST_KEYS <= set(s["best"])
     r = np.asarray(ep["reward"])
     assert s["best"]["reward"] == pytest.approx(r.max())
-    assert s["evaluations"] == 70 and s["strategy"] == "random" and s["preset"] is None
+    assert s["evaluations"] == 70 and s["strategy"] == "random"
     col = np.asarray(ep["collision"])
     assert s["first_collision_evaluation"] == (int(np.argmax(col)) + 1 if col.any() else None)
     rows = list(csv.DictReader(open(out / "critical.csv")))
@@ -56,9 +56,11 @@ def test_run_directory_schema(random_run):
     rewards = [float(row["reward"]) for row in rows]
     assert rewards == sorted(rewards, reverse=True)
     cfg = tomllib.loads((out / "config.toml").read_text())
-    assert cfg["strategy"] == "random" and cfg["episodes"] == 70 and cfg["seed"] == 3
+    assert cfg["strategy"] == "random" and cfg["evaluations"] == 70 and cfg["seed"] == 3
+    assert cfg["kind"] == "run" and cfg["sut_params"]["cruise_speed"] == pytest.approx(30 / 3.6 * 0.7)
     timing = json.loads((out / "timing.json").read_text())
-    assert timing["wall_seconds"] >= timing["compile_seconds"] > 0
+    parts = sum(v for k, v in timing.items() if k.endswith("_seconds") and k != "total_seconds")
+    assert timing["total_seconds"] == pytest.approx(parts) and timing["compile_seconds"] > 0
     status = json.loads((out / "status.json").read_text())
     assert status["state"] == "complete" and status["evaluations_done"] == 70
     assert not (out / "checkpoint").exists()
@@ -79,28 +81,33 @@ def test_config_round_trip_repeats_the_run(random_run, tmp_path):
     assert not pq.read_table(third / "episodes.parquet").equals(a)
 
 
-def test_reinforce_paper_preset_run_and_report(tmp_path, capsys):
+def test_reinforce_paper_entry_run_and_report(tmp_path, capsys):
     out = tmp_path / "rl"
-    assert main(["run", "--preset", "paper", "--episodes", "50", "--out", str(out)]) == 0
+    assert main(["run", "--strategy", "reinforce/paper", "--evaluations", "50", "--out",
+                 str(out), "--no-figures", "--strategy-param", "lr=0.02"]) == 0
     text = capsys.readouterr().out
     assert "Non-challenging" in text and "ego_offset" in text
     s = json.loads((out / "summary.json").read_text())
-    assert s["strategy"] == "reinforce" and s["preset"] == "paper" and s["batch"] == 25
+    assert s["strategy"] == "reinforce/paper" and s["batch"] == 25
     assert s["evaluations"] == 50
+    cfg = tomllib.loads((out / "config.toml").read_text())["strategy_params"]
+    assert cfg["lr"] == pytest.approx(0.02) and cfg["alpha"] == pytest.approx(1e-4)
 
 
 def test_compare_against_sweep_ground_truth(tmp_path, capsys):
     space = tmp_path / "tiny.toml"
     space.write_text(TINY_SPACE)
-    out, sweep = tmp_path / "cmp", tmp_path / "sweep"
-    assert main(["compare", "--strategies", "random,cem", "--seeds", "2", "--budget", "60",
-                 "--space", str(space), "--sweep", str(sweep), "--out", str(out)]) == 0
+    out = tmp_path / "cmp"
+    assert main(["compare", "--strategies", "random,cem", "--seeds", "2", "--evaluations",
+                 "60", "--space", str(space), "--out", str(out), "--quiet"]) == 0
     result = json.loads((out / "compare.json").read_text())
-    truth = json.loads((sweep / "summary.json").read_text())
-    assert result["all_critical"] == truth["n_collisions"] > 0
+    from jaxfalsify.sweep import sweep_arrays
+    truth = sweep_arrays(jf.load_space(str(space)))
+    assert result["n_collisions"] == int(truth["collision"].sum()) > 0
     assert [r["strategy"] for r in result["rows"]] == ["random", "cem"]
     for r in result["rows"]:
         assert r["seeds"] == 2 and 0 <= r["found_collision_share"] <= 1
         assert r["best_over_global_max_median"] <= 1.0 + 1e-6
-        assert r["distinct_critical_median"] <= truth["n_collisions"]
+        assert r["distinct_critical_median"] <= result["n_collisions"]
+        assert [s["seed"] for s in r["per_seed"]] == [0, 1]
     assert "| random |" in (out / "compare.md").read_text()

@@ -1,14 +1,16 @@
-"""Search strategies and the LSTM controller: shapes, log-probabilities, learning, optimum
-finding on a synthetic objective, determinism, NaN handling."""
+"""Search strategies and the LSTM controller: one contract test over the whole registry
+(shapes, determinism per key, no recompilation, the optimum of a synthetic objective), the
+controller against the LSTM equations in NumPy, REINFORCE's presets, the campaign driver."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from flax import nnx
+from conftest import run_campaign
 
 import jaxfalsify as jf
-from jaxfalsify import campaign, policy, reinforce, search
+from jaxfalsify import analysis, campaign, search
+from jaxfalsify.search import controller, reinforce
 
 SHAPE = (6, 5, 4)
 TARGET = np.array([4, 1, 2])
@@ -19,105 +21,159 @@ def synthetic_reward(idx):
     return -jnp.sum(jnp.abs(idx - TARGET), axis=-1).astype(jnp.float32)
 
 
-def run_synthetic(strategy, key, n_updates):
-    def one(carry, _):
-        state, key = carry
-        key, k = jax.random.split(key)
-        idx, state = strategy.ask(k, state)
-        r = synthetic_reward(idx)
-        return (strategy.tell(state, idx, r), key), (idx, r)
+def make_loop(strategy, n_updates):
+    """The whole search on the synthetic objective as one jitted function of (key, params)."""
+    def loop(key, params):
+        def one(carry, _):
+            state, key = carry
+            key, k_ask, k_tell = jax.random.split(key, 3)
+            idx, state = strategy.ask(k_ask, state, params)
+            r = synthetic_reward(idx)
+            return (strategy.tell(k_tell, state, idx, r, params), key), (idx, r)
 
-    return jax.jit(lambda k: jax.lax.scan(one, (strategy.init(k), k), None,
-                                          length=n_updates)[1])(key)
+        k_init, k_run = jax.random.split(key)
+        return jax.lax.scan(one, (strategy.init(k_init, params), k_run), None,
+                            length=n_updates)[1]
 
-
-# ------------------------------------------------------------------ controller
-def test_controller_shapes_and_heads_are_distributions():
-    model = policy.Controller((3, 5, 2), rngs=nnx.Rngs(0))
-    logits = model(jnp.array([0.0, 0.5, 1.0]))
-    assert logits.shape == (3, 5)
-    probs = np.asarray(jax.nn.softmax(logits, axis=-1))
-    np.testing.assert_allclose(probs.sum(-1), 1.0, rtol=1e-6)
-    assert np.all(probs[0, 3:] == 0) and np.all(probs[2, 2:] == 0)
-    assert np.all(probs[1] > 0)
-    # two LSTM layers of 32 units
-    assert model.lstm1.hidden_features == 32 and model.lstm2.hidden_features == 32
+    return jax.jit(loop)
 
 
-def test_log_prob_matches_manual_computation():
-    model = policy.Controller((3, 5, 2), rngs=nnx.Rngs(1))
-    logits = np.asarray(model(jnp.array([0.2, 0.4, 0.9])), np.float64)
-    action = np.array([2, 4, 1])
-    manual = 0.0
-    for p, n in enumerate((3, 5, 2)):
-        z = logits[p, :n]
-        manual += z[action[p]] - np.log(np.sum(np.exp(z - z.max()))) - z.max()
-    got = float(policy.action_log_prob(jnp.asarray(logits, jnp.float32), jnp.asarray(action)))
-    assert got == pytest.approx(manual, abs=1e-4)
-
-
-@pytest.mark.parametrize("preset", ["default", "paper"])
-def test_reinforce_moves_probability_to_rewarded_index(preset):
-    strat = reinforce.make(SHAPE, 50, preset)
-    ask, tell = jax.jit(strat.ask), jax.jit(strat.tell)
-    state = strat.init(jax.random.key(0))
-    before = float(reinforce.policy_probs(state, SHAPE, preset)[0, 3])
-    for i in range(40):
-        idx, state = ask(jax.random.key(i + 1), state)
-        state = tell(state, idx, (idx[:, 0] == 3).astype(jnp.float32))
-    after = float(reinforce.policy_probs(state, SHAPE, preset)[0, 3])
-    assert before < 0.3 and after > 0.6
-
-
-def test_paper_preset_exploration_schedule():
-    p = reinforce.PRESETS["paper"]
-    eps = np.asarray(reinforce.epsilon(jnp.array([0, 3, 4, 400, 1999, 2000, 3999]), p))
-    np.testing.assert_allclose(eps, [1.0, 1.0, 0.995, max(0.995**100, 0.01),
-                                     max(0.995**499, 0.01), 0.0, 0.0], rtol=1e-5)
-    assert (p.batch, p.lr, p.alpha) == (25, 0.01, 1e-4)
-
-
-# ------------------------------------------------------------------ strategies
-@pytest.mark.parametrize("name", list(search.STRATEGIES))
-def test_every_strategy_finds_the_synthetic_optimum(name):
-    strat = search.make(name, SHAPE, 40)
-    idx, r = run_synthetic(strat, jax.random.key(3), 25)  # 1000 evaluations, 120 scenarios
-    assert float(jnp.max(r)) == 0.0
-    flat = np.asarray(idx).reshape(-1, len(SHAPE))
+# ------------------------------------------------------------------ the registry contract
+@pytest.mark.parametrize("name", list(search.REGISTRY))
+def test_strategy_contract(name, compile_events):
+    strat, p = search.make(name, SHAPE, 40)
+    loop = make_loop(strat, 25)  # 1000 evaluations of a 120-scenario space
+    idx, r = loop(jax.random.key(3), p)
+    # shapes and bounds
+    assert idx.shape == (25, 40, 3) and idx.dtype == jnp.int32 and r.shape == (25, 40)
+    flat = np.asarray(idx).reshape(-1, 3)
     assert np.all((flat >= 0) & (flat < np.array(SHAPE)))
+    # finds the optimum of the synthetic objective
+    assert float(jnp.max(r)) == 0.0
+    # deterministic per key, different across keys
+    again, _ = loop(jax.random.key(3), p)
+    np.testing.assert_array_equal(np.asarray(again), np.asarray(idx))
+    with compile_events() as events:  # new key, new hyperparameter values: no recompilation
+        other, _ = loop(jax.random.key(4), jax.tree.map(lambda x: x * 1.01, p))
+    assert events == []
+    assert not np.array_equal(np.asarray(other), np.asarray(idx))
+
+
+def test_registry_options_and_errors():
+    strat, p = search.make("cem", SHAPE, 20, elite_frac=0.25)
+    assert p.elite_frac == 0.25 and strat.batch == 20
+    assert search.make("reinforce", SHAPE)[0] == search.make("reinforce/default", SHAPE)[0]
+    paper, pp = search.make("reinforce/paper", SHAPE)
+    assert (paper.batch, paper.chains, paper.advantage) == (25, 1, "reward")
+    assert (pp.lr, pp.alpha, pp.eps_start) == pytest.approx((0.01, 1e-4, 1.0))
+    with pytest.raises(ValueError, match="unknown strategy 'ga'"):
+        search.make("ga", SHAPE)
+    with pytest.raises(ValueError, match="no option 'elite'.*elite_frac"):
+        search.make("cem", SHAPE, elite=0.2)
+    with pytest.raises(ValueError, match="batch"):
+        search.make("random", SHAPE, 0)
+    with pytest.raises(ValueError, match="chains=7 must divide batch=20"):
+        search.make("reinforce", SHAPE, 20, chains=7)
+    assert search.options("reinforce/paper")["alpha"] == pytest.approx(1e-4)
 
 
 def test_grid_enumerates_every_scenario_once():
-    strat = search.make("grid", SHAPE, 24)
-    idx, _ = run_synthetic(strat, jax.random.key(0), 5)  # 120 = the whole space
+    strat, p = search.make("grid", SHAPE, 24)
+    idx, _ = make_loop(strat, 5)(jax.random.key(0), p)  # 120 = the whole space
     flat = np.ravel_multi_index(np.asarray(idx).reshape(-1, 3).T, SHAPE)
     assert sorted(flat.tolist()) == list(range(120))
     assert flat.tolist() != list(range(120))  # in a random order
 
 
-def test_unknown_strategy_and_bad_batch():
-    with pytest.raises(ValueError, match="unknown strategy 'ga'"):
-        search.make("ga", SHAPE)
-    with pytest.raises(ValueError, match="batch"):
-        search.make("random", SHAPE, 0)
-    with pytest.raises(ValueError, match="unknown preset 'fast'"):
-        search.make("reinforce", SHAPE, None, "fast")
+# ------------------------------------------------------------------ controller
+def test_controller_shapes_and_heads_are_distributions():
+    w = controller.init(jax.random.key(0), (3, 5, 2))
+    logits = controller.logits(w, jnp.array([0.0, 0.5, 1.0]), (3, 5, 2))
+    assert logits.shape == (3, 5)
+    probs = np.asarray(jax.nn.softmax(logits, axis=-1))
+    np.testing.assert_allclose(probs.sum(-1), 1.0, rtol=1e-6)
+    assert np.all(probs[0, 3:] == 0) and np.all(probs[2, 2:] == 0)
+    assert np.all(probs[1] > 0)
+    assert w["lstm1"]["u"].shape == (32, 128) and w["lstm2"]["w"].shape == (32, 128)
+
+
+def _np_lstm(p, h, c, x):
+    """The LSTM equations (Hochreiter & Schmidhuber; Keras' gate order i, f, g, o) in float64,
+    relu as the cell activation."""
+    w, u, b = (np.asarray(p[k], np.float64) for k in ("w", "u", "b"))
+    z = x @ w + h @ u + b
+    H = len(b) // 4
+    sig = lambda v: 1 / (1 + np.exp(-v))  # noqa: E731
+    relu = lambda v: np.maximum(v, 0)  # noqa: E731
+    i, f, g, o = sig(z[:H]), sig(z[H:2 * H]), relu(z[2 * H:3 * H]), sig(z[3 * H:])
+    c = f * c + i * g
+    return o * relu(c), c
+
+
+def test_lstm_cell_and_controller_match_numpy_equations():
+    shape = (3, 5, 2)
+    w = controller.init(jax.random.key(1), shape)
+    rng = np.random.default_rng(0)
+    h0, c0, x = rng.normal(size=32), rng.normal(size=32), rng.normal(size=3)
+    h, c = controller.lstm_step(w["lstm1"], (jnp.asarray(h0, jnp.float32),
+                                             jnp.asarray(c0, jnp.float32)),
+                                jnp.asarray(x, jnp.float32))
+    eh, ec = _np_lstm(w["lstm1"], h0, c0, x)
+    np.testing.assert_allclose(np.asarray(h), eh, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(c), ec, atol=1e-5)
+    # the paper's controller: two layers from zero states, then the head
+    xin = np.array([0.2, 0.4, 0.9])
+    h1, _ = _np_lstm(w["lstm1"], np.zeros(32), np.zeros(32), xin)
+    h2, _ = _np_lstm(w["lstm2"], np.zeros(32), np.zeros(32), h1)
+    out = (h2 @ np.asarray(w["head"]["w"], np.float64) + np.asarray(w["head"]["b"])).reshape(3, 5)
+    got = np.asarray(controller.logits(w, jnp.asarray(xin, jnp.float32), shape))
+    np.testing.assert_allclose(got[0, :3], out[0, :3], atol=1e-5)
+    np.testing.assert_allclose(got[1], out[1], atol=1e-5)
+    assert np.all(got[2, 2:] == controller.MASKED)
+
+
+def test_log_prob_matches_manual_computation():
+    w = controller.init(jax.random.key(1), (3, 5, 2))
+    logits = np.asarray(controller.logits(w, jnp.array([0.2, 0.4, 0.9]), (3, 5, 2)),
+                        np.float64)
+    action = np.array([2, 4, 1])
+    manual = 0.0
+    for p, n in enumerate((3, 5, 2)):
+        z = logits[p, :n]
+        manual += z[action[p]] - np.log(np.sum(np.exp(z - z.max()))) - z.max()
+    got = float(controller.action_log_prob(jnp.asarray(logits, jnp.float32),
+                                           jnp.asarray(action)))
+    assert got == pytest.approx(manual, abs=1e-4)
+
+
+@pytest.mark.parametrize("name", ["reinforce/default", "reinforce/paper"])
+def test_reinforce_moves_probability_to_rewarded_index(name):
+    strat, p = search.make(name, SHAPE, 50)
+    ask = jax.jit(lambda k, s: strat.ask(k, s, p))
+    tell = jax.jit(lambda k, s, i, r: strat.tell(k, s, i, r, p))
+    state = strat.init(jax.random.key(0), p)
+    before = float(strat.probs(state)[0, 3])
+    for i in range(40):
+        idx, state = ask(jax.random.key(i + 1), state)
+        state = tell(jax.random.key(100 + i), state, idx,
+                     (idx[:, 0] == 3).astype(jnp.float32))
+    after = float(strat.probs(state)[0, 3])
+    assert before < 0.3 and after > 0.6
+
+
+def test_paper_preset_exploration_schedule():
+    _, p = search.make("reinforce/paper", SHAPE)
+    eps = np.asarray(reinforce.epsilon(jnp.array([0, 3, 4, 400, 1999, 2000, 3999]), p))
+    np.testing.assert_allclose(eps, [1.0, 1.0, 0.995, max(0.995**100, 0.01),
+                                     max(0.995**499, 0.01), 0.0, 0.0], rtol=1e-5)
 
 
 # ------------------------------------------------------------------ campaign driver
-@pytest.fixture(scope="module")
-def small_campaign():
-    sp = jf.space("paper")
-    strat = search.make("cem", sp.shape, 50)
-    plan = campaign.plan(130, 50)  # budget not a multiple of the batch
-    return sp, strat, plan
-
-
-def test_campaign_budget_and_determinism(small_campaign):
-    sp, strat, plan = small_campaign
-    a = campaign.run(sp, jf.SUTS["carla-tm"], strat, plan, seed=1)
-    b = campaign.run(sp, jf.SUTS["carla-tm"], strat, plan, seed=1)
-    c = campaign.run(sp, jf.SUTS["carla-tm"], strat, plan, seed=2)
+def test_campaign_budget_and_determinism():
+    sp = jf.load_space("paper")
+    a = run_campaign(sp, "cem", batch=50, evaluations=130, seed=1)  # not a batch multiple
+    b = run_campaign(sp, "cem", batch=50, evaluations=130, seed=1)
+    c = run_campaign(sp, "cem", batch=50, evaluations=130, seed=2)
     assert a.n == 130 and a.evaluation[-1] == 130
     np.testing.assert_array_equal(a.indices, b.indices)
     np.testing.assert_array_equal(a.fields["reward"], b.fields["reward"])
@@ -127,39 +183,64 @@ def test_campaign_budget_and_determinism(small_campaign):
     np.testing.assert_array_equal(np.asarray(out.reward), a.fields["reward"][:20])
 
 
-def test_seeds_together_equal_single_runs(small_campaign):
-    sp, strat, plan = small_campaign
-    many = campaign.run_seeds(sp, jf.SUTS["carla-tm"], strat, plan, [1, 2])
-    one = campaign.run(sp, jf.SUTS["carla-tm"], strat, plan, seed=2)
+def test_seeds_together_equal_single_runs():
+    from jaxfalsify import sut as sut_lib
+
+    sp = jf.load_space("paper")
+    s, sp_ = sut_lib.make("carla-tm")
+    strat, p = search.make("cem", sp.shape, 50)
+    plan = campaign.plan(130, 50)
+    many = campaign.run_seeds(sp, s, sp_, strat, p, plan, [1, 2])
+    one = campaign.run(sp, s, sp_, strat, p, plan, seed=2)
     np.testing.assert_array_equal(many[1].indices, one.indices)
     np.testing.assert_allclose(many[1].fields["reward"], one.fields["reward"], atol=1e-6)
 
 
-def test_nan_outcomes_never_rank_best():
-    sp = jf.space("paper")
+def test_another_space_seed_or_calibration_does_not_recompile(compile_events):
+    """Space values, SUT and strategy parameters are traced: a second campaign with another
+    space seed, SUT calibration and hyperparameter value reuses the compiled program."""
+    from jaxfalsify import sut as sut_lib
 
-    def flaky(obs, state, params):  # NaN command whenever the pedestrian is slow
+    def go(space_seed, ttc, elite):
+        sp = jf.load_space("paper", seed=space_seed)
+        s, sp_ = sut_lib.make("sensor-aeb", ttc_full=ttc)
+        strat, p = search.make("cem", sp.shape, 32, elite_frac=elite)
+        return campaign.run(sp, s, sp_, strat, p, campaign.plan(96, 32), seed=0)
+
+    go(0, 0.9, 0.1)
+    with compile_events() as events:
+        r = go(1, 1.2, 0.2)
+    assert events == [] and r.n == 96
+
+
+def test_nan_outcomes_never_rank_best():
+    from jaxfalsify import sut as sut_lib
+
+    sp = jf.load_space("paper")
+
+    def flaky(obs, state, params, key):  # NaN command whenever the pedestrian is slow
         return jnp.where(obs.ped_vy < 1.3, jnp.nan, 1.0), state
 
-    res = campaign.run(sp, jf.SUT("flaky", flaky, lambda p: jnp.bool_(False)),
-                       search.make("cem", sp.shape, 50), campaign.plan(200, 50), seed=0)
+    strat, p = search.make("cem", sp.shape, 50)
+    res = campaign.run(sp, sut_lib.resolve(flaky), None, strat, p, campaign.plan(200, 50),
+                       seed=0)
     assert res.fields["nonfinite"].any() and (~res.fields["nonfinite"]).any()
-    b = campaign.best_index(res)
+    b = analysis.best(res.fields)
     assert not res.fields["nonfinite"][b] and np.isfinite(res.fields["reward"][b])
     assert not np.any(res.fields["collision"] & res.fields["nonfinite"])
 
 
-def test_summary_measures_by_hand():
-    sp = jf.space("paper")
-    rew = np.array([-0.03, 0.1, 0.263, 0.05, 0.2648], np.float32)
-    col = np.array([False, False, True, False, True])
-    fields = {f: np.zeros(5, np.float32) for f in campaign.RECORD_FIELDS}
-    fields.update(reward=rew, collision=col, nonfinite=np.zeros(5, bool))
-    idx = np.array([[0] * 5, [1] * 5, [2] * 5, [3] * 5, [2] * 5], np.int32)
-    res = campaign.Result(sp, 5, idx, fields, 0.0, 0.0)
-    assert campaign.first_collision_evaluation(res) == 3
-    assert campaign.convergence_evaluation(res) == 3  # 0.263 is within 1 % of 0.2648
-    assert campaign.best_index(res) == 4
-    crit = campaign.distinct_critical(res)
+def test_analysis_by_hand():
+    rew = np.array([-0.03, 0.1, 0.263, 0.05, 0.2648, np.nan], np.float32)
+    col = np.array([False, False, True, False, True, False])
+    fields = {f: np.zeros(6, np.float32) for f in campaign.RECORD_FIELDS}
+    fields.update(reward=rew, collision=col, nonfinite=np.isnan(rew))
+    idx = np.array([[0] * 5, [1] * 5, [2] * 5, [3] * 5, [2] * 5, [4] * 5], np.int32)
+    assert analysis.first_collision(fields) == 3
+    assert analysis.best_reached(fields) == 3  # 0.263 is within 1 % of 0.2648
+    assert analysis.best(fields) == 4
+    assert analysis.typical_non_critical(fields) == 3  # median of -0.03, 0.1, 0.05 is 0.05
+    crit = analysis.distinct_critical(idx, fields)
     assert [c["indices"][0] for c in crit] == [2]  # same scenario twice -> one entry
     assert crit[0]["times_evaluated"] == 2 and crit[0]["first_evaluation"] == 3
+    assert crit[0]["reward"] == pytest.approx(0.263)  # the first evaluation's outcome

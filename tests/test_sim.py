@@ -9,7 +9,7 @@ from conftest import random_scenarios
 
 import jaxfalsify as jf
 from jaxfalsify import sim
-from jaxfalsify.sut import SUTS, sensor_capability
+from jaxfalsify.sut import REGISTRY, sensor_capability
 
 W = jf.WORLD
 
@@ -57,7 +57,7 @@ def test_weather_is_a_distractor_for_carla_tm_but_not_for_sensor_aeb():
 
 
 def test_sensor_aeb_degrades_in_rain_and_low_sun():
-    p = SUTS["sensor-aeb"].params
+    p = REGISTRY["sensor-aeb"].default_params
     clear_r, clear_lat, clear_dec = map(float, sensor_capability(0, p))  # ClearNoon
     rain_r, rain_lat, rain_dec = map(float, sensor_capability(6, p))  # HardRainSunset
     sun_r, _, _ = map(float, sensor_capability(1, p))  # ClearSunset (glare)
@@ -95,7 +95,7 @@ def test_pedestrian_profile_matches_a_step_by_step_loop():
 def _none_closed_form(ego_offset, ped_speed, ped_offset):
     """Exact discrete-time positions of the 'none' autopilot (P controller, clipped) and of a
     constant-speed pedestrian; returns the first collision time or None."""
-    p = SUTS["none"].params
+    p = REGISTRY["none"].default_params
     dt, k = W.dt, np.arange(W.horizon, dtype=np.float64)
     k1 = np.ceil((p.cruise_speed - p.accel_max / p.gain) / (p.accel_max * dt) + 1e-12)
     r = 1 - p.gain * dt
@@ -128,7 +128,7 @@ def test_constant_speed_crossing_collision_time_matches_closed_form():
 
 def test_user_sut_constant_acceleration_closed_form():
     """A user-supplied SUT (a bare act function): x(t) = x0 + a t^2 / 2 exactly."""
-    def constant_accel(obs, state, params):
+    def constant_accel(obs, state, params, key):
         return jnp.float32(2.0), state
 
     sc = dict(ego_offset=4.0, ped_speed=1.3, ped_offset=3.5, ped_accel=0.0)
@@ -158,17 +158,19 @@ def test_chunked_evaluation_is_identical(random_traj):
                                       np.asarray(getattr(out, f.name)), err_msg=f.name)
 
 
-def test_jitted_evaluate_traces_once():
-    sc = random_scenarios(50, seed=11)
-    jf.evaluate(sc)
-    before = sim._jit_batch._cache_size()
-    for seed in (12, 13):
-        jf.evaluate(random_scenarios(50, seed=seed))
-    assert sim._jit_batch._cache_size() == before
+def test_evaluate_compiles_once_for_new_values_and_calibrations(compile_events):
+    """Other scenario values and SUT parameter values reuse the compiled program (counted
+    through JAX's public compilation events)."""
+    jf.evaluate(random_scenarios(50, seed=11), sut="sensor-aeb")
+    with compile_events() as events:
+        for seed, ttc in ((12, 0.5), (13, 1.2)):
+            jf.evaluate(random_scenarios(50, seed=seed), sut="sensor-aeb",
+                        sut_params={"ttc_full": ttc})
+    assert events == []
 
 
 def test_nan_command_is_flagged_not_a_collision():
-    def nan_sut(obs, state, params):
+    def nan_sut(obs, state, params, key):
         return jnp.where(obs.t > 1.0, jnp.nan, 1.0), state
 
     out = jf.evaluate(random_scenarios(8, seed=2), sut=nan_sut)

@@ -11,7 +11,7 @@ from jaxfalsify.space import space_from_dict
 
 @pytest.fixture(scope="module")
 def paper():
-    return jf.space("paper", seed=0)
+    return jf.load_space("paper", seed=0)
 
 
 def test_paper_space_is_table_one(paper):
@@ -31,27 +31,33 @@ def test_paper_space_is_table_one(paper):
 
 
 def test_paper_extended_size():
-    sp = jf.space("paper-extended")
+    sp = jf.load_space("paper-extended")
     assert sp.size == 2_000_000
     assert sp.names[-2:] == ("ped_speed_change", "ped_change_step")
 
 
 def test_seed_determinism_and_dependence():
-    a, b, c = jf.space("paper", seed=1), jf.space("paper", seed=1), jf.space("paper", seed=2)
+    a, b, c = jf.load_space("paper", seed=1), jf.load_space("paper", seed=1), jf.load_space("paper", seed=2)
     assert a.table == b.table
     assert a.table != c.table
 
 
 def test_ravel_unravel_match_numpy(paper):
+    """The jit-safe layout and the host-side space agree with NumPy's own."""
     flat = np.random.default_rng(0).integers(0, paper.size, 1000)
-    idx = np.asarray(jax.jit(paper.unravel)(flat))
+    idx = np.asarray(jax.jit(paper.layout.unravel)(flat))
     np.testing.assert_array_equal(idx, np.stack(np.unravel_index(flat, paper.shape), -1))
-    np.testing.assert_array_equal(np.asarray(paper.ravel(idx)), flat)
+    np.testing.assert_array_equal(paper.unravel(flat), idx)
+    np.testing.assert_array_equal(np.asarray(jax.jit(paper.layout.ravel)(idx)), flat)
+    np.testing.assert_array_equal(paper.ravel(idx), flat)
 
 
 def test_decode_matches_indexing_batched_and_unbatched(paper):
     idx = np.array([[3, 1, 24, 2, 9], [0, 0, 0, 0, 0]])
-    dec = jax.jit(paper.decode)(idx)
+    dec = jax.jit(paper.layout.decode)(idx, paper.table_array)
+    host = paper.decode(idx)
+    for name in paper.names:
+        np.testing.assert_array_equal(np.asarray(dec[name]), host[name])
     for p, name in enumerate(paper.names):
         np.testing.assert_array_equal(np.asarray(dec[name]), paper.values[p][idx[:, p]])
     one = paper.decode(idx[0])
@@ -91,7 +97,7 @@ low = 0
 high = 14
 samples = 2
 """)
-    sp = jf.space(f, seed=5)
+    sp = jf.load_space(f, seed=5)
     assert sp.name == "mine" and sp.shape == (3, 2, 2) and sp.size == 12
     sc = sp.scenario(np.zeros(3, np.int32))
     assert float(sc["ped_offset"]) == 3.5  # undeclared -> default
@@ -143,8 +149,8 @@ def test_malformed_toml_and_unknown_names(tmp_path):
     f = tmp_path / "bad.toml"
     f.write_text("[parameters.ped_speed\nvalues = [1]")
     with pytest.raises(ValueError, match="malformed TOML"):
-        jf.space(f)
+        jf.load_space(f)
     with pytest.raises(ValueError, match="unknown space 'nope'"):
-        jf.space("nope")
+        jf.load_space("nope")
     with pytest.raises(ValueError, match="seed"):
-        jf.space("paper", seed=-1)
+        jf.load_space("paper", seed=-1)

@@ -39,7 +39,7 @@ def small_space(tmp_path_factory):
 
 
 def test_sweep_arrays_equal_direct_evaluation(small_space):
-    sp = jf.space(small_space)
+    sp = jf.load_space(small_space)
     rows = sweep_arrays(sp, chunk=7)  # several chunks, a padded last one
     assert len(rows["scenario"]) == sp.size == 120
     idx = np.stack(np.unravel_index(np.arange(sp.size), sp.shape), -1)
@@ -59,7 +59,7 @@ def test_cli_sweep_writes_parquet_summary_config(small_space, tmp_path, capsys):
     assert main(["sweep", "--space", str(small_space), "--out", str(out), "--quiet",
                  "--chunk", "50"]) == 0
     table = pq.read_table(out / "sweep.parquet").to_pydict()
-    sp = jf.space(small_space)
+    sp = jf.load_space(small_space)
     assert len(table["scenario"]) == sp.size
     assert table["scenario"] == list(range(sp.size))
     expected = sweep_arrays(sp)
@@ -72,10 +72,12 @@ def test_cli_sweep_writes_parquet_summary_config(small_space, tmp_path, capsys):
     assert summary["global_max_reward"] == pytest.approx(float(r.max()))
     best = summary["global_max_scenario"]
     assert best["scenario"] == int(np.argmax(r))
+    assert summary["global_max_ties"] == int(np.sum(r == r.max()))
     assert "jax" in summary["versions"]
-    assert json.loads((out / "timing.json").read_text())["wall_seconds"] > 0
+    assert json.loads((out / "timing.json").read_text())["total_seconds"] > 0
     config = tomllib.loads((out / "config.toml").read_text())
     assert config["sut"] == "carla-tm" and config["space"]["name"] == "small"
+    assert config["kind"] == "sweep"
     assert not [p for p in os.listdir(out) if p.startswith(".")]  # no temporary leftovers
     # a second sweep into the same folder is refused, --force overwrites
     mtime = (out / "sweep.parquet").stat().st_mtime_ns
@@ -90,4 +92,28 @@ def test_cli_simulate_prints_outcome(capsys):
     assert main(["simulate", "ego_offset=9", "ped_accel=0.007", "ped_speed=1.237",
                  "ped_offset=3.5", "weather=8"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["collision"] is True and out["reward"] > 0.25
+    assert out["outcome"]["collision"] is True and out["outcome"]["reward"] > 0.25
+    assert out["scenario"]["ego_offset"] == 9 and out["scenario"]["ped_change_step"] == 0.0
+
+
+def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path):
+    """``--sut-param NAME=V1,V2`` evaluates calibrations x scenarios in one compiled call;
+    each calibration's rows equal a separate sweep with that value."""
+    out = tmp_path / "cal"
+    assert main(["sweep", "--space", str(small_space), "--sut-param", "full_brake=3,8",
+                 "--sut-param", "walker_time=1.5", "--out", str(out), "--quiet"]) == 0
+    table = pq.read_table(out / "sweep.parquet").to_pydict()
+    summary = json.loads((out / "summary.json").read_text())
+    sp = jf.load_space(str(small_space))
+    assert summary["n_calibrations"] == 2 and len(table["scenario"]) == 2 * sp.size
+    for c, brake in enumerate((3.0, 8.0)):
+        mine = np.asarray(table["calibration"]) == c
+        assert np.all(np.asarray(table["full_brake"])[mine] == brake)
+        alone = sweep_arrays(sp, "carla-tm", {"full_brake": brake, "walker_time": 1.5})
+        got = np.asarray(table["scenario"])[mine]
+        np.testing.assert_array_equal(got, np.arange(sp.size))
+        for f in ("reward", "collision", "min_distance", "steps"):
+            np.testing.assert_array_equal(np.asarray(table[f])[mine], alone[f], err_msg=f)
+        assert summary["calibrations"][c]["n_collisions"] == int(alone["collision"].sum())
+    # the weaker brake must matter somewhere, or the test proves nothing
+    assert summary["calibrations"][0]["n_collisions"] != summary["calibrations"][1]["n_collisions"]

@@ -1,52 +1,122 @@
-"""Search strategies: a registry of ``make(shape, batch, **options) -> Strategy`` by name.
+"""Search strategies: a registry of named entries, ``make(name, shape, batch, **options)``.
 
-See :mod:`jaxfalsify.search.base` for the interface. ``reinforce`` is the paper's method;
-the others are the baselines users of this field compare against.
+An entry is a strategy class with its default batch and fixed options (static configuration
+and hyperparameter defaults), so presets are plain entries: ``reinforce/paper`` (the original
+code) and ``reinforce/default`` (ours; ``reinforce`` names it too). See
+:mod:`jaxfalsify.search.base` for the interface.
 """
 
 from __future__ import annotations
 
-from jaxfalsify.search import anneal, cem, cmaes, grid, random_search
+import dataclasses
+import math
+from typing import Any
+
+from jaxfalsify import pytree
+from jaxfalsify.search.anneal import Anneal
 from jaxfalsify.search.base import Strategy
-
-DEFAULT_BATCH = {"random": 200, "grid": 200, "cem": 200, "anneal": 200, "cmaes": 200}
-
-
-def _reinforce(shape, batch=None, preset="default"):
-    from jaxfalsify import reinforce
-    return reinforce.make(shape, batch, preset)
+from jaxfalsify.search.cem import CEM
+from jaxfalsify.search.cmaes import CMAES
+from jaxfalsify.search.grid import Grid
+from jaxfalsify.search.random_search import RandomSearch
+from jaxfalsify.search.reinforce import Reinforce
 
 
-STRATEGIES = {
-    "random": random_search.make,
-    "grid": grid.make,
-    "cem": cem.make,
-    "anneal": anneal.make,
-    "cmaes": cmaes.make,
-    "reinforce": _reinforce,
-}
+@dataclasses.dataclass(frozen=True)
+class Entry:
+    cls: type
+    batch: int  # default scenarios per ask
+    options: tuple[tuple[str, Any], ...] = ()  # fixed static config / params of the entry
+    doc: str = ""
 
 
-def default_batch(name: str, preset: str = "default") -> int:
-    if name not in STRATEGIES:
-        raise ValueError(f"unknown strategy '{name}' (one of {', '.join(STRATEGIES)})")
-    if name == "reinforce":
-        from jaxfalsify.reinforce import get_preset
-        return get_preset(preset).batch
-    return DEFAULT_BATCH[name]
+REGISTRY: dict[str, Entry] = {}
+ALIASES: dict[str, str] = {"reinforce": "reinforce/default"}
+
+
+def register(name: str, cls: type, *, batch: int, doc: str = "", **options) -> None:
+    """Add a registry entry ``name``: ``cls`` with a default batch and option defaults."""
+    if not (isinstance(cls, type) and issubclass(cls, Strategy)):
+        raise ValueError(f"register('{name}'): {cls!r} is not a Strategy class")
+    _split(cls, options, where=f"register('{name}')")
+    REGISTRY[name] = Entry(cls, batch, tuple(options.items()), doc)
+
+
+def canonical(name: str) -> str:
+    """The registry name (aliases resolved); ValueError listing the known names."""
+    name = ALIASES.get(name, name)
+    if name not in REGISTRY:
+        raise ValueError(f"unknown strategy '{name}' (one of {', '.join(names())})")
+    return name
+
+
+def names() -> list[str]:
+    return list(REGISTRY) + list(ALIASES)
+
+
+def _static_fields(cls) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(cls) if f.name not in ("shape", "batch"))
+
+
+def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
+    static, params = {}, {}
+    known_p = pytree.field_names(cls.Params)
+    known_s = _static_fields(cls)
+    for k, v in options.items():
+        if k in known_p:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"{where}: {k}={v!r} is not a finite number")
+            params[k] = float(v)
+        elif k in known_s:
+            static[k] = v
+        else:
+            raise ValueError(f"{where}: no option '{k}' (known: "
+                             f"{', '.join(known_s + known_p) or 'none'})")
+    return static, params
+
+
+register("reinforce/default", Reinforce, batch=250, chains=0, advantage="normalised",
+         doc="the LSTM controller + REINFORCE, normalised advantages (ours)")
+register("reinforce/paper", Reinforce, batch=25, chains=1, advantage="reward", lr=0.01,
+         alpha=1e-4, entropy=0.0, eps_start=1.0, eps_decay=0.995, eps_every=4.0,
+         eps_floor=0.01, eps_off_after=2000.0, doc="the LSTM controller + REINFORCE as the "
+         "original code")
+register("random", RandomSearch, batch=200, doc="uniform random (Crude Monte Carlo)")
+register("grid", Grid, batch=200, doc="every scenario once, in a seeded random order")
+register("cem", CEM, batch=200, doc="cross-entropy method, per-parameter categoricals")
+register("anneal", Anneal, batch=200, doc="simulated annealing, one chain per batch slot")
+register("cmaes", CMAES, batch=200, doc="CMA-ES (evosax) on the index box")
+
+
+def options(name: str) -> dict[str, Any]:
+    """Every option of an entry with its value: static configuration and hyperparameters."""
+    e = REGISTRY[canonical(name)]
+    fixed = dict(e.options)
+    out = {f.name: fixed.get(f.name, f.default) for f in dataclasses.fields(e.cls)
+           if f.name not in ("shape", "batch")}
+    defaults = e.cls.Params()
+    out.update({k: fixed.get(k, getattr(defaults, k)) for k in pytree.field_names(defaults)})
+    return out
+
+
+def default_batch(name: str) -> int:
+    return REGISTRY[canonical(name)].batch
 
 
 def make(name: str, shape: tuple[int, ...], batch: int | None = None,
-         preset: str = "default") -> Strategy:
-    """Build a strategy by registry name; raises ValueError naming a bad name or option."""
-    if name not in STRATEGIES:
-        raise ValueError(f"unknown strategy '{name}' (one of {', '.join(STRATEGIES)})")
+         **overrides) -> tuple[Strategy, Any]:
+    """``(strategy, params)`` for a registry entry; ``overrides`` set static options or
+    hyperparameters by name (``make("cem", shape, elite_frac=0.2)``). ValueError (one line)
+    naming a bad name, option or value."""
+    e = REGISTRY[canonical(name)]
     if batch is not None and (isinstance(batch, bool) or not isinstance(batch, int)
                               or batch <= 0):
         raise ValueError(f"batch must be a positive integer (got {batch!r})")
-    if name == "reinforce":
-        return STRATEGIES[name](shape, batch, preset)
-    return STRATEGIES[name](shape, batch or DEFAULT_BATCH[name])
+    static, params = _split(e.cls, {**dict(e.options), **overrides},
+                            where=f"strategy '{canonical(name)}'")
+    strat = e.cls(shape=tuple(int(n) for n in shape), batch=batch or e.batch, **static)
+    return strat, pytree.replace(strat.default_params(), **params)
 
 
-__all__ = ["Strategy", "STRATEGIES", "make", "default_batch"]
+__all__ = ["Strategy", "REGISTRY", "register", "make", "canonical", "options", "default_batch",
+           "names"]

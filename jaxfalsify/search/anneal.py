@@ -6,44 +6,61 @@ moves by a random step of +-1..``max_step`` indices (clipped), or with probabili
 at update k (rewards are in the paper's units, about -0.06..0.27).
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 
+from jaxfalsify import pytree
 from jaxfalsify.search.base import Strategy, sample_uniform
 
 
-def make(shape: tuple[int, ...], batch: int, t0: float = 0.05, decay: float = 0.8,
-         max_step: int = 2, p_restart: float = 0.1) -> Strategy:
-    sizes = jnp.asarray(shape, jnp.int32)
-    P = len(shape)
+@pytree.dataclass
+class AnnealParams:
+    t0: float = 0.05  # initial temperature (reward units)
+    decay: float = 0.8  # temperature factor per update
+    p_restart: float = 0.1  # probability of a uniformly random proposal
+    max_step: float = 2.0  # largest index move of one parameter
 
-    def init(key):
-        return {"current": sample_uniform(key, shape, batch),
-                "reward": jnp.full((batch,), -jnp.inf), "temp": jnp.float32(t0),
-                "u": jnp.zeros((batch,)), "started": jnp.bool_(False)}
 
-    def ask(key, state):
-        k1, k2, k3, k4, k5, k6 = jax.random.split(key, 6)
-        which = jax.random.randint(k1, (batch,), 0, P)
-        step = jax.random.randint(k2, (batch,), 1, max_step + 1)
-        step = jnp.where(jax.random.bernoulli(k3, 0.5, (batch,)), step, -step)
-        moved = state["current"] + jax.nn.one_hot(which, P, dtype=jnp.int32) * step[:, None]
+@pytree.dataclass
+class AnnealState:
+    current: jax.Array  # (B, P) int32, each chain's scenario
+    reward: jax.Array  # (B,) float32, its reward (-inf before the first tell)
+    temp: jax.Array  # () float32
+    started: jax.Array  # () bool, False until the first tell
+
+
+@dataclasses.dataclass(frozen=True)
+class Anneal(Strategy):
+    Params = AnnealParams
+
+    def init(self, key, params):
+        return AnnealState(sample_uniform(key, self.shape, self.batch),
+                           jnp.full((self.batch,), -jnp.inf), jnp.float32(params.t0),
+                           jnp.bool_(False))
+
+    def ask(self, key, state, params):
+        B, P = self.batch, self.n_params
+        sizes = jnp.asarray(self.shape, jnp.int32)
+        k1, k2, k3, k4, k5 = jax.random.split(key, 5)
+        which = jax.random.randint(k1, (B,), 0, P)
+        top = jnp.maximum(jnp.round(params.max_step), 1.0).astype(jnp.int32)
+        step = jax.random.randint(k2, (B,), 1, top + 1)
+        step = jnp.where(jax.random.bernoulli(k3, 0.5, (B,)), step, -step)
+        moved = state.current + jax.nn.one_hot(which, P, dtype=jnp.int32) * step[:, None]
         moved = jnp.clip(moved, 0, sizes - 1)
-        fresh = sample_uniform(k4, shape, batch)
-        restart = jax.random.bernoulli(k5, p_restart, (batch,))[:, None]
+        fresh = sample_uniform(k4, self.shape, B)
+        restart = jax.random.bernoulli(k5, params.p_restart, (B,))[:, None]
         prop = jnp.where(restart, fresh, moved)
-        prop = jnp.where(state["started"], prop, state["current"])  # first ask: the starts
-        return prop, {**state, "u": jax.random.uniform(k6, (batch,))}
+        return jnp.where(state.started, prop, state.current), state  # first ask: the starts
 
-    def tell(state, indices, rewards):
-        u = state["u"]  # drawn in ask: tell takes no key
-        gain = rewards - state["reward"]
+    def tell(self, key, state, indices, rewards, params):
+        u = jax.random.uniform(key, (self.batch,))
+        gain = rewards - state.reward
         accept = (gain >= 0) | (u < jnp.exp(jnp.where(jnp.isfinite(gain), gain, -jnp.inf)
-                                           / state["temp"]))
-        accept = (accept & jnp.isfinite(rewards)) | ~jnp.isfinite(state["reward"])
-        return {**state,
-                "current": jnp.where(accept[:, None], indices, state["current"]),
-                "reward": jnp.where(accept, rewards, state["reward"]),
-                "temp": state["temp"] * decay, "started": jnp.bool_(True)}
-
-    return Strategy("anneal", init, ask, tell)
+                                           / state.temp))
+        accept = (accept & jnp.isfinite(rewards)) | ~jnp.isfinite(state.reward)
+        return AnnealState(jnp.where(accept[:, None], indices, state.current),
+                           jnp.where(accept, rewards, state.reward),
+                           state.temp * params.decay, jnp.bool_(True))

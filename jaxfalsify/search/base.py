@@ -1,38 +1,74 @@
-"""The strategy interface shared by every search algorithm.
+"""The strategy interface shared by every search algorithm (evosax's ask/tell shape).
 
-A strategy is a pair of pure functions over integer index vectors, in the spirit of optax's
-``GradientTransformation`` and evosax's ask/tell:
+A strategy is a frozen dataclass holding its *static* configuration (the space's ``shape``
+``(P,)``, the ``batch`` of scenarios per ask, and whatever fixes shapes), plus pure functions
+over integer index vectors whose hyperparameters come in as a traced ``params`` pytree:
 
-* ``init(key) -> state``
-* ``ask(key, state) -> (indices (B, P) int32, state)``: a batch of concrete scenarios to run;
-* ``tell(state, indices, rewards (B,)) -> state``: learn from their rewards.
+* ``default_params() -> params``
+* ``init(key, params) -> state``
+* ``ask(key, state, params) -> (indices (B, P) int32, state)``: a batch of scenarios to run;
+* ``tell(key, state, indices (B, P), rewards (B,), params) -> state``: learn from the rewards.
 
-Rewards given to ``tell`` are finite or ``-inf``: the driver replaces NaN (a non-finite rollout)
-and evaluations beyond the budget by ``-inf``, so they never rank as best. Strategies are built
-by ``make(space_shape, batch, **hyper)`` for a fixed batch size (static shapes) and are
-jit-compatible: the campaign driver runs ``ask``/evaluate/``tell`` inside one ``lax.scan``.
+Rewards given to ``tell`` are finite or ``-inf``: the campaign replaces NaN (a non-finite
+rollout) and evaluations beyond the budget by ``-inf``, so they never rank as best. Every
+function is jit-compatible; the campaign runs ask -> simulate -> tell inside one ``lax.scan``
+and jits once at the edge. States are :func:`jaxfalsify.pytree.dataclass` pytrees.
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+import dataclasses
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
 
+from jaxfalsify import pytree
 
-class Strategy(NamedTuple):
-    name: str
-    init: Callable[[jax.Array], Any]
-    ask: Callable[[jax.Array, Any], tuple[jax.Array, Any]]
-    tell: Callable[[Any, jax.Array, jax.Array], Any]
+
+@pytree.dataclass
+class NoParams:
+    """Hyperparameters of a strategy that has none."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Strategy:
+    """Base class: ``shape`` (values per parameter, ``(P,)``) and ``batch`` are static."""
+
+    shape: tuple[int, ...]
+    batch: int
+
+    Params: ClassVar[type] = NoParams
+
+    def default_params(self):
+        return self.Params()
+
+    def init(self, key: jax.Array, params) -> Any:
+        raise NotImplementedError
+
+    def ask(self, key: jax.Array, state, params) -> tuple[jax.Array, Any]:
+        raise NotImplementedError
+
+    def tell(self, key: jax.Array, state, indices: jax.Array, rewards: jax.Array, params):
+        raise NotImplementedError
+
+    @property
+    def n_params(self) -> int:
+        return len(self.shape)
+
+    @property
+    def width(self) -> int:
+        return max(self.shape)
 
 
 def sample_uniform(key, shape: tuple[int, ...], batch: int) -> jax.Array:
-    """``(batch, P)`` int32 indices, each parameter uniform over its ``shape[p]`` values."""
-    keys = jax.random.split(key, len(shape))
-    cols = [jax.random.randint(k, (batch,), 0, n) for k, n in zip(keys, shape)]
-    return jnp.stack(cols, axis=-1).astype(jnp.int32)
+    """``(batch, P)`` int32 indices, each parameter uniform over its ``shape[p]`` values.
+
+    One uniform draw scaled per parameter (a single threefry call: every ``jax.random`` call
+    site is compiled in full, so fewer, larger draws compile faster)."""
+    u = jax.random.uniform(key, (batch, len(shape)))
+    n = jnp.asarray(shape, jnp.float32)
+    return jnp.minimum(jnp.floor(u * n), n - 1).astype(jnp.int32)
 
 
 def value_mask(shape: tuple[int, ...]) -> jax.Array:
@@ -47,3 +83,9 @@ def sample_categorical(key, probs: jax.Array, batch: int) -> jax.Array:
     logits = jnp.where(probs > 0, logits, -jnp.inf)
     return jax.random.categorical(key, logits, axis=-1, shape=(batch, probs.shape[0])
                                   ).astype(jnp.int32)
+
+
+def rank_order(key, rewards: jax.Array) -> jax.Array:
+    """Indices sorting ``rewards`` best first, ties broken at random (``-inf`` last)."""
+    u = jax.random.uniform(key, rewards.shape)
+    return jnp.lexsort((u, -rewards))

@@ -1,35 +1,50 @@
 """Cross-entropy method over independent per-parameter categorical distributions.
 
 Each update samples a batch from the current distributions, keeps the best ``elite_frac`` of
-it (ties broken at random), and moves each parameter's probabilities a step ``smoothing`` towards
-the elite's value frequencies; a floor of ``min_prob`` (renormalised) keeps every value possible.
+it (ties broken at random), and moves each parameter's probabilities a step ``smoothing``
+towards the elite's value frequencies; a floor of ``min_prob`` (renormalised) keeps every value
+possible (Rubinstein & Kroese, *The Cross-Entropy Method*, 2004, smoothed updates).
 """
+
+import dataclasses
 
 import jax
 import jax.numpy as jnp
 
-from jaxfalsify.search.base import Strategy, sample_categorical, value_mask
+from jaxfalsify import pytree
+from jaxfalsify.search.base import Strategy, rank_order, sample_categorical, value_mask
 
 
-def make(shape: tuple[int, ...], batch: int, elite_frac: float = 0.1, smoothing: float = 0.7,
-         min_prob: float = 0.002) -> Strategy:
-    mask = value_mask(shape)
-    n_elite = max(1, int(round(elite_frac * batch)))
-    uniform = mask / mask.sum(-1, keepdims=True)
+@pytree.dataclass
+class CEMParams:
+    elite_frac: float = 0.1  # share of the batch kept as the elite
+    smoothing: float = 0.7  # step towards the elite's frequencies
+    min_prob: float = 0.002  # floor of every value's probability
 
-    def init(key):
-        return {"probs": uniform}
 
-    def ask(key, state):
-        return sample_categorical(key, state["probs"], batch), state
+@pytree.dataclass
+class CEMState:
+    probs: jax.Array  # (P, max_n) float32, per-parameter categorical distributions
 
-    def tell(state, indices, rewards):
-        order = jnp.argsort(-rewards)  # -inf last; stable
-        elite = indices[order[:n_elite]]  # (E, P)
-        onehot = jax.nn.one_hot(elite, mask.shape[1])  # (E, P, max_n)
-        freq = onehot.mean(0)
-        probs = (1 - smoothing) * state["probs"] + smoothing * freq
-        probs = jnp.where(mask, jnp.maximum(probs, min_prob), 0.0)
-        return {"probs": probs / probs.sum(-1, keepdims=True)}
 
-    return Strategy("cem", init, ask, tell)
+@dataclasses.dataclass(frozen=True)
+class CEM(Strategy):
+    Params = CEMParams
+
+    def init(self, key, params):
+        mask = value_mask(self.shape)
+        return CEMState(mask / mask.sum(-1, keepdims=True))
+
+    def ask(self, key, state, params):
+        return sample_categorical(key, state.probs, self.batch), state
+
+    def tell(self, key, state, indices, rewards, params):
+        mask = value_mask(self.shape)
+        n_elite = jnp.maximum(1.0, jnp.round(params.elite_frac * self.batch))
+        rank = jnp.zeros(self.batch, jnp.int32).at[rank_order(key, rewards)].set(
+            jnp.arange(self.batch, dtype=jnp.int32))
+        weight = (rank < n_elite).astype(jnp.float32) / n_elite  # (B,)
+        freq = jnp.einsum("b,bpn->pn", weight, jax.nn.one_hot(indices, self.width))
+        probs = (1 - params.smoothing) * state.probs + params.smoothing * freq
+        probs = jnp.where(mask, jnp.maximum(probs, params.min_prob), 0.0)
+        return CEMState(probs / probs.sum(-1, keepdims=True))

@@ -5,37 +5,56 @@ to the nearest index (clipped into range). evosax minimises, so it sees ``-rewar
 reward (NaN rollout, beyond budget) becomes a large finite penalty.
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 
+from jaxfalsify import pytree
 from jaxfalsify.search.base import Strategy
 
 PENALTY = 1e3
 
 
-def make(shape: tuple[int, ...], batch: int, std_init: float = 0.3) -> Strategy:
-    from evosax.algorithms import CMA_ES
+@pytree.dataclass
+class CMAESParams:
+    std_init: float = 0.3  # initial step size, in units of each parameter's index range
 
-    P = len(shape)
-    span = jnp.asarray(shape, jnp.float32) - 1
-    es = CMA_ES(population_size=batch, solution=jnp.zeros(P))
-    params = es.default_params.replace(std_init=std_init)
 
-    def to_indices(x):
+@pytree.dataclass
+class CMAESState:
+    es: object  # evosax's CMA-ES state
+    pop: jax.Array  # (B, P) float32, the last asked population (evosax's tell needs it)
+
+
+@dataclasses.dataclass(frozen=True)
+class CMAES(Strategy):
+    Params = CMAESParams
+
+    def _es(self):
+        from evosax.algorithms import CMA_ES
+
+        return CMA_ES(population_size=self.batch, solution=jnp.zeros(self.n_params))
+
+    def _es_params(self, es, params):
+        return es.default_params.replace(std_init=params.std_init)
+
+    def _indices(self, x):
+        span = jnp.asarray(self.shape, jnp.float32) - 1
         return jnp.clip(jnp.rint(x * span), 0, span).astype(jnp.int32)
 
-    def init(key):
-        return {"es": es.init(key, jnp.full((P,), 0.5), params),
-                "pop": jnp.zeros((batch, P)), "key": key}
+    def init(self, key, params):
+        es = self._es()
+        state = es.init(key, jnp.full((self.n_params,), 0.5), self._es_params(es, params))
+        return CMAESState(state, jnp.zeros((self.batch, self.n_params)))
 
-    def ask(key, state):
-        k_ask, k_tell = jax.random.split(key)
-        pop, es_state = es.ask(k_ask, state["es"], params)
-        return to_indices(pop), {"es": es_state, "pop": pop, "key": k_tell}
+    def ask(self, key, state, params):
+        es = self._es()
+        pop, es_state = es.ask(key, state.es, self._es_params(es, params))
+        return self._indices(pop), CMAESState(es_state, pop)
 
-    def tell(state, indices, rewards):
+    def tell(self, key, state, indices, rewards, params):
+        es = self._es()
         fitness = jnp.where(jnp.isfinite(rewards), -rewards, PENALTY)
-        es_state, _ = es.tell(state["key"], state["pop"], fitness, state["es"], params)
-        return {**state, "es": es_state}
-
-    return Strategy("cmaes", init, ask, tell)
+        es_state, _ = es.tell(key, state.pop, fitness, state.es, self._es_params(es, params))
+        return CMAESState(es_state, state.pop)

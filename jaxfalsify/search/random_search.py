@@ -1,16 +1,17 @@
 """Crude Monte Carlo: every concrete scenario drawn uniformly at random (the paper's comparator)."""
 
+import dataclasses
+
 from jaxfalsify.search.base import Strategy, sample_uniform
 
 
-def make(shape: tuple[int, ...], batch: int) -> Strategy:
-    def init(key):
+@dataclasses.dataclass(frozen=True)
+class RandomSearch(Strategy):
+    def init(self, key, params):
         return ()
 
-    def ask(key, state):
-        return sample_uniform(key, shape, batch), state
+    def ask(self, key, state, params):
+        return sample_uniform(key, self.shape, self.batch), state
 
-    def tell(state, indices, rewards):
+    def tell(self, key, state, indices, rewards, params):
         return state
-
-    return Strategy("random", init, ask, tell)

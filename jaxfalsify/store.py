@@ -1,6 +1,8 @@
-"""Checkpoints of long work: a campaign's carry and records, a sweep's progress.
+"""Everything that writes result folders: atomic writes, run/sweep folder checks, status,
+and checkpoints of long work (a campaign's carry and records, a sweep's progress).
 
-A checkpoint is a folder written only through atomic renames, in an order that keeps it
+Every file is written under a temporary name in its folder and renamed into place, so a file
+under its final name is always complete. A checkpoint is a folder written only through atomic renames, in an order that keeps it
 consistent whatever moment the process dies (SIGKILL included):
 
 1. the new chunk's data (``records-<c>.npz`` or ``rows-<c>.parquet``) under a temporary name,
@@ -68,10 +70,41 @@ def load_npz(path: Path) -> dict[str, np.ndarray]:
         raise CheckpointError(f"checkpoint file {path} is corrupt ({type(e).__name__})") from None
 
 
-def write_json(path: Path, doc: dict) -> None:
-    from jaxfalsify.config import write_atomic
+def write_atomic(path: Path, data: str | bytes) -> None:
+    """Write text or bytes to ``path`` via a temporary file in the same folder and a rename."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data.encode() if isinstance(data, str) else data)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
 
-    write_atomic(path, json.dumps(doc, indent=1) + "\n")
+
+def write_parquet(path: Path, columns: dict) -> None:
+    """A Parquet table of ``{name: (N,) array}``, written atomically."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    tmp = _tmp_in(path.parent, path.name)
+    try:
+        pq.write_table(pa.table(columns), tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: Path, doc: dict, indent: int = 1) -> None:
+    from jaxfalsify.config import jsonable
+
+    write_atomic(path, json.dumps(jsonable(doc), indent=indent) + "\n")
 
 
 def read_json(path: Path) -> dict:
@@ -176,3 +209,114 @@ class CampaignCheckpoint:
 
     def remove(self) -> None:
         shutil.rmtree(self.folder, ignore_errors=True)
+
+
+# ----------------------------------------------------------------------------- folders
+class FolderError(ValueError):
+    """An output folder that cannot be used as asked (one line naming it and what to do)."""
+
+
+RESULT_FILES = {
+    "run": ("episodes.parquet", "summary.json", "critical.csv", "timing.json", "report.md",
+            "best.rrd"),
+    "sweep": ("sweep.parquet", "summary.json", "timing.json"),
+    "compare": ("compare.json", "compare.md", "timing.json"),
+}
+FINISHED = {"run": "summary.json", "sweep": "summary.json", "compare": "compare.json"}
+
+
+def folder_kind(out: Path) -> str | None:
+    """``run``, ``sweep`` or ``compare`` from the folder's ``config.toml`` (None if absent);
+    a FolderError if that file cannot be read."""
+    from jaxfalsify.config import read_toml
+
+    path = Path(out) / "config.toml"
+    if not path.exists():
+        return None
+    try:
+        kind = read_toml(path).get("kind")
+    except ValueError as e:
+        raise FolderError(str(e)) from None
+    if kind not in RESULT_FILES:
+        raise FolderError(f"{path}: not a jaxfalsify run, sweep or compare (kind = {kind!r})")
+    return kind
+
+
+def unfinished(out: Path) -> bool:
+    out = Path(out)
+    return (out / "status.json").exists() or any(out.glob("checkpoint*"))
+
+
+def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False) -> None:
+    """Refuse an output folder that is a file, holds another kind of result, holds finished
+    results (without ``force``) or unfinished ones (without ``resume`` or ``force``), or cannot
+    be written (probed by creating and removing a temporary file, so it holds for root too).
+    Raises :class:`FolderError`."""
+    out = Path(out)
+    flag = f"--resume {out}" if resume else f"--out {out}"
+    if out.exists() and not out.is_dir():
+        raise FolderError(f"{flag} exists and is not a folder")
+    have = folder_kind(out)
+    if resume:
+        if have is None:
+            raise FolderError(f"--resume {out}: no config.toml there (not a {kind} folder)")
+        if have != kind:
+            raise FolderError(f"--resume {out}: that folder holds a {have}, not a {kind}")
+        if (out / FINISHED[kind]).exists():
+            raise FolderError(f"--resume {out}: the {kind} is already complete "
+                              f"({FINISHED[kind]})")
+    else:
+        if have is not None and have != kind:
+            raise FolderError(f"--out {out} holds a {have}; a {kind} is never written into it "
+                              "(choose another folder)")
+        if (out / FINISHED[kind]).exists() and not force:
+            raise FolderError(f"--out {out} already holds {FINISHED[kind]}; pass --force to "
+                              "overwrite")
+        if kind != "compare" and unfinished(out) and not force:
+            raise FolderError(f"--out {out} holds an unfinished {kind}; pass --resume {out} to "
+                              "continue it or --force to start over")
+    parent = out if out.exists() else next((a for a in out.parents if a.exists()), Path("."))
+    if not parent.is_dir():
+        raise FolderError(f"{flag}: {parent} is not a folder")
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        raise FolderError(f"{flag}: cannot write in {parent} ({e.strerror})") from None
+
+
+def clear(out: Path, kind: str) -> None:
+    """Remove a folder's earlier results, status and checkpoints (``--force``)."""
+    out = Path(out)
+    for name in RESULT_FILES[kind] + ("status.json", "config.toml"):
+        (out / name).unlink(missing_ok=True)
+    for p in list(out.glob("checkpoint*")) + [out / "figures"]:
+        shutil.rmtree(p, ignore_errors=True)
+    for p in out.glob("sweep.part-*.parquet"):
+        p.unlink(missing_ok=True)
+
+
+def write_status(out: Path, kind: str, state: str, **extra) -> None:
+    """``status.json``: ``running``, ``interrupted`` or ``complete``, and how to resume."""
+    doc = {"state": state, **extra}
+    if state != "complete":
+        doc["resume"] = f"jaxfalsify {kind} --resume {out}"
+    write_json(Path(out) / "status.json", doc, indent=2)
+
+
+def check_out_plain(out: Path, marker: str, force: bool) -> None:
+    """An output folder for files that are not a run, sweep or compare (exports): refuse a
+    file in the way, a result folder, existing output without ``force``, or no write access."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise FolderError(f"--out {out} exists and is not a folder")
+    if folder_kind(out) is not None:
+        raise FolderError(f"--out {out} holds a {folder_kind(out)}; choose another folder")
+    if (out / marker).exists() and not force:
+        raise FolderError(f"--out {out} already holds {marker}; pass --force to overwrite")
+    parent = out if out.exists() else next((a for a in out.parents if a.exists()), Path("."))
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        raise FolderError(f"--out {out}: cannot write in {parent} ({e.strerror})") from None

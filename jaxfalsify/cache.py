@@ -1,0 +1,160 @@
+"""Per-user caches: JAX's persistent compilation cache, and ground-truth sweeps for figures.
+
+Both live under one folder: ``$JAXFALSIFY_CACHE_DIR``, else ``$XDG_CACHE_HOME/jaxfalsify``,
+else ``~/.cache/jaxfalsify``. ``JAXFALSIFY_NO_CACHE=1`` (or ``jaxfalsify --no-cache``) turns
+both off. If ``JAX_COMPILATION_CACHE_DIR`` is set, JAX's own setting is respected and the
+compilation cache goes there.
+
+The compilation cache keys on the compiled program (its HLO), the jax/jaxlib versions and the
+backend, so a stale entry cannot be used by mistake; space values, SUT and strategy
+parameters are traced arguments, so another space seed or calibration hits the same entry.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+MIN_COMPILE_SECONDS = 0.1  # cache every compilation longer than this
+
+
+def enabled() -> bool:
+    return os.environ.get("JAXFALSIFY_NO_CACHE", "").strip().lower() in ("", "0", "false", "no")
+
+
+def folder() -> Path:
+    env = os.environ.get("JAXFALSIFY_CACHE_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "jaxfalsify"
+
+
+_ENABLED_AT: str | None = None
+
+
+def enable_compilation_cache() -> str | None:
+    """Point JAX's persistent compilation cache at the per-user folder (idempotent); returns
+    the folder in use, or None when caching is off or the folder cannot be created."""
+    global _ENABLED_AT
+    import jax
+
+    if not enabled():
+        if _ENABLED_AT is not None:
+            jax.config.update("jax_enable_compilation_cache", False)
+            _ENABLED_AT = None
+        return None
+    path = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(folder() / "jax")
+    if _ENABLED_AT == path:
+        return path
+    try:
+        Path(path).mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_enable_compilation_cache", True)
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
+    _ENABLED_AT = path
+    return path
+
+
+def key_of(doc) -> str:
+    """A stable content hash of a JSON-able description (cache file names)."""
+    text = json.dumps(doc, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+# ----------------------------------------------------------------------------- exported programs
+_CODE_HASH: str | None = None
+
+
+def code_hash() -> str:
+    """Hash of jaxfalsify's own source (memoised): a program exported by other code is never
+    reused."""
+    global _CODE_HASH
+    if _CODE_HASH is None:
+        here = Path(__file__).parent
+        h = hashlib.sha256()
+        for f in sorted(here.rglob("*.py")):
+            h.update(f.relative_to(here).as_posix().encode())
+            h.update(f.read_bytes())
+        _CODE_HASH = h.hexdigest()[:16]
+    return _CODE_HASH
+
+
+def source_hash(fn) -> str | None:
+    """Hash of the file defining ``fn`` (a user SUT's module); None if it has no file."""
+    import inspect
+
+    try:
+        src = inspect.getsourcefile(fn)
+        return hashlib.sha256(Path(src).read_bytes()).hexdigest()[:16] if src else None
+    except (TypeError, OSError):
+        return None
+
+
+class Program:
+    """A compiled program: ``call(*args)`` and the shapes/dtypes of its arguments
+    (``in_avals``, a pytree like the arguments)."""
+
+    def __init__(self, call, in_avals):
+        self.call = call
+        self.in_avals = in_avals
+
+    def __call__(self, *args):
+        return self.call(*args)
+
+
+def exported_jit(fn, name: str, static: dict | None, key_args: tuple, example_args):
+    """``jax.jit(fn)`` whose lowered program is kept in the per-user cache with
+    ``jax.export``: a later process deserialises it (milliseconds) instead of tracing and
+    lowering ``fn`` again (seconds), and XLA's persistent cache supplies the executable.
+
+    ``fn``'s arguments and results must be standard containers (lists, tuples, dicts) of
+    arrays. The program is keyed by ``static`` (everything else ``fn`` depends on: its
+    configuration), the shapes and dtypes of ``key_args`` (the arguments that determine all
+    others' shapes), jaxfalsify's code, the jax version and the backend; ``example_args()``
+    builds the full example arguments only when the program must be exported. Falls back to
+    plain ``jax.jit`` when caching is off, ``static`` is None (e.g. a SUT without a source
+    file), on several devices, or if the program cannot be exported.
+    """
+    import jax
+
+    def plain():
+        ex = example_args()
+        return Program(jax.jit(fn), jax.tree.map(
+            lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), ex))
+
+    if static is None or not enabled() or jax.local_device_count() > 1:
+        return plain()
+    leaves, tree = jax.tree.flatten(key_args)
+    key = key_of({"name": name, "static": static, "tree": str(tree),
+                  "avals": [(tuple(x.shape), str(x.dtype)) for x in leaves],
+                  "code": code_hash(), "jax": jax.__version__,
+                  "backend": jax.default_backend()})
+    path = folder() / "exports" / f"{name}-{key}.bin"
+    from jax import export
+
+    exp = None
+    if path.is_file():
+        try:
+            exp = export.deserialize(bytearray(path.read_bytes()))
+        except Exception:  # noqa: BLE001 - a damaged cache entry is rebuilt
+            exp = None
+    if exp is None:
+        try:
+            exp = export.export(jax.jit(fn))(*example_args())
+            data = exp.serialize()
+        except Exception:  # noqa: BLE001 - not exportable: compile it directly
+            return plain()
+        try:
+            from jaxfalsify.store import write_atomic
+
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_atomic(path, bytes(data))
+        except OSError:
+            pass
+    avals = jax.tree.unflatten(exp.in_tree, list(exp.in_avals))[0]
+    return Program(jax.jit(exp.call), avals)

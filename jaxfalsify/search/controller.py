@@ -1,0 +1,105 @@
+"""The paper's controller (Section III-A 'Controller', Fig. 6): an LSTM policy over parameter values.
+
+Input: the previous action — each parameter's value given as its rank among the parameter's
+sorted values, scaled to [0, 1] (the original fed raw values) — as a length-1 sequence. Two
+LSTM layers of 32 units with relu activation (Keras ``LSTM(32, activation='relu')`` as the
+original), then one softmax head per parameter over that parameter's discrete values. The
+heads are one linear layer whose ``(P, max_n)`` output is masked per parameter, which is the
+same as P separate heads. As in the original (a stateless Keras LSTM called on one time step),
+every call starts from a zero LSTM state.
+
+Written in plain JAX over a dict of arrays (Glorot-uniform kernels — Keras uses an orthogonal
+recurrent kernel, which a zero initial state never multiplies, and whose QR decomposition costs
+seconds of XLA compilation — zero biases with the forget gate's at 1), so the hot path does not
+import flax; ``tests/test_search.py`` checks the cell against the LSTM equations in NumPy.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+# Logit of padded (non-existent) values: finite, so gradients through softmax stay finite,
+# and low enough that their probability is exactly 0 in float32.
+MASKED = -1e9
+
+
+def lstm_init(key, in_features: int, hidden: int) -> dict[str, jax.Array]:
+    """One LSTM layer: ``w (in, 4H)``, ``u (H, 4H)``, ``b (4H,)``; gates in order i, f, g, o."""
+    w, u = _glorot(key, [(in_features, 4 * hidden), (hidden, 4 * hidden)])
+    b = jnp.zeros(4 * hidden, jnp.float32).at[hidden:2 * hidden].set(1.0)
+    return {"w": w, "u": u, "b": b}
+
+
+def lstm_step(p: dict, carry: tuple[jax.Array, jax.Array], x: jax.Array,
+              activation=jax.nn.relu) -> tuple[jax.Array, jax.Array]:
+    """``(h, c), x (in,) -> (h', c')``: i, f, o = sigmoid gates; g = activation;
+    ``c' = f c + i g``; ``h' = o activation(c')`` (Keras' LSTM with ``activation``)."""
+    h, c = carry
+    z = x @ p["w"] + h @ p["u"] + p["b"]
+    i, f, g, o = jnp.split(z, 4)
+    c = jax.nn.sigmoid(f) * c + jax.nn.sigmoid(i) * activation(g)
+    return jax.nn.sigmoid(o) * activation(c), c
+
+
+def dense_init(key, in_features: int, out_features: int) -> dict[str, jax.Array]:
+    (w,) = _glorot(key, [(in_features, out_features)])
+    return {"w": w, "b": jnp.zeros(out_features, jnp.float32)}
+
+
+def _glorot(key, shapes: list[tuple[int, int]]) -> list[jax.Array]:
+    """Glorot-uniform matrices, U(-l, l) with l = sqrt(6 / (fan_in + fan_out)), from one draw."""
+    sizes = [a * b for a, b in shapes]
+    u = jax.random.uniform(key, (sum(sizes),), minval=-1.0, maxval=1.0)
+    out, at = [], 0
+    for (a, b), n in zip(shapes, sizes):
+        out.append(u[at:at + n].reshape(a, b) * jnp.sqrt(6.0 / (a + b)))
+        at += n
+    return out
+
+
+def mask_logits(logits: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    width = max(shape)
+    mask = jnp.arange(width)[None, :] < jnp.asarray(shape)[:, None]
+    return jnp.where(mask, logits, MASKED)
+
+
+def init(key, shape: tuple[int, ...], hidden: int = 32) -> dict:
+    """The paper's controller: two relu LSTM layers and one linear head ``(P * max_n)``."""
+    P, width = len(shape), max(shape)
+    k1, k2, k3 = jax.random.split(key, 3)
+    return {"lstm1": lstm_init(k1, P, hidden), "lstm2": lstm_init(k2, hidden, hidden),
+            "head": dense_init(k3, hidden, P * width)}
+
+
+def logits(params: dict, x: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """``x (P,)`` (the previous action, normalised) -> masked logits ``(P, max_n)``."""
+    hidden = params["lstm1"]["u"].shape[0]
+    zeros = (jnp.zeros(hidden), jnp.zeros(hidden))
+    h1, _ = lstm_step(params["lstm1"], zeros, x)
+    h2, _ = lstm_step(params["lstm2"], zeros, h1)
+    out = h2 @ params["head"]["w"] + params["head"]["b"]
+    return mask_logits(out.reshape(len(shape), max(shape)), shape)
+
+
+def log_probs(logits: jax.Array) -> jax.Array:
+    """Per-head log-softmax ``(P, max_n)``; padded slots get ~MASKED."""
+    return jax.nn.log_softmax(logits, axis=-1)
+
+
+def action_log_prob(logits: jax.Array, action: jax.Array) -> jax.Array:
+    """log pi(a) = sum over heads of log softmax(logits_p)[a_p]; ``action (P,)`` int."""
+    lp = log_probs(logits)
+    return jnp.sum(jnp.take_along_axis(lp, action[:, None], axis=-1))
+
+
+def entropy(logits: jax.Array) -> jax.Array:
+    """Sum over heads of each head's entropy [nats]."""
+    lp = log_probs(logits)
+    return -jnp.sum(jnp.exp(lp) * lp)  # padded slots: p == 0 exactly, lp finite
+
+
+def normalise(indices: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """Index vector ``(..., P)`` -> each parameter's position in [0, 1] (its value rank)."""
+    span = jnp.maximum(jnp.asarray(shape, jnp.float32) - 1, 1.0)
+    return indices.astype(jnp.float32) / span

@@ -1,0 +1,90 @@
+"""A user's own SUT named by import path (experiments/example_aeb.py) through run, sweep and
+compare; its parameters recorded and traced."""
+
+import json
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+import jaxfalsify as jf
+from jaxfalsify import sut as sut_lib
+from jaxfalsify.cli import main
+from jaxfalsify.sweep import sweep_arrays
+from conftest import TINY_SPACE
+
+EXAMPLE = Path(__file__).parent.parent / "experiments" / "example_aeb.py"
+SPEC = f"{EXAMPLE}:AEB"
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    f = tmp_path_factory.mktemp("space") / "tiny.toml"
+    f.write_text(TINY_SPACE)
+    return f
+
+
+def test_resolved_by_file_path_and_by_module(monkeypatch):
+    by_file = sut_lib.resolve(SPEC)
+    assert by_file.name == SPEC and "ttc_brake" in sut_lib.param_names(by_file)
+    monkeypatch.chdir(EXAMPLE.parent)
+    by_module = sut_lib.resolve("example_aeb:AEB")
+    assert sut_lib.params_dict(by_module.default_params) == \
+        sut_lib.params_dict(by_file.default_params)
+    with pytest.raises(ValueError, match="has no attribute 'BRAKE'"):
+        sut_lib.resolve(f"{EXAMPLE}:BRAKE")
+
+
+def test_run_records_the_sut_and_its_parameters(tiny, tmp_path):
+    out = tmp_path / "run"
+    assert main(["run", "--space", str(tiny), "--sut", SPEC, "--sut-param", "noise=0",
+                 "--sut-param", "ttc_brake=1.2", "--strategy", "random", "--evaluations", "64",
+                 "--batch", "16", "--out", str(out), "--quiet", "--no-figures"]) == 0
+    cfg = tomllib.loads((out / "config.toml").read_text())
+    assert cfg["sut"] == SPEC
+    assert cfg["sut_params"]["ttc_brake"] == pytest.approx(1.2) and cfg["sut_params"]["noise"] == 0
+    # the recorded outcomes are the simulator's for that SUT and calibration (noise off, so
+    # the PRNG keys do not matter)
+    ep = pq.read_table(out / "episodes.parquet").to_pydict()
+    sp = jf.load_space(str(tiny))
+    idx = np.stack([ep[f"{n}_idx"] for n in sp.names], -1)
+    again = jf.evaluate(sp.scenario(idx), sut=SPEC, sut_params={"noise": 0.0, "ttc_brake": 1.2})
+    np.testing.assert_array_equal(np.asarray(again.reward), np.asarray(ep["reward"], np.float32))
+    other = jf.evaluate(sp.scenario(idx), sut=SPEC, sut_params={"noise": 0.0, "ttc_brake": 0.2})
+    assert not np.array_equal(np.asarray(other.collision), np.asarray(again.collision))
+    # config.toml repeats the run
+    again_out = tmp_path / "again"
+    assert main(["run", "--config", str(out / "config.toml"), "--out", str(again_out),
+                 "--quiet", "--no-figures"]) == 0
+    assert (out / "summary.json").read_bytes() == (again_out / "summary.json").read_bytes()
+
+
+def test_noise_uses_the_key(tiny):
+    """The SUT's key: another seed gives another draw of the sensor noise."""
+    sp = jf.load_space(str(tiny))
+    idx = sp.unravel(np.arange(sp.size))
+    big = {"noise": 20.0}
+    a = jf.evaluate(sp.scenario(idx), sut=SPEC, sut_params=big, key=0)
+    b = jf.evaluate(sp.scenario(idx), sut=SPEC, sut_params=big, key=0)
+    c = jf.evaluate(sp.scenario(idx), sut=SPEC, sut_params=big, key=1)
+    np.testing.assert_array_equal(np.asarray(a.min_distance), np.asarray(b.min_distance))
+    assert not np.array_equal(np.asarray(a.min_distance), np.asarray(c.min_distance))
+
+
+def test_sweep_and_compare_by_import_path(tiny, tmp_path):
+    out = tmp_path / "sw"
+    assert main(["sweep", "--space", str(tiny), "--sut", SPEC, "--sut-param", "noise=0",
+                 "--sut-param", "ttc_brake=0.2,2.0", "--out", str(out), "--quiet"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    sp = jf.load_space(str(tiny))
+    for row in s["calibrations"]:
+        alone = sweep_arrays(sp, SPEC, {"noise": 0.0, "ttc_brake": row["ttc_brake"]})
+        assert row["n_collisions"] == int(alone["collision"].sum())
+    assert s["calibrations"][0]["n_collisions"] > s["calibrations"][1]["n_collisions"]
+    cmp = tmp_path / "cmp"
+    assert main(["compare", "--space", str(tiny), "--sut", SPEC, "--strategies", "random,cem",
+                 "--seeds", "2", "--evaluations", "40", "--out", str(cmp), "--quiet"]) == 0
+    result = json.loads((cmp / "compare.json").read_text())
+    assert result["sut"] == SPEC and [r["strategy"] for r in result["rows"]] == ["random", "cem"]
