@@ -25,6 +25,8 @@ from jaxfalsify import analysis
 
 FIGSIZE = (8, 4.5)
 DPI = 100
+N_TRAJECTORIES = 16  # simulated per figure set: best, typical and 14 (a fixed shape: one program)
+TRUTH_LIMIT = 5_000_000  # largest space whose ground truth the critical-region map sweeps
 
 
 def _plt():
@@ -91,6 +93,20 @@ def _distance_panel(ax, traj, k, title):
     ax.set_ylim(bottom=0)
 
 
+def prepare(space, sut, sut_params, world) -> None:
+    """Build what :func:`make_figures` needs, ahead of time (``runs.execute`` calls it in a
+    background thread while the campaign compiles): matplotlib, the ground truth of the space
+    (per-user cache) and the compiled trajectory program."""
+    import jaxfalsify as jf
+    from jaxfalsify.sweep import ground_truth
+
+    _plt()
+    if space.size <= TRUTH_LIMIT:
+        ground_truth(space, sut, sut_params, world)
+    jf.simulate(space.scenario(np.zeros((N_TRAJECTORIES, len(space.shape)), np.int32)),
+                sut=sut, sut_params=sut_params, world=world)
+
+
 def make_figures(run_dir: Path, world=None) -> list[Path]:
     """Draw every figure into ``run_dir/figures``; returns the files written. The scenarios
     shown are re-simulated in one call; the critical-region map uses the cached ground truth
@@ -128,9 +144,11 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
     # every scenario shown below, simulated in one call
     rows = pick(ep)
     typical = rows["typical"] if rows["typical"] is not None else rows["best"]
-    chosen = fig10_rows(ep)
-    traj = jf.simulate(sp.scenario(indices_of(ep, sp, [rows["best"], typical] + chosen)),
-                       sut=rc.sut, sut_params=dict(rc.sut_params), world=world)
+    chosen = fig10_rows(ep, N_TRAJECTORIES - 2)
+    shown = [rows["best"], typical] + chosen
+    shown += [shown[0]] * (N_TRAJECTORIES - len(shown))  # a fixed batch: one compiled program
+    traj = jf.simulate(sp.scenario(indices_of(ep, sp, shown)), sut=rc.sut,
+                       sut_params=dict(rc.sut_params), world=world)
 
     # Fig. 8/9: the best critical scenario vs a typical non-critical one
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), sharey=True, layout="constrained")
@@ -165,7 +183,7 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
     save(fig, "distance_14_scenarios.png")
 
     # Critical-region maps from the exhaustive sweep
-    if sp.size <= 5_000_000:
+    if sp.size <= TRUTH_LIMIT:
         truth = ground_truth(sp, rc.sut, dict(rc.sut_params), world)
         save(critical_region_figure(plt, sp, truth, ep), "critical_regions.png")
     return written

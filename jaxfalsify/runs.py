@@ -274,6 +274,25 @@ def _stats_progress(progress: Progress, total: int, desc: str):
     return update
 
 
+def _prepare_figures(b: Built):
+    """Start preparing the figures (ground truth, compiled programs, matplotlib) in a
+    background thread: XLA compiles without the GIL, so on a cold machine this overlaps the
+    campaign's own compilation. A failure here is ignored (the figures redo the work)."""
+    import threading
+
+    from jaxfalsify.figures import prepare
+
+    def work():
+        try:
+            prepare(b.space, b.sut, b.sut_params, WORLD)
+        except Exception:  # noqa: BLE001 - make_figures repeats it and reports errors
+            pass
+
+    t = threading.Thread(target=work, name="jaxfalsify-prepare-figures", daemon=True)
+    t.start()
+    return t
+
+
 def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: bool = False,
             progress: Progress | None = None, stop: Callable[[], bool] | None = None,
             figures: bool = True, rerun: bool = False, startup_seconds: float = 0.0
@@ -325,6 +344,14 @@ def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: 
                        resumed_from_evaluation=start_from)
     if start_from:
         progress.message(f"resuming {out} at evaluation {start_from} of {b.plan.budget}")
+    t0 = time.perf_counter()
+    campaign.program(campaign.Campaign(b.space.layout, b.sut, b.strategy,
+                                       b.plan.updates_per_chunk),
+                     campaign.args_for(b.space, b.sut_params, b.strategy_params, WORLD,
+                                       b.plan.budget), 1)  # export (or load) the program
+    clock.add("compile", time.perf_counter() - t0)
+    # then, while XLA compiles it (without the GIL), prepare the figures in the background
+    prep = _prepare_figures(b) if figures else None
     progress.phase(f"compiling {rc.strategy} x {rc.sut} on {b.space.name}")
     try:
         res = campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan,
@@ -350,6 +377,7 @@ def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: 
         from jaxfalsify.figures import make_figures
 
         with clock("figures"):
+            prep.join()
             make_figures(out, world=WORLD)
     if rerun:
         from jaxfalsify.replay import record

@@ -205,7 +205,7 @@ def rollout(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array,
     s = _scenario_scalars(scenario)
     w = world
     dt = jnp.asarray(w.dt, jnp.float32)
-    k_init, k_act = jax.random.split(key)
+    k_init, k_act = jax.random.split(key) if sut.stochastic else (key, key)
     half_x = (w.ego_length + w.ped_length) / 2
     half_y = (w.ego_width + w.ped_width) / 2
     start_x = -s["ego_offset"]
@@ -229,7 +229,8 @@ def rollout(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array,
             road_right=jnp.asarray(w.road_right, jnp.float32),
             road_left=jnp.asarray(w.road_left, jnp.float32),
             weather=weather_idx)
-        cmd, new_sut_state = sut.act(obs, c.sut_state, params, jax.random.fold_in(k_act, k))
+        k_step = jax.random.fold_in(k_act, k) if sut.stochastic else k_act
+        cmd, new_sut_state = sut.act(obs, c.sut_state, params, k_step)
         cmd = jnp.asarray(cmd, jnp.float32)
 
         # --- metrics at this step (state before integration)
@@ -384,6 +385,8 @@ def batch_rollout(flat: dict, offsets: jax.Array, key: jax.Array, sut: sut_lib.S
     Rollout ``i`` draws from ``fold_in(key, offsets[i])``: pass scenario or evaluation numbers
     as ``offsets`` so a scenario's randomness does not depend on how batches are cut.
     """
+    if not sut.stochastic:  # the key is never used: no per-scenario keys to derive
+        return jax.vmap(lambda sc: rollout(sc, sut, params, key, world, record))(flat)
     keys = jax.vmap(lambda o: jax.random.fold_in(key, o))(offsets)
     return jax.vmap(lambda sc, k: rollout(sc, sut, params, k, world, record))(flat, keys)
 

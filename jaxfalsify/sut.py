@@ -82,12 +82,15 @@ class SUT:
       init: ``init(key, params) -> state``.
       default_params: the parameter pytree with its defaults (``None``: no parameters). Not
         part of the hash: parameters are traced.
+      stochastic: whether ``init``/``act`` use their key; False skips deriving per-scenario
+        and per-step keys (the built-ins are deterministic).
     """
 
     name: str
     act: Callable[[Observation, Any, Any, jax.Array], tuple[jax.Array, Any]]
     init: Callable[[jax.Array, Any], Any] = _no_state
     default_params: Any = dataclasses.field(default=None, compare=False, hash=False)
+    stochastic: bool = True
 
 
 # ----------------------------------------------------------------------------- cruise
@@ -239,9 +242,9 @@ def register(sut: SUT) -> SUT:
     return sut
 
 
-register(SUT("carla-tm", carla_tm_act, _no_state, CarlaTMParams()))
-register(SUT("sensor-aeb", sensor_aeb_act, _zero_steps, SensorAEBParams()))
-register(SUT("none", none_act, _no_state, CruiseParams()))
+register(SUT("carla-tm", carla_tm_act, _no_state, CarlaTMParams(), stochastic=False))
+register(SUT("sensor-aeb", sensor_aeb_act, _zero_steps, SensorAEBParams(), stochastic=False))
+register(SUT("none", none_act, _no_state, CruiseParams(), stochastic=False))
 
 
 def _load_attr(spec: str):

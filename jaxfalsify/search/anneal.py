@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxfalsify import pytree
-from jaxfalsify.search.base import Strategy, sample_uniform
+from jaxfalsify.search.base import Strategy, sample_uniform, uniform, uniform_indices
 
 
 @pytree.dataclass
@@ -43,15 +43,15 @@ class Anneal(Strategy):
     def ask(self, key, state, params):
         B, P = self.batch, self.n_params
         sizes = jnp.asarray(self.shape, jnp.int32)
-        k1, k2, k3, k4, k5 = jax.random.split(key, 5)
-        which = jax.random.randint(k1, (B,), 0, P)
-        top = jnp.maximum(jnp.round(params.max_step), 1.0).astype(jnp.int32)
-        step = jax.random.randint(k2, (B,), 1, top + 1)
-        step = jnp.where(jax.random.bernoulli(k3, 0.5, (B,)), step, -step)
+        u = uniform(key, (B, P + 4))  # one draw: parameter, step, sign, restart, fresh values
+        which = jnp.minimum(jnp.floor(u[:, 0] * P), P - 1).astype(jnp.int32)
+        top = jnp.maximum(jnp.round(params.max_step), 1.0)
+        step = (1 + jnp.minimum(jnp.floor(u[:, 1] * top), top - 1)).astype(jnp.int32)
+        step = jnp.where(u[:, 2] < 0.5, step, -step)
         moved = state.current + jax.nn.one_hot(which, P, dtype=jnp.int32) * step[:, None]
         moved = jnp.clip(moved, 0, sizes - 1)
-        fresh = sample_uniform(k4, self.shape, B)
-        restart = jax.random.bernoulli(k5, params.p_restart, (B,))[:, None]
+        fresh = uniform_indices(u[:, 4:], self.shape)
+        restart = (u[:, 3] < params.p_restart)[:, None]
         prop = jnp.where(restart, fresh, moved)
         return jnp.where(state.started, prop, state.current), state  # first ask: the starts
 

@@ -61,14 +61,21 @@ class Strategy:
         return max(self.shape)
 
 
+def uniform(key, shape: tuple[int, ...]) -> jax.Array:
+    """U[0, 1) float32 of ``shape``, drawn flat and reshaped: with JAX's partitionable threefry
+    a multi-dimensional draw costs ~1 s more XLA compilation than a flat one."""
+    n = 1
+    for d in shape:
+        n *= d
+    return jax.random.uniform(key, (n,)).reshape(shape)
+
+
 def sample_uniform(key, shape: tuple[int, ...], batch: int) -> jax.Array:
     """``(batch, P)`` int32 indices, each parameter uniform over its ``shape[p]`` values.
 
     One uniform draw scaled per parameter (a single threefry call: every ``jax.random`` call
     site is compiled in full, so fewer, larger draws compile faster)."""
-    u = jax.random.uniform(key, (batch, len(shape)))
-    n = jnp.asarray(shape, jnp.float32)
-    return jnp.minimum(jnp.floor(u * n), n - 1).astype(jnp.int32)
+    return uniform_indices(uniform(key, (batch, len(shape))), shape)
 
 
 def value_mask(shape: tuple[int, ...]) -> jax.Array:
@@ -79,10 +86,24 @@ def value_mask(shape: tuple[int, ...]) -> jax.Array:
 
 def sample_categorical(key, probs: jax.Array, batch: int) -> jax.Array:
     """``(batch, P)`` int32 indices from per-parameter probabilities ``probs (P, max_n)``."""
-    logits = jnp.log(jnp.maximum(probs, 1e-30))
-    logits = jnp.where(probs > 0, logits, -jnp.inf)
-    return jax.random.categorical(key, logits, axis=-1, shape=(batch, probs.shape[0])
-                                  ).astype(jnp.int32)
+    u = uniform(key, (batch, probs.shape[0]))
+    return categorical_from_uniform(u, jnp.broadcast_to(probs, (batch,) + probs.shape))
+
+
+def categorical_from_uniform(u: jax.Array, probs: jax.Array) -> jax.Array:
+    """Inverse-CDF sampling: ``u (...,)`` in [0, 1) and ``probs (..., n)`` -> indices ``(...)``
+    int32 (the first value whose cumulative probability exceeds ``u``; padded zero-probability
+    slots are never chosen). Lets one uniform draw serve several samplers."""
+    cdf = jnp.cumsum(probs, axis=-1)
+    idx = jnp.sum(cdf <= u[..., None] * cdf[..., -1:], axis=-1)
+    last = jnp.sum(probs > 0, axis=-1) - 1  # the last real value (guards rounding at u -> 1)
+    return jnp.minimum(idx, last).astype(jnp.int32)
+
+
+def uniform_indices(u: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """``u (..., P)`` in [0, 1) -> indices ``(..., P)`` int32, uniform over each ``shape[p]``."""
+    n = jnp.asarray(shape, jnp.float32)
+    return jnp.minimum(jnp.floor(u * n), n - 1).astype(jnp.int32)
 
 
 def rank_order(key, rewards: jax.Array) -> jax.Array:

@@ -65,11 +65,15 @@ def mask_logits(logits: jax.Array, shape: tuple[int, ...]) -> jax.Array:
 
 
 def init(key, shape: tuple[int, ...], hidden: int = 32) -> dict:
-    """The paper's controller: two relu LSTM layers and one linear head ``(P * max_n)``."""
+    """The paper's controller: two relu LSTM layers and one linear head ``(P * max_n)``
+    (all weights from one draw: each random call site costs compile time)."""
     P, width = len(shape), max(shape)
-    k1, k2, k3 = jax.random.split(key, 3)
-    return {"lstm1": lstm_init(k1, P, hidden), "lstm2": lstm_init(k2, hidden, hidden),
-            "head": dense_init(k3, hidden, P * width)}
+    w1, u1, w2, u2, wh = _glorot(key, [(P, 4 * hidden), (hidden, 4 * hidden),
+                                       (hidden, 4 * hidden), (hidden, 4 * hidden),
+                                       (hidden, P * width)])
+    b = jnp.zeros(4 * hidden, jnp.float32).at[hidden:2 * hidden].set(1.0)
+    return {"lstm1": {"w": w1, "u": u1, "b": b}, "lstm2": {"w": w2, "u": u2, "b": b},
+            "head": {"w": wh, "b": jnp.zeros(P * width, jnp.float32)}}
 
 
 def logits(params: dict, x: jax.Array, shape: tuple[int, ...]) -> jax.Array:

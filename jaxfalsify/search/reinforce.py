@@ -28,7 +28,8 @@ import optax
 
 from jaxfalsify import pytree
 from jaxfalsify.search import controller
-from jaxfalsify.search.base import Strategy, sample_uniform
+from jaxfalsify.search.base import (Strategy, categorical_from_uniform, sample_uniform,
+                                    uniform, uniform_indices)
 
 
 @pytree.dataclass
@@ -102,19 +103,20 @@ class Reinforce(Strategy):
     def ask(self, key, state, params):
         C, P = self.n_chains, self.n_params
 
-        def one(carry, k):
-            prev, j = carry
-            k_pol, k_rand, k_eps = jax.random.split(k, 3)
+        def one(carry, u):
+            prev, j = carry  # u: (C, 2P + 1) uniforms: policy, exploration, the coin
             x = controller.normalise(prev, self.shape)  # (C, P)
             logits = jax.vmap(lambda xi: self._logits(state.params, xi))(x)
-            sampled = jax.random.categorical(k_pol, logits, axis=-1).astype(jnp.int32)
+            sampled = categorical_from_uniform(u[:, :P], jax.nn.softmax(logits, axis=-1))
             episode = state.episode + j * C + jnp.arange(C)
-            explore = jax.random.uniform(k_eps, (C,)) < epsilon(episode, params)
-            action = jnp.where(explore[:, None], sample_uniform(k_rand, self.shape, C), sampled)
+            explore = u[:, -1] < epsilon(episode, params)
+            action = jnp.where(explore[:, None], uniform_indices(u[:, P:2 * P], self.shape),
+                               sampled)
             return (action, j + 1), (x, action)
 
-        (last, _), (xs, actions) = jax.lax.scan(one, (state.prev, jnp.int32(0)),
-                                                jax.random.split(key, self.batch // C))
+        # one draw for the whole ask (every jax.random call site costs compile time)
+        u = uniform(key, (self.batch // C, C, 2 * P + 1))
+        (last, _), (xs, actions) = jax.lax.scan(one, (state.prev, jnp.int32(0)), u)
         # (per_chain, chains, .) -> episode order: step j of every chain, then step j + 1
         return actions.reshape(self.batch, P), dataclasses.replace(
             state, prev=last, inputs=xs.reshape(self.batch, P))
