@@ -25,16 +25,15 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import jaxfalsify as jf
-from jaxfalsify import campaign, search
+from jaxfalsify import campaign, runs, sweep
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.checkpoint import CampaignCheckpoint
 from jaxfalsify.config import versions
-from jaxfalsify.sweep import iter_sweep, run_sweep
+from jaxfalsify.store import CampaignCheckpoint
 
 
 def plain_sweep(sp, out: Path) -> None:
     writer = None
-    for _, _, cols in iter_sweep(sp, sut_lib.get("carla-tm")):
+    for _, _, cols in sweep.iter_sweep(sp, sweep.calibrations(sut_lib.resolve("carla-tm"), {})):
         table = pa.table(cols)
         if writer is None:
             writer = pq.ParquetWriter(out / "sweep.parquet", table.schema)
@@ -69,19 +68,19 @@ def main() -> None:
 
     plain_sweep(sp, fresh("warm"))  # compile once
     t_plain = best_of(lambda: plain_sweep(sp, fresh("plain")), args.repeats)
-    t_ckpt = best_of(lambda: run_sweep(sp, "carla-tm", fresh("ckpt")), args.repeats)
+    cfg = sweep.SweepConfig(space=args.space)
+    t_ckpt = best_of(lambda: sweep.execute(cfg, fresh("ckpt"), force=True), args.repeats)
 
-    paper = jf.load_space("paper")
-    sut = sut_lib.get("carla-tm")
-    strat = search.make("reinforce", paper.shape, 250)
-    plan = campaign.plan(20_000, 250, every=1)  # 80 updates, a checkpoint after each
-    campaign.run(paper, sut, strat, plan, seed=0)  # compile once
+    b = runs.RunConfig(evaluations=20_000, batch=250, checkpoint_every=1).build()
+    plan = b.plan  # 80 updates, a checkpoint after each
+    go = lambda **kw: campaign.run(b.space, b.sut, b.sut_params, b.strategy,  # noqa: E731
+                                   b.strategy_params, plan, 0, **kw)
+    go()  # compile once
 
     def with_ckpt():
-        ck = CampaignCheckpoint(fresh("run") / "checkpoint", {"bench": 1})
-        campaign.run(paper, sut, strat, plan, seed=0, checkpoint=ck)
+        go(checkpoint=CampaignCheckpoint(fresh("run") / "checkpoint", {"bench": 1}))
 
-    r_plain = best_of(lambda: campaign.run(paper, sut, strat, plan, seed=0), args.repeats)
+    r_plain = best_of(go, args.repeats)
     r_ckpt = best_of(with_ckpt, args.repeats)
     shutil.rmtree(tmp, ignore_errors=True)
 

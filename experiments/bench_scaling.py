@@ -26,31 +26,33 @@ import jax.numpy as jnp
 
 import jaxfalsify as jf
 from jaxfalsify import campaign, sim
+from jaxfalsify import sut as sut_lib
 from jaxfalsify.runs import RunConfig
-from jaxfalsify.sweep import batch_sharding, plan_chunks
+from jaxfalsify.sweep import plan_chunks
 
 SPACE = jf.load_space("paper-extended")
 STRIDE = 997
+SUT, PARAMS = sut_lib.make("carla-tm")
 
 
-@partial(jax.jit, static_argnames=("chunk", "world", "n_params", "sharding"))
-def _chunk(start, chunk, world=jf.WORLD, n_params=7, sharding=None):
+@partial(jax.jit, static_argnames=("chunk", "n_params", "sharding"))
+def _chunk(start, world, chunk, n_params=7, sharding=None):
     flat = (((start + jnp.arange(chunk, dtype=jnp.int32)) % SPACE.size) * STRIDE) % SPACE.size
     if sharding is not None:
         flat = jax.lax.with_sharding_constraint(flat, sharding)
-    sc = SPACE.scenario(SPACE.unravel(flat))
-    # fewer parameters: the rest fixed at their defaults (same simulator, smaller space)
+    sc = SPACE.layout.scenario(SPACE.layout.unravel(flat), SPACE.table_array)
+    # fewer parameters: the rest fixed at their first value (same simulator, smaller space)
     for name in list(SPACE.names)[n_params:]:
-        sc[name] = jnp.full_like(sc[name], SPACE.values[
-            SPACE.names.index(name)][0])
-    out, _ = sim.batch_rollout(sc, jf.SUTS["carla-tm"], world, False)
+        sc[name] = jnp.full_like(sc[name], SPACE.values[SPACE.names.index(name)][0])
+    out, _ = sim.batch_rollout(sc, flat, jax.random.key(0), SUT, PARAMS, world)
     return out.steps.sum()
 
 
 def throughput(n: int, world=jf.WORLD, n_params: int = 7, repeats: int = 3) -> float:
     """Scenarios per second (best of repeats, after compilation)."""
     chunk = plan_chunks(n, 1 << 17)
-    run = partial(_chunk, chunk=chunk, world=world, n_params=n_params, sharding=batch_sharding())
+    run = partial(_chunk, world=world, chunk=chunk, n_params=n_params,
+                  sharding=sim.local_batch_sharding())
     jax.block_until_ready(run(jnp.int32(0)))
     best = float("inf")
     for _ in range(repeats):
@@ -61,10 +63,10 @@ def throughput(n: int, world=jf.WORLD, n_params: int = 7, repeats: int = 3) -> f
 
 
 def campaign_seconds(seeds: int) -> dict:
-    rc = RunConfig(strategy="reinforce", preset="paper", episodes=4000)
-    sp, sut, strat, plan = rc.build()
+    b = RunConfig(strategy="reinforce/paper", evaluations=4000).build()
     t0 = time.perf_counter()
-    res = campaign.run_seeds(sp, sut, strat, plan, list(range(seeds)))
+    res = campaign.run_seeds(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params,
+                             b.plan, list(range(seeds)))
     return {"seeds": seeds, "episodes": 4000, "wall_seconds": time.perf_counter() - t0,
             "compile_seconds": res[0].compile_seconds}
 

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 import jaxfalsify as jf
-from jaxfalsify import campaign
+from jaxfalsify import analysis, campaign
 from jaxfalsify.config import jsonable
 from jaxfalsify.runs import RunConfig
 from jaxfalsify.sweep import sweep_arrays
@@ -49,10 +49,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path,
                     default=Path(__file__).parent / "results" / "paper_reproduction")
     args = ap.parse_args()
-    rc = RunConfig(strategy="reinforce", preset="paper", episodes=args.episodes)
-    sp, sut, strat, plan = rc.build()
+    b = RunConfig(strategy="reinforce/paper", evaluations=args.episodes).build()
+    sp = b.space
     t0 = time.perf_counter()
-    results = campaign.run_seeds(sp, sut, strat, plan, list(range(args.seeds)))
+    results = campaign.run_seeds(sp, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan,
+                                 list(range(args.seeds)))
     wall = time.perf_counter() - t0
     truth = sweep_arrays(sp)
     gmax = float(np.nanmax(truth["reward"]))
@@ -69,12 +70,11 @@ def main() -> None:
                         f"{ma[e]:.5f}"])
 
     res = results[0]
-    b, t = campaign.best_index(res), campaign.typical_non_critical(res)
-    pair = {"challenging": b, "non_challenging": t}
+    best, t = analysis.best(res.fields), analysis.typical_non_critical(res.fields)
+    pair = {"challenging": best, "non_challenging": t}
     table = {}
     for label, i in pair.items():
-        table[label] = {"evaluation": i + 1,
-                        "params": campaign.scenario_values(sp, res.indices[i]),
+        table[label] = {"evaluation": i + 1, "params": sp.values_at(res.indices[i]),
                         **{f: res.fields[f][i].item() for f in campaign.RECORD_FIELDS}}
     (args.out / "table_ii.json").write_text(json.dumps(jsonable(table), indent=2) + "\n")
 
@@ -84,7 +84,7 @@ def main() -> None:
     rng = np.random.default_rng(0)
     fig10 = list(rng.choice(col, min(3, col.size), replace=False)) + \
         list(rng.choice(other, min(11, other.size), replace=False))
-    chosen = [("challenging", b), ("non_challenging", t)] + [(f"fig10_{k}", i)
+    chosen = [("challenging", best), ("non_challenging", t)] + [(f"fig10_{k}", i)
                                                             for k, i in enumerate(fig10)]
     traj = jf.simulate(sp.scenario(np.stack([res.indices[i] for _, i in chosen])))
     with open(args.out / "distance_traces.csv", "w", newline="") as f:
@@ -99,9 +99,9 @@ def main() -> None:
                             f"{float(traj.rss_distance[k, s]):.4f}",
                             int(bool(traj.high_risk[k, s]))])
 
-    per_seed = [{"seed": s, "best_reward": float(r.ranked_reward().max()),
-                 "global_max": bool(r.ranked_reward().max() >= gmax - 1e-6),
-                 "first_collision_evaluation": campaign.first_collision_evaluation(r),
+    per_seed = [{"seed": s, "best_reward": float(analysis.ranked_reward(r.fields).max()),
+                 "global_max": bool(analysis.ranked_reward(r.fields).max() >= gmax - 1e-6),
+                 "first_collision_evaluation": analysis.first_collision(r.fields),
                  "plateau_episode": plateau_episode(r.fields["reward"]),
                  "final_mean_reward_last_500": float(r.fields["reward"][-500:].mean())}
                 for s, r in enumerate(results)]

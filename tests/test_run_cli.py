@@ -111,3 +111,26 @@ def test_compare_against_sweep_ground_truth(tmp_path, capsys):
         assert r["distinct_critical_median"] <= result["n_collisions"]
         assert [s["seed"] for s in r["per_seed"]] == [0, 1]
     assert "| random |" in (out / "compare.md").read_text()
+
+
+def test_closing_report_and_report_md_agree(tmp_path, capsys):
+    """One analysis for every output: the terminal's Table II and report.md's show the same
+    best and typical scenarios, cell for cell."""
+    out = tmp_path / "agree"
+    assert main(["run", "--strategy", "random", "--evaluations", "120", "--batch", "40",
+                 "--seed", "5", "--out", str(out)]) == 0
+    text = capsys.readouterr().out.splitlines()
+    md = (out / "report.md").read_text().splitlines()
+    start = next(i for i, ln in enumerate(md) if ln.startswith("| parameter |"))
+    md_rows = [[c.strip() for c in ln.strip("|").split("|")] for ln in md[start + 2:]
+               if ln.startswith("|")]
+    term_rows = [ln.split() for ln in text[1:len(md_rows) + 1]]
+    assert len(md_rows) >= 10
+    for m, t in zip(md_rows, term_rows):
+        assert m[0] == t[0]
+        assert " ".join(m[1:]).split() == t[1:], (m, t)
+    import pyarrow.parquet as pq
+    from jaxfalsify import analysis
+    ep = {k: np.asarray(v) for k, v in pq.read_table(out / "episodes.parquet").to_pydict().items()}
+    typ = analysis.typical_non_critical(ep)
+    assert md_rows[0][2] == f"{ep['ego_offset'][typ]:.3f} m"
