@@ -306,7 +306,8 @@ def cmd_compare(args, stop, startup) -> int:
     out = args.out or Path("runs") / f"compare-{time.strftime('%Y%m%d-%H%M%S')}"
     pid, n_proc = _start_distributed(args)
     result = compare.execute(config, out, force=args.force, progress=_progress(args.quiet),
-                             process_id=pid, num_processes=n_proc, startup_seconds=startup)
+                             stop=stop, process_id=pid, num_processes=n_proc,
+                             startup_seconds=startup)
     if pid != 0:
         print(f"process {pid}: done")
         return 0
@@ -350,8 +351,6 @@ def cmd_simulate(args, stop, startup) -> int:
 def cmd_replay(args, stop, startup) -> int:
     from jaxfalsify.replay import record
 
-    if args.save is not None and args.save.suffix != ".rrd":
-        raise UsageError(f"--save {args.save}: the file name must end in .rrd")
     path = record(args.run_dir, args.scenario, save=args.save, spawn=args.spawn,
                   overlay=args.scenarios)
     print(f"wrote {path}" if path else "sent to the rerun viewer")
@@ -404,8 +403,11 @@ def main(argv=None, startup: float = 0.0) -> int:
         return 2
     except OSError as e:
         where = f"{e.filename}: " if getattr(e, "filename", None) else ""
-        print(f"jaxfalsify: error: {where}{e.strerror or e} (free space, permissions or the "
-              "path; nothing was left half-written)", file=sys.stderr)
+        print(f"jaxfalsify: error: {where}{e.strerror or e} (check free space, permissions and "
+              "the path; files under their final names are complete)", file=sys.stderr)
+        return 1
+    except MemoryError:
+        print("jaxfalsify: error: out of memory (lower --batch or --chunk)", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("jaxfalsify: interrupted; nothing was written in place of earlier results",

@@ -97,19 +97,30 @@ def truth_summary(sp, b) -> dict:
 
 
 def execute(config: CompareConfig, out: Path | str, *, force: bool = False,
-            progress: Progress | None = None, process_id: int = 0, num_processes: int = 1,
-            startup_seconds: float = 0.0) -> dict:
+            progress: Progress | None = None, stop=None, process_id: int = 0,
+            num_processes: int = 1, startup_seconds: float = 0.0) -> dict:
     """Run every strategy on seeds 0..seeds-1 and write ``compare.json``/``compare.md`` to
     ``out``. With several processes (``jax.distributed``), process i runs its contiguous share
     of the seeds and writes a part; process 0 merges. Returns the result."""
-    from jaxfalsify.distributed import barrier, share
 
     clock = Clock(startup_seconds)
     progress = progress or Progress()
     out = Path(out)
     config.check()
-    store.check_out(out, "compare", force=force)
     base = config.run_config(config.strategies[0]).build()
+    lk = store.open_folder(out, "compare", force=force,
+                           name=".lock" if process_id == 0 else f".lock-part-{process_id:05d}")
+    try:
+        lk.claim("compare")
+        return _execute(config, out, base, progress, process_id, num_processes, clock, stop)
+    finally:
+        lk.release()
+
+
+def _execute(config: CompareConfig, out: Path, base, progress: Progress, process_id: int,
+             num_processes: int, clock: Clock, stop) -> dict:
+    from jaxfalsify.distributed import barrier, share
+
     sp = base.space
     progress.phase(f"ground truth: every scenario of {sp.name} ({sp.size:,}) x {config.sut}")
     with clock("ground_truth"):
@@ -134,8 +145,16 @@ def execute(config: CompareConfig, out: Path | str, *, force: bool = False,
                 started["yes"] = True
             progress.update(done)
 
-        results = campaign.run_seeds(sp, b.sut, b.sut_params, b.strategy, b.strategy_params,
-                                     b.plan, mine, progress=chunk_done) if mine else []
+        try:
+            results = campaign.run_seeds(sp, b.sut, b.sut_params, b.strategy,
+                                         b.strategy_params, b.plan, mine, progress=chunk_done,
+                                         stop=stop) if mine else []
+        except (campaign.Stopped, KeyboardInterrupt):
+            progress.close()
+            from jaxfalsify.runs import Interrupted
+
+            raise Interrupted("compare", out, k, len(config.strategies), "strategies (nothing "
+                              "written; rerun the comparison)") from None
         progress.close()
         wall = time.perf_counter() - t0
         stats = [seed_stats(s, r, truth["global_max_reward"]) for s, r in zip(mine, results)]

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import os
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -65,24 +66,50 @@ def dumps_toml(doc: dict[str, Any], _prefix: str = "") -> str:
     return out + ("\n" if out and not out.endswith("\n") else "")
 
 
-def read_toml(path: Path, what: str = "") -> dict[str, Any]:
-    """Parse a TOML file; one-line ValueError naming the file on any problem."""
-    import tomllib
+MAX_TOML_BYTES = 1 << 20  # configs and spaces are a few kB
+
+
+def read_text_file(path: Path, what: str = "", limit: int = MAX_TOML_BYTES) -> str:
+    """A small UTF-8 text file: regular files only (no folders, FIFOs or devices), at most
+    ``limit`` bytes. One-line ValueError naming the file on any problem."""
+    import stat
 
     path = Path(path)
     label = f"{what} {path}".strip()
     try:
-        return tomllib.loads(path.read_text())
+        st = path.stat()
     except FileNotFoundError:
         raise ValueError(f"{label}: no such file") from None
-    except IsADirectoryError:
-        raise ValueError(f"{label}: is a folder, not a TOML file") from None
-    except UnicodeDecodeError:
-        raise ValueError(f"{label}: not UTF-8 text") from None
     except OSError as e:
         raise ValueError(f"{label}: cannot read ({e.strerror})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise ValueError(f"{label}: is a folder, not a file")
+    if not stat.S_ISREG(st.st_mode):
+        raise ValueError(f"{label}: not a regular file")
+    try:
+        with open(path, "rb") as f:
+            data = f.read(limit + 1)
+    except OSError as e:
+        raise ValueError(f"{label}: cannot read ({e.strerror})") from None
+    if len(data) > limit:
+        raise ValueError(f"{label}: larger than {limit // 1024} KiB; not a config file")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ValueError(f"{label}: not UTF-8 text") from None
+
+
+def read_toml(path: Path, what: str = "") -> dict[str, Any]:
+    """Parse a TOML file (see :func:`read_text_file`); one-line ValueError naming the file."""
+    import tomllib
+
+    text = read_text_file(path, what)
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"{path}: malformed TOML: {e}") from None
+        raise ValueError(f"{path}: malformed TOML: {str(e).splitlines()[0]}") from None
+    except RecursionError:
+        raise ValueError(f"{path}: malformed TOML: nested too deeply") from None
 
 
 def parse_assignments(items: list[str] | None, flag: str, many: bool = False
@@ -113,3 +140,27 @@ def parse_assignments(items: list[str] | None, flag: str, many: bool = False
             raise ValueError(f"{flag} {name}={text}: repeated values")
         out[name] = vals if many and len(vals) > 1 else vals[0]
     return out
+
+
+def available_memory() -> int:
+    """Bytes of memory available to this process (``MemAvailable``; total memory elsewhere)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, AttributeError):
+        return 1 << 40
+
+
+def check_memory(need: float, what: str, fix: str, share: float = 0.5) -> None:
+    """ValueError (one line) when ``need`` bytes exceed ``share`` of the available memory,
+    before anything is allocated."""
+    have = available_memory()
+    if need > share * have:
+        raise ValueError(f"{what} needs about {need / 2**30:.1f} GiB, more than "
+                         f"{share:.0%} of the {have / 2**30:.1f} GiB available; {fix}")

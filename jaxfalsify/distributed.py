@@ -16,7 +16,7 @@ import jax
 
 
 def initialize(coordinator: str | None = None, num_processes: int | None = None,
-               process_id: int | None = None) -> tuple[int, int]:
+               process_id: int | None = None, timeout: int = 120) -> tuple[int, int]:
     """Start ``jax.distributed``; returns ``(process_id, num_processes)``.
 
     Raises ValueError (one line) naming what is missing or invalid.
@@ -29,6 +29,10 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     if not coordinator:
         raise ValueError("--distributed needs --coordinator HOST:PORT "
                          "(or JAX_COORDINATOR_ADDRESS)")
+    host, _, port = coordinator.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--coordinator {coordinator!r}: expected HOST:PORT with a port in "
+                         "1..65535")
     if num_processes is None or num_processes < 1:
         raise ValueError("--distributed needs --num-processes N >= 1 (or JAX_NUM_PROCESSES)")
     if process_id is None or not 0 <= process_id < num_processes:
@@ -37,9 +41,36 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
     except Exception:  # older jax without the option: CPU barriers may be unavailable
         pass
-    jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
-                               process_id=process_id)
+    if process_id != 0:
+        _probe(host, int(port), timeout)
+    try:
+        jax.distributed.initialize(coordinator_address=coordinator,
+                                   num_processes=num_processes, process_id=process_id,
+                                   initialization_timeout=timeout)
+    except Exception as e:  # noqa: BLE001 - the runtime's errors are many and verbose
+        raise ValueError(f"--coordinator {coordinator}: could not start the distributed "
+                         f"runtime within {timeout} s ({type(e).__name__}: "
+                         f"{str(e).splitlines()[0][:120] if str(e) else ''})") from None
     return process_id, num_processes
+
+
+def _probe(host: str, port: int, timeout: float) -> None:
+    """Wait until the coordinator accepts connections, or raise a one-line ValueError: JAX's
+    own runtime aborts the whole process (a fatal C++ error) when it cannot reach it."""
+    import socket
+    import time
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            with socket.create_connection((host, port), timeout=1.0):
+                return
+        except OSError as e:
+            if time.monotonic() > deadline:
+                raise ValueError(f"--coordinator {host}:{port}: not reachable within "
+                                 f"{timeout:g} s ({e.strerror or type(e).__name__}); is "
+                                 "process 0 running?") from None
+            time.sleep(0.25)
 
 
 def barrier(name: str) -> None:

@@ -67,12 +67,13 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
     row = resolve_scenario(scenario, ep, sp)
     w = jf.WORLD
     rec = rr.RecordingStream("jaxfalsify", recording_id=f"{Path(run_dir).name}-{scenario}")
-    path = None
+    path = tmp = None
     if spawn:
         rec.spawn()
     else:
         path = Path(save) if save else Path(run_dir) / f"replay-{scenario.replace(':', '-')}.rrd"
-        rec.save(path)
+        tmp = check_save_path(path)
+        rec.save(tmp)
 
     # static world
     x0, x1 = -15.0, w.end_x + 10.0
@@ -153,4 +154,30 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
                      rrb.TimeSeriesView(origin="overlay" if overlay else "training",
                                         name="overlay" if overlay else "training")))))
     rec.flush()
+    if tmp is not None:
+        import os
+
+        rec.disconnect()  # closes the file sink
+        os.replace(tmp, path)
     return path
+
+
+def check_save_path(path: Path) -> Path:
+    """A writable place for ``path`` (a .rrd file): its folder exists and can be written, it
+    is not a folder itself. Returns the temporary name to record to (renamed when done)."""
+    import tempfile
+
+    path = Path(path)
+    if path.suffix != ".rrd":
+        raise ValueError(f"--save {path}: the file name must end in .rrd")
+    if path.is_dir():
+        raise ValueError(f"--save {path}: is a folder")
+    parent = path.parent
+    if not parent.is_dir():
+        raise ValueError(f"--save {path}: no folder {parent}")
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        raise ValueError(f"--save {path}: cannot write in {parent} ({e.strerror})") from None
+    return parent / f".{path.name}.partial"

@@ -140,7 +140,7 @@ class RunConfig:
         doc = cfg.read_toml(path, "--config")
         kind = doc.pop("kind", "run")
         if kind != "run":
-            raise ValueError(f"{path}: a {kind}'s config, not a run's")
+            raise ValueError(f"{path}: kind = {str(kind)[:20]!r}, not a run's config")
         return cls.from_dict(doc, where=str(path))
 
     @classmethod
@@ -235,6 +235,19 @@ def restore(ckpt: store.CampaignCheckpoint, b: Built, seed: int):
     return carry, records
 
 
+SCENARIO_BYTES = 2048  # device memory per scenario of a batch in flight (rollout state, XLA
+                       # temporaries), measured generously
+
+
+def check_memory(b: Built) -> None:
+    """Refuse (one line) a batch whose memory estimate exceeds half the available memory."""
+    P = len(b.space.shape)
+    records = b.plan.updates_per_chunk * b.plan.batch * (P + len(campaign.RECORD_FIELDS)) * 8
+    state = b.space.size * 4 if b.strategy.__class__.__name__ == "Grid" else 0
+    cfg.check_memory(b.plan.batch * SCENARIO_BYTES + records + state,
+                     f"a batch of {b.plan.batch} scenarios", "lower --batch")
+
+
 class Interrupted(Exception):
     """A run or sweep stopped on request (Ctrl-C, SIGTERM, ``stop()``); everything done is
     committed and ``resume`` continues it."""
@@ -325,7 +338,17 @@ def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: 
     out = Path(out)
     b = config.build()
     rc = config.resolved(b)
-    store.check_out(out, "run", force=force, resume=resume)
+    check_memory(b)
+    lk = store.open_folder(out, "run", force=force, resume=resume)
+    try:
+        return _execute(b, rc, out, lk, resume, force, progress, stop, figures, rerun, clock)
+    finally:
+        lk.release()
+
+
+def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: bool,
+             force: bool, progress: Progress, stop, figures: bool, rerun: bool,
+             clock: Clock) -> RunOutcome:
     ckpt = store.CampaignCheckpoint(out / "checkpoint", fingerprint(rc, b.plan))
     resumed = None
     if resume:
@@ -334,6 +357,7 @@ def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: 
             raise store.CheckpointError(f"--resume {out}: config.toml does not match the run "
                                         "configuration given")
         resumed = restore(ckpt, b, rc.seed)
+    lk.claim("run")
     start_from = b.plan.done_after(len(resumed[1])) if resumed else 0
     if resumed is None:
         if force:
@@ -367,6 +391,20 @@ def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: 
     progress.close()
     clock.add("compile", res.compile_seconds)
     clock.add("search", res.search_seconds)
+    try:
+        return _finish(b, rc, out, res, ckpt, start_from, prep, figures, rerun, progress, clock)
+    except BaseException as e:
+        try:  # status.json tells the truth: the search is done, its outputs are not
+            store.write_status(out, "run", "failed", evaluations_done=res.n, budget=res.n,
+                               error=f"{type(e).__name__}: {e}"[:300])
+        except OSError:
+            pass
+        raise
+
+
+def _finish(b: Built, rc: RunConfig, out: Path, res: campaign.Result, ckpt, start_from: int,
+            prep, figures: bool, rerun: bool, progress: Progress, clock: Clock) -> RunOutcome:
+    """Write the results, figures, timing, and finally ``status.json`` = complete."""
     with clock("writing"):
         summary = summary_dict(res, rc)
         store.write_parquet(out / "episodes.parquet", episodes_table(res))

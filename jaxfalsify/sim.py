@@ -362,7 +362,22 @@ def _check_scenario(scenario: dict) -> dict:
     if unknown:
         raise ValueError(f"unknown scenario parameter '{sorted(unknown)[0]}' "
                          f"(known: {', '.join(KNOWN_PARAMETERS)})")
-    arrs = {k: np.asarray(v, np.float32) for k, v in scenario.items()}
+    try:
+        arrs = {k: np.asarray(v, np.float32) for k, v in scenario.items()}
+    except (TypeError, ValueError):
+        raise ValueError("scenario values must be numbers or arrays of numbers") from None
+    for k, v in arrs.items():  # validated like a space's values
+        spec = KNOWN_PARAMETERS[k]
+        lo, hi = spec["domain"]
+        if v.size and not np.all(np.isfinite(v)):
+            raise ValueError(f"scenario parameter {k}: not finite")
+        if v.size and (v.min() < lo or v.max() > hi):
+            bad = v[(v < lo) | (v > hi)].flat[0]
+            raise ValueError(f"scenario parameter {k}={bad:g} outside the allowed "
+                             f"[{lo:g}, {hi:g}] {spec['unit']}")
+        if spec["integer"] and v.size and np.any(v != np.round(v)):
+            raise ValueError(f"scenario parameter {k}: values must be integers "
+                             f"(got {v[v != np.round(v)].flat[0]:g})")
     try:
         shape = np.broadcast_shapes(*(np.shape(v) for v in arrs.values())) if arrs else ()
     except ValueError:
@@ -487,6 +502,11 @@ def simulate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = 
     full = _check_scenario(scenario)
     flat, shape = _flat(full)
     n = int(np.prod(shape, dtype=np.int64))
+    from jaxfalsify.config import check_memory
+
+    check_memory(n * world.horizon * len(Trajectory.__dataclass_fields__) * 4 * 3,
+                 f"trajectories of {n} scenarios", "simulate fewer at once (use evaluate for "
+                 "outcomes only)")
     _, traj = run_batch(flat, np.arange(n, dtype=np.int32), _key_data(key), s, params, world,
                         record=True)
     return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), traj)

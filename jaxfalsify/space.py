@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 import zlib
 from pathlib import Path
 from typing import Any, Iterator
@@ -48,6 +47,8 @@ KNOWN_PARAMETERS: dict[str, dict[str, Any]] = {
 }
 
 DISTRIBUTIONS = ("uniform", "normal", "integers", "values")
+MAX_SAMPLES = 1_000_000  # concrete values per parameter
+MAX_SIZE = 2**31 - 1  # concrete scenarios per space (int32 scenario numbers)
 _PARAM_KEYS = {"unit", "distribution", "low", "high", "mean", "sd", "samples", "values", "decimals"}
 _TOP_KEYS = {"name", "description", "parameters"}
 
@@ -86,7 +87,11 @@ class Parameter:
         elif d == "normal":
             out = np.round(rng.normal(a[0], a[1], n), self.decimals)
         else:  # integers, inclusive, without replacement
-            out = rng.choice(np.arange(int(a[0]), int(a[1]) + 1), size=n, replace=False)
+            count = int(a[1]) - int(a[0]) + 1
+            if count <= 1_000_000:
+                out = rng.choice(np.arange(int(a[0]), int(a[1]) + 1), size=n, replace=False)
+            else:  # a huge range: draw positions without materialising it
+                out = int(a[0]) + rng.choice(count, size=n, replace=False)
             out = out.astype(np.float64)
         return np.sort(out)
 
@@ -140,6 +145,8 @@ def make_parameter(name: str, distribution: str, args: tuple, samples: int,
         raise ValueError(f"{key}.values is empty")
     if isinstance(samples, bool) or not isinstance(samples, int) or samples <= 0:
         raise ValueError(f"{key}.samples must be a positive integer (got {samples!r})")
+    if samples > MAX_SAMPLES:
+        raise ValueError(f"{key}.samples={samples} exceeds {MAX_SAMPLES:,} values per parameter")
     if isinstance(decimals, bool) or not isinstance(decimals, int) or not 0 <= decimals <= 9:
         raise ValueError(f"{key}.decimals must be an integer in 0..9 (got {decimals!r})")
     if distribution == "values":
@@ -336,6 +343,10 @@ def build(name: str, parameters: list[Parameter], seed: int) -> Space:
     dup = {n for n in names if names.count(n) > 1}
     if dup:
         raise ValueError(f"space '{name}': parameter declared twice: {sorted(dup)}")
+    size = math.prod(p.samples for p in parameters)
+    if size > MAX_SIZE:  # checked before anything is drawn or allocated
+        raise ValueError(f"space '{name}' has {size:,} scenarios; at most {MAX_SIZE:,} "
+                         "(2**31 - 1) supported")
     table = []
     for p in parameters:
         vals = p.discretise(int(seed))
@@ -349,10 +360,7 @@ def build(name: str, parameters: list[Parameter], seed: int) -> Space:
             raise ValueError(f"parameters.{p.name}: values must be integers "
                              f"(got {vals[vals != np.round(vals)][0]:g})")
         table.append(tuple(float(v) for v in vals))
-    space = Space(name, int(seed), tuple(parameters), tuple(table))
-    if space.size >= 2**31:
-        raise ValueError(f"space '{name}' has {space.size} scenarios; at most 2**31 - 1 supported")
-    return space
+    return Space(name, int(seed), tuple(parameters), tuple(table))
 
 
 def _paper_parameters() -> list[Parameter]:
@@ -430,7 +438,17 @@ def space_from_dict(doc: dict[str, Any], seed: int = 0, default_name: str = "cus
     if not isinstance(params, dict) or not params:
         raise ValueError("'parameters' table is missing or empty")
     parsed = [parse_parameter(n, s, f"parameters.{n}") for n, s in params.items()]
-    return build(str(doc.get("name", default_name)), parsed, seed)
+    return build(check_name(doc.get("name", default_name)), parsed, seed)
+
+
+def check_name(name: Any) -> str:
+    """A space's name: 1-64 printable characters, no path separators (it names folders)."""
+    if not isinstance(name, str):
+        raise ValueError(f"name must be a string (got {type(name).__name__} {name!r:.40})")
+    if not 1 <= len(name) <= 64 or not name.isprintable() or "/" in name or "\\" in name \
+            or name in (".", ".."):
+        raise ValueError(f"name {name[:40]!r}: use 1-64 printable characters without / or \\")
+    return name
 
 
 def load_space(name_or_path: str | Path | Space, seed: int = 0) -> Space:
@@ -444,15 +462,14 @@ def load_space(name_or_path: str | Path | Space, seed: int = 0) -> Space:
     if key in BUILTIN:
         return build(key, BUILTIN[key](), seed)
     path = Path(key)
-    if path.suffix != ".toml" or not path.is_file():
-        raise ValueError(f"unknown space '{key}': not a built-in ({', '.join(BUILTIN)}) "
+    if path.suffix != ".toml" or not path.exists():
+        raise ValueError(f"unknown space '{key[:80]}': not a built-in ({', '.join(BUILTIN)}) "
                          f"nor an existing .toml file")
+    from jaxfalsify.config import read_toml
+
+    doc = read_toml(path, "--space")
     try:
-        doc = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"{path}: malformed TOML: {e}") from None
-    try:
-        return space_from_dict(doc, seed, default_name=path.stem)
+        return space_from_dict(doc, seed, default_name=path.stem[:64] or "custom")
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from None
 

@@ -1,25 +1,35 @@
-"""Everything that writes result folders: atomic writes, run/sweep folder checks, status,
-and checkpoints of long work (a campaign's carry and records, a sweep's progress).
+"""Everything that writes result folders: atomic writes, folder checks, locks and status, and
+checkpoints of long work (a campaign's carry and records, a sweep's rows and totals).
 
-Every file is written under a temporary name in its folder and renamed into place, so a file
-under its final name is always complete. A checkpoint is a folder written only through atomic renames, in an order that keeps it
-consistent whatever moment the process dies (SIGKILL included):
+**Atomic files.** Every file is written under a temporary name in its folder and renamed into
+place, so a file under its final name is always complete.
 
-1. the new chunk's data (``records-<c>.npz`` or ``rows-<c>.parquet``) under a temporary name,
-   then renamed;
-2. for campaigns, the carry after chunk ``c`` (``carry-<c>.npz``), the same way;
-3. ``state.json`` naming how many chunks are done: the commit point. Files of chunks past it
-   are ignored (and rewritten, identically, when the work resumes).
+**Checkpoints** are folders written in an order that keeps them consistent whatever moment the
+process dies (SIGKILL included):
 
-The carry is any pytree of arrays (strategy state, optimiser state, typed PRNG keys); it is
-stored as its leaves and restored into the tree structure of a template (``jax.eval_shape``
-of the campaign's ``init``), checking every leaf's shape and dtype. Anything that does not
-match — a truncated file, another configuration's checkpoint, hand edits — raises
-:class:`CheckpointError` with one line naming the file.
+1. the new chunk's data (``records-<c>.npz`` or ``rows-<c>.parquet``), atomically;
+2. for campaigns, the carry after chunk ``c`` (``carry-<c+1>.npz``), the same way;
+3. ``state.json``, the *commit record*: how many chunks are done, the configuration's
+   fingerprint, and for every file of the checkpoint its SHA-256 and its identity (chunk index,
+   what it holds), sealed by a SHA-256 of the record itself. Files past the commit point are
+   ignored (and rewritten, identically, when the work resumes).
+
+Resuming verifies the seal, the fingerprint and every file's hash and identity: a truncated,
+bit-flipped, swapped, copied or foreign file, or an edited record, is refused with one line
+naming the file (:class:`CheckpointError`), never used. The carry is the campaign's flat list of
+state arrays (PRNG keys as key data), checked leaf by leaf against the shapes and dtypes the
+configuration's program expects.
+
+**Locks.** A process writing a run, sweep or comparison folder holds an exclusive ``flock`` on
+``.lock`` in it (the kernel releases it when the process dies, kill -9 included); a second
+writer is refused with the holder's pid (:class:`FolderLock`).
 """
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
+import io
 import json
 import os
 import shutil
@@ -28,18 +38,17 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
-import jax
 import numpy as np
 
-FORMAT = 1
+FORMAT = 2
 
 
 class CheckpointError(ValueError):
     """A checkpoint that cannot be used (corrupt, missing files, another configuration)."""
 
 
-def _is_key(x) -> bool:
-    return jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+def sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
 
 
 def _tmp_in(folder: Path, name: str) -> Path:
@@ -48,35 +57,15 @@ def _tmp_in(folder: Path, name: str) -> Path:
     return Path(tmp)
 
 
-def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """``np.savez`` to a temporary file in the same folder, then rename."""
-    tmp = _tmp_in(path.parent, path.name)
-    try:
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
-def load_npz(path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        raise CheckpointError(f"checkpoint file {path} is missing") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise CheckpointError(f"checkpoint file {path} is corrupt ({type(e).__name__})") from None
-
-
-def write_atomic(path: Path, data: str | bytes) -> None:
-    """Write text or bytes to ``path`` via a temporary file in the same folder and a rename."""
+def write_atomic(path: Path, data: str | bytes) -> str:
+    """Write text or bytes to ``path`` via a temporary file in the same folder and a rename;
+    returns the SHA-256 of the bytes written."""
     path = Path(path)
+    data = data.encode() if isinstance(data, str) else bytes(data)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data.encode() if isinstance(data, str) else data)
+            f.write(data)
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
@@ -85,88 +74,138 @@ def write_atomic(path: Path, data: str | bytes) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+    return sha256(data)
 
 
-def write_parquet(path: Path, columns: dict) -> None:
-    """A Parquet table of ``{name: (N,) array}``, written atomically."""
+def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> str:
+    """``np.savez``, atomically; returns the file's SHA-256."""
+    return write_atomic(path, npz_bytes(arrays))
+
+
+def parquet_bytes(columns: dict) -> bytes:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    tmp = _tmp_in(path.parent, path.name)
-    try:
-        pq.write_table(pa.table(columns), tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    buf = io.BytesIO()
+    pq.write_table(pa.table(columns), buf)
+    return buf.getvalue()
 
 
-def write_json(path: Path, doc: dict, indent: int = 1) -> None:
+def write_parquet(path: Path, columns: dict) -> str:
+    """A Parquet table of ``{name: (N,) array}``, written atomically; returns its SHA-256."""
+    return write_atomic(path, parquet_bytes(columns))
+
+
+def write_json(path: Path, doc: dict, indent: int = 1) -> str:
     from jaxfalsify.config import jsonable
 
-    write_atomic(path, json.dumps(jsonable(doc), indent=indent) + "\n")
+    return write_atomic(path, json.dumps(jsonable(doc), indent=indent) + "\n")
+
+
+def read_verified(path: Path, expected: dict | None) -> bytes:
+    """A checkpoint file's bytes, checked against its entry in the commit record."""
+    path = Path(path)
+    if expected is None:
+        raise CheckpointError(f"checkpoint file {path} is not in the commit record "
+                              "(state.json damaged or edited)")
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise CheckpointError(f"checkpoint file {path} is missing") from None
+    except OSError as e:
+        raise CheckpointError(f"checkpoint file {path} cannot be read ({e.strerror})") from None
+    if sha256(data) != expected.get("sha256"):
+        raise CheckpointError(f"checkpoint file {path} does not match its commit record "
+                              "(damaged, swapped, or from another run)")
+    return data
+
+
+def load_npz_bytes(data: bytes, where: Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise CheckpointError(f"checkpoint file {where} is corrupt ({type(e).__name__})") from None
+
+
+def load_npz(path: Path) -> dict[str, np.ndarray]:
+    try:
+        return load_npz_bytes(Path(path).read_bytes(), path)
+    except FileNotFoundError:
+        raise CheckpointError(f"checkpoint file {path} is missing") from None
+
+
+def _seal(doc: dict) -> str:
+    body = {k: v for k, v in doc.items() if k != "sha256"}
+    return sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode())
+
+
+def write_commit(path: Path, doc: dict) -> None:
+    """A commit record (``state.json``) sealed with the SHA-256 of its content."""
+    from jaxfalsify.config import jsonable
+
+    doc = jsonable({**doc, "format": FORMAT})
+    doc["sha256"] = _seal(doc)
+    write_atomic(path, json.dumps(doc, indent=1) + "\n")
 
 
 def read_json(path: Path) -> dict:
+    """A checkpoint's commit record, its seal verified."""
     try:
         doc = json.loads(Path(path).read_text())
     except FileNotFoundError:
         raise CheckpointError(f"checkpoint file {path} is missing") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
         raise CheckpointError(f"checkpoint file {path} is corrupt ({type(e).__name__})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint file {path} is not a jaxfalsify checkpoint "
                               f"(format {FORMAT})")
+    if doc.get("sha256") != _seal(doc):
+        raise CheckpointError(f"checkpoint file {path} was edited or damaged (its seal does "
+                              "not match)")
     return doc
 
 
-def carry_arrays(carry) -> dict[str, np.ndarray]:
-    """The leaves of a carry as host arrays (typed keys as their raw key data)."""
-    leaves = jax.tree.leaves(carry)
-    return {f"leaf_{i:04d}": np.asarray(jax.random.key_data(x) if _is_key(x) else x)
-            for i, x in enumerate(leaves)}
-
-
-def restore_carry(arrays: dict[str, np.ndarray], template, where: Path):
-    """Rebuild a carry from :func:`carry_arrays` output into ``template``'s structure."""
-    leaves, treedef = jax.tree.flatten(template)
-    if len(arrays) != len(leaves):
+def restore_leaves(arrays: dict[str, np.ndarray], template: list, where: Path) -> list:
+    """A carry's leaves from :func:`save_npz` of ``leaf_0000...``, checked against
+    ``template`` (shapes and dtypes of the leaves)."""
+    if len(arrays) != len(template):
         raise CheckpointError(f"checkpoint file {where} holds {len(arrays)} arrays, this "
-                              f"configuration's state has {len(leaves)}")
+                              f"configuration's state has {len(template)}")
     out = []
-    for i, t in enumerate(leaves):
+    for i, t in enumerate(template):
         a = arrays.get(f"leaf_{i:04d}")
         if a is None:
             raise CheckpointError(f"checkpoint file {where} lacks state array {i}")
-        if _is_key(t):
-            try:
-                x = jax.random.wrap_key_data(a)
-            except (TypeError, ValueError):
-                raise CheckpointError(f"checkpoint file {where}: state array {i} is not a "
-                                      "PRNG key") from None
-            if x.dtype != t.dtype or x.shape != t.shape:
-                raise CheckpointError(f"checkpoint file {where}: PRNG key {i} does not match "
-                                      "this configuration")
-        else:
-            if a.shape != t.shape or a.dtype != t.dtype:
-                raise CheckpointError(f"checkpoint file {where}: state array {i} is "
-                                      f"{a.dtype}{list(a.shape)}, expected "
-                                      f"{t.dtype}{list(t.shape)}")
-            x = a
-        out.append(x)
-    return jax.tree.unflatten(treedef, out)
+        if a.shape != tuple(t.shape) or a.dtype != t.dtype:
+            raise CheckpointError(f"checkpoint file {where}: state array {i} is "
+                                  f"{a.dtype}{list(a.shape)}, expected {t.dtype}{list(t.shape)}")
+        out.append(a)
+    return out
+
+
+def identity(fingerprint: Any) -> str:
+    """A short hash of a configuration fingerprint (stored beside every file's entry)."""
+    return sha256(json.dumps(fingerprint, sort_keys=True).encode())[:16]
 
 
 class CampaignCheckpoint:
     """The checkpoint folder of one campaign (``RUN_DIR/checkpoint``).
 
-    ``fingerprint`` identifies the configuration (resolved config and plan); a checkpoint
+    ``fingerprint`` identifies the configuration (resolved config, seed and plan); a checkpoint
     written under another fingerprint is refused.
     """
 
-    def __init__(self, folder: Path, fingerprint: dict[str, Any]):
+    def __init__(self, folder: Path, fingerprint: Any):
         self.folder = Path(folder)
         self.fingerprint = fingerprint
+        self.files: dict[str, dict] = {}
 
     @property
     def state_path(self) -> Path:
@@ -179,8 +218,9 @@ class CampaignCheckpoint:
         """Evaluations committed so far (0 without a checkpoint)."""
         return int(read_json(self.state_path)["evaluations_done"]) if self.exists() else 0
 
-    def load(self, template) -> tuple[Any, list[dict[str, np.ndarray]]]:
-        """``(carry, records of the chunks done)``; ``(None, [])`` when nothing is saved."""
+    def load(self, template: list) -> tuple[Any, list[dict[str, np.ndarray]]]:
+        """``(carry leaves, records of the chunks done)`` verified against the commit record;
+        ``(None, [])`` when nothing is saved."""
         if not self.exists():
             return None, []
         st = read_json(self.state_path)
@@ -188,23 +228,46 @@ class CampaignCheckpoint:
             raise CheckpointError(f"checkpoint {self.state_path} was written by another "
                                   "configuration (config.toml changed?)")
         n = st.get("chunks_done")
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        files = st.get("files")
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1 or not isinstance(files, dict):
             raise CheckpointError(f"checkpoint {self.state_path}: bad chunks_done {n!r}")
-        carry_path = self.folder / f"carry-{n:06d}.npz"
-        carry = restore_carry(load_npz(carry_path), template, carry_path)
-        # the records' fields and shapes are checked against the plan by campaign.restore
-        records = [load_npz(self.folder / f"records-{c:06d}.npz") for c in range(n)]
+        ident = identity(self.fingerprint)
+        records = []
+        for c in range(n):
+            name = f"records-{c:06d}.npz"
+            entry = files.get(name)
+            if entry is not None and (entry.get("chunk") != c or entry.get("run") != ident):
+                raise CheckpointError(f"checkpoint file {self.folder / name}: its record names "
+                                      "another chunk or run")
+            data = read_verified(self.folder / name, entry)
+            records.append(load_npz_bytes(data, self.folder / name))
+        name = f"carry-{n:06d}.npz"
+        entry = files.get(name)
+        if entry is not None and (entry.get("after_chunk") != n or entry.get("run") != ident):
+            raise CheckpointError(f"checkpoint file {self.folder / name}: its record names "
+                                  "another chunk or run")
+        data = read_verified(self.folder / name, entry)
+        carry = restore_leaves(load_npz_bytes(data, self.folder / name), template,
+                               self.folder / name)
+        self.files = {k: v for k, v in files.items() if k.startswith("records-")}
         return carry, records
 
-    def save(self, chunk: int, carry, record: dict[str, np.ndarray],
+    def save(self, chunk: int, carry: list, record: dict[str, np.ndarray],
              evaluations_done: int) -> None:
-        """Commit chunk ``chunk`` (0-based): its records, the carry after it, then state."""
+        """Commit chunk ``chunk`` (0-based): its records, the carry after it, then the record."""
         self.folder.mkdir(parents=True, exist_ok=True)
-        save_npz(self.folder / f"records-{chunk:06d}.npz", record)
-        save_npz(self.folder / f"carry-{chunk + 1:06d}.npz", carry_arrays(carry))
-        write_json(self.state_path, {"format": FORMAT, "chunks_done": chunk + 1,
-                                     "evaluations_done": evaluations_done,
-                                     "fingerprint": self.fingerprint})
+        ident = identity(self.fingerprint)
+        rec_name, carry_name = f"records-{chunk:06d}.npz", f"carry-{chunk + 1:06d}.npz"
+        self.files = {k: v for k, v in self.files.items() if k.startswith("records-")
+                      and int(k[8:14]) < chunk}
+        self.files[rec_name] = {"sha256": save_npz(self.folder / rec_name, record),
+                                "chunk": chunk, "run": ident}
+        leaves = {f"leaf_{i:04d}": np.asarray(x) for i, x in enumerate(carry)}
+        files = {**self.files, carry_name: {"sha256": save_npz(self.folder / carry_name, leaves),
+                                            "after_chunk": chunk + 1, "run": ident}}
+        write_commit(self.state_path, {"chunks_done": chunk + 1,
+                                       "evaluations_done": evaluations_done,
+                                       "fingerprint": self.fingerprint, "files": files})
         (self.folder / f"carry-{chunk:06d}.npz").unlink(missing_ok=True)
 
     def remove(self) -> None:
@@ -290,10 +353,81 @@ def clear(out: Path, kind: str) -> None:
     out = Path(out)
     for name in RESULT_FILES[kind] + ("status.json", "config.toml"):
         (out / name).unlink(missing_ok=True)
+    for p in out.glob(".summary.part-*.json"):
+        p.unlink(missing_ok=True)
     for p in list(out.glob("checkpoint*")) + [out / "figures"]:
         shutil.rmtree(p, ignore_errors=True)
     for p in out.glob("sweep.part-*.parquet"):
         p.unlink(missing_ok=True)
+
+
+class FolderLock:
+    """An exclusive OS lock (``flock``) on ``OUT/.lock``, held while a process writes the folder:
+    a second writer gets a :class:`FolderError` naming the holder's pid. The kernel releases
+    it when the process ends however it ends, so no stale lock survives a kill -9."""
+
+    def __init__(self, out: Path, name: str = ".lock"):
+        self.path = Path(out) / name
+        self.fd: int | None = None
+
+    def acquire(self, kind: str) -> "FolderLock":
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                holder = os.pread(fd, 64, 0).decode(errors="replace").split()
+            finally:
+                os.close(fd)
+            pid = holder[0] if holder else "unknown"
+            what = holder[1] if len(holder) > 1 else "jaxfalsify"
+            raise FolderError(f"{self.path.parent} is being written by process {pid} "
+                              f"({what}); wait for it to end or choose another folder") from None
+        self.fd = fd
+        return self
+
+    def claim(self, kind: str) -> None:
+        """Record this process as the writer (done once validation passed)."""
+        if self.fd is not None:
+            os.ftruncate(self.fd, 0)
+            os.pwrite(self.fd, f"{os.getpid()} jaxfalsify-{kind}\n".encode(), 0)
+
+    def release(self) -> None:
+        if self.fd is not None:
+            fcntl.flock(self.fd, fcntl.LOCK_UN)
+            os.close(self.fd)
+            self.fd = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
+
+
+def lock(out: Path, kind: str, name: str = ".lock") -> FolderLock:
+    """Take ``out``'s lock (creating the folder), or raise FolderError naming the holder."""
+    return FolderLock(out, name).acquire(kind)
+
+
+def open_folder(out: Path, kind: str, *, force: bool = False, resume: bool = False,
+                name: str = ".lock") -> FolderLock:
+    """Check ``out`` (:func:`check_out`), lock it, and check again under the lock (another
+    process may have written it meanwhile). On failure nothing is left behind: a folder this
+    call created for its lock file is removed again."""
+    out = Path(out)
+    check_out(out, kind, force=force, resume=resume)
+    existed = out.exists()
+    lk = lock(out, kind, name)
+    try:
+        check_out(out, kind, force=force, resume=resume)
+    except BaseException:
+        lk.release()
+        if not existed:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    return lk
 
 
 def write_status(out: Path, kind: str, state: str, **extra) -> None:

@@ -315,20 +315,41 @@ def _layout(config: SweepConfig, space: Space, calib: Calibrations, out: Path,
     return begin, end, planned, out / checkpoint_name(process_id, num_processes), fingerprint
 
 
-def _load_progress(ck: Path, fingerprint: dict, n_calib: int) -> tuple[int, list[Reducer]]:
-    st = store.read_json(ck / "state.json")
+def _chunk_range(c: int, begin: int, end: int, planned: int) -> list[int]:
+    return [begin + c * planned, min(begin + (c + 1) * planned, end)]
+
+
+def _load_progress(ck: Path, fingerprint: dict, n_calib: int, begin: int, end: int,
+                   planned: int, rows: str) -> tuple[int, list[Reducer], dict]:
+    """``(chunks done, totals, files)`` of a sweep checkpoint, its commit record's seal and
+    fingerprint and every rows file's hash and identity verified."""
+    where = ck / "state.json"
+    st = store.read_json(where)
     if st.get("fingerprint") != fingerprint:
-        raise store.CheckpointError(f"checkpoint {ck / 'state.json'} was written by another "
-                                    "sweep configuration")
+        raise store.CheckpointError(f"checkpoint {where} was written by another sweep "
+                                    "configuration")
     try:
         done = int(st["chunks_done"])
         reds = [Reducer(**{k: t[k] for k in Reducer.FIELDS}) for t in st["totals"]]
+        files = dict(st["files"])
     except (KeyError, TypeError, ValueError):
-        raise store.CheckpointError(f"checkpoint {ck / 'state.json'} is corrupt "
-                                    "(fields)") from None
-    if len(reds) != n_calib or done < 0:
-        raise store.CheckpointError(f"checkpoint {ck / 'state.json'} is corrupt (totals)")
-    return done, reds
+        raise store.CheckpointError(f"checkpoint {where} is corrupt (fields)") from None
+    n_chunks = -(-(end - begin) // planned)
+    scenarios = min(done * planned, end - begin)
+    if (len(reds) != n_calib or not 0 <= done <= n_chunks
+            or st.get("scenarios_done") != scenarios
+            or any(r.n != scenarios for r in reds)):
+        raise store.CheckpointError(f"checkpoint {where} is inconsistent (chunks or totals)")
+    ident = store.identity(fingerprint)
+    for c in range(done if rows != "none" else 0):
+        name = f"rows-{c:06d}.parquet"
+        entry = files.get(name)
+        if entry is not None and (entry.get("chunk") != c or entry.get("run") != ident
+                                  or entry.get("range") != _chunk_range(c, begin, end, planned)):
+            raise store.CheckpointError(f"checkpoint file {ck / name}: its record names "
+                                        "another chunk or sweep")
+        store.read_verified(ck / name, entry)
+    return done, reds, files
 
 
 def _scenario_of(space: Space, row: dict | None) -> dict | None:
@@ -361,8 +382,36 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     progress = progress or Progress()
     space, calib = config.build()
     out = Path(out) if out is not None else default_out(space, config.sut, config.space_seed)
-    store.check_out(out, "sweep", force=force, resume=resume)
-    barrier("jaxfalsify-sweep-checked")  # every process checked the folder before any writes
+    cfg.check_memory(max(256, config.chunk // calib.count) * calib.count
+                     * (len(space.shape) * 2 + len(OUTCOME_FIELDS) + 4) * 16
+                     + config.chunk * 2048, f"a sweep chunk of {config.chunk} scenarios",
+                     "lower --chunk")
+    lk = store.open_folder(out, "sweep", force=force, resume=resume,
+                           name=".lock" if process_id == 0 else f".lock-part-{process_id:05d}")
+    try:
+        barrier("jaxfalsify-sweep-checked")  # every process checked the folder before writes
+        return _execute(config, out, space, calib, lk, resume=resume, force=force,
+                        progress=progress, stop=stop, process_id=process_id,
+                        num_processes=num_processes, world=world, clock=clock)
+    except (Interrupted, ValueError):
+        raise
+    except BaseException as e:
+        if process_id == 0 and (out / "config.toml").exists():
+            try:  # status.json tells the truth
+                store.write_status(out, "sweep", "failed", error=f"{type(e).__name__}: {e}"[:300])
+            except OSError:
+                pass
+        raise
+    finally:
+        lk.release()
+
+
+def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
+             lk: store.FolderLock, *, resume: bool, force: bool, progress: Progress, stop,
+             process_id: int, num_processes: int, world: sim.World, clock: Clock) -> dict:
+    from jaxfalsify.distributed import barrier
+    from jaxfalsify.runs import Interrupted
+
     if resume:
         on_disk, procs = SweepConfig.from_toml(out / "config.toml")
         if procs != num_processes:
@@ -376,9 +425,12 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
             else "sweep.parquet")
     begin, end, planned, ck, fingerprint = _layout(config, space, calib, out, process_id,
                                                    num_processes, world)
-    done, reds = 0, [Reducer() for _ in range(calib.count)]
+    done, reds, files = 0, [Reducer() for _ in range(calib.count)], {}
     if resume and (ck / "state.json").exists():
-        done, reds = _load_progress(ck, fingerprint, calib.count)
+        done, reds, files = _load_progress(ck, fingerprint, calib.count, begin, end, planned,
+                                           config.rows)
+    ident = store.identity(fingerprint)
+    lk.claim("sweep")
     if process_id == 0 and not resume:
         if force:
             store.clear(out, "sweep")
@@ -413,11 +465,14 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
             if config.rows != "none":
                 if config.rows == "collisions":
                     cols = {k: v[cols["collision"]] for k, v in cols.items()}
-                store.write_parquet(ck / f"rows-{c:06d}.parquet", cols)
-            store.write_json(ck / "state.json", {"format": store.FORMAT, "chunks_done": c + 1,
-                                                 "scenarios_done": e - begin,
-                                                 "fingerprint": fingerprint,
-                                                 "totals": [r.state() for r in reds]})
+                rows_file = f"rows-{c:06d}.parquet"
+                files[rows_file] = {"sha256": store.write_parquet(ck / rows_file, cols),
+                                    "chunk": c, "range": [b, e], "run": ident}
+            store.write_commit(ck / "state.json", {"chunks_done": c + 1,
+                                                   "scenarios_done": e - begin,
+                                                   "fingerprint": fingerprint,
+                                                   "totals": [r.state() for r in reds],
+                                                   "files": files})
             hits = sum(r.collisions for r in reds)
             progress.update((e - begin) * calib.count, collisions=f"{hits:,}",
                             rate=f"{hits / max(1, sum(r.n for r in reds)):.3g}")
@@ -438,17 +493,20 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     with clock("writing"):
         n_chunks = -(-(end - begin) // planned)
         if config.rows != "none":
-            _merge_rows([ck / f"rows-{c:06d}.parquet" for c in range(n_chunks)],
-                        out / f".{name}.partial", out / name)
+            _merge_rows([(ck / f"rows-{c:06d}.parquet", files.get(f"rows-{c:06d}.parquet"))
+                         for c in range(n_chunks)], out / f".{name}.partial", out / name)
         part = {"process_id": process_id,
                 "totals": [{"n": r.n, "collisions": r.collisions, "nonfinite": r.nonfinite,
                             "best_reward": r.best_reward, "best_ties": r.best_ties,
                             "best": _scenario_of(space, r.best_row)} for r in reds],
                 "clock": clock.summary()}
         if multi:
-            store.write_json(out / f".summary.part-{process_id:05d}.json", part)
+            store.write_commit(out / f".summary.part-{process_id:05d}.json",
+                               {**part, "sweep": store.identity(config.to_toml(space,
+                                                                               num_processes))})
             barrier("jaxfalsify-sweep-parts-written")
-            parts = [json.loads((out / f".summary.part-{i:05d}.json").read_text())
+            parts = [_read_part(out / f".summary.part-{i:05d}.json", i,
+                                store.identity(config.to_toml(space, num_processes)))
                      for i in range(num_processes)]
         else:
             parts = [cfg.jsonable(part)]
@@ -465,6 +523,14 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
         barrier("jaxfalsify-sweep-summary-written")
     shutil.rmtree(ck, ignore_errors=True)
     return {**summary, **timing, "out": str(out)}
+
+
+def _read_part(path: Path, i: int, sweep_id: str) -> dict:
+    """Another process's summary part, its seal and identity verified."""
+    doc = store.read_json(path)
+    if doc.get("sweep") != sweep_id or doc.get("process_id") != i:
+        raise store.CheckpointError(f"{path} belongs to another sweep or process")
+    return doc
 
 
 def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts: list,
@@ -504,16 +570,17 @@ def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts
     return summary
 
 
-def _merge_rows(files: list[Path], tmp: Path, final: Path) -> None:
-    """Concatenate the chunks' Parquet files into one, under a temporary name, then rename."""
+def _merge_rows(files: list[tuple[Path, dict | None]], tmp: Path, final: Path) -> None:
+    """Concatenate the chunks' Parquet files (each verified against its commit-record entry)
+    into one, under a temporary name, then rename."""
+    import io
+
     import pyarrow.parquet as pq
 
     writer = None
     try:
-        for f in files:
-            if not f.exists():
-                raise store.CheckpointError(f"checkpoint file {f} is missing")
-            table = pq.read_table(f)
+        for f, entry in files:
+            table = pq.read_table(io.BytesIO(store.read_verified(f, entry)))
             if writer is None:
                 writer = pq.ParquetWriter(tmp, table.schema)
             writer.write_table(table)
@@ -542,7 +609,7 @@ def committed(config: SweepConfig, out: Path, process_id: int = 0, num_processes
                                           num_processes, world)
     if not (ck / "state.json").exists():
         return 0
-    done, _ = _load_progress(ck, fp, calib.count)
+    done, _, _ = _load_progress(ck, fp, calib.count, begin, end, planned, config.rows)
     return min(done * planned, end - begin)
 
 

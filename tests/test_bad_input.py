@@ -3,6 +3,7 @@ nothing written and nothing overwritten (every file under the working folder is 
 byte for byte before and after)."""
 
 import hashlib
+import os
 import shutil
 import subprocess
 import sys
@@ -47,9 +48,26 @@ def world(tmp_path_factory):
                            "high = inf\nsamples = 3\n"),
         "space_zero_samples.toml": ("[parameters.ped_speed]\ndistribution = 'uniform'\n"
                                     "low = 1.0\nhigh = 2.0\nsamples = 0\n"),
+        "space_huge_integers.toml": ("[parameters.ego_offset]\ndistribution = 'integers'\n"
+                                     "low = 1\nhigh = 1000000000000\nsamples = 3\n"),
+        "space_huge_samples.toml": ("[parameters.ped_speed]\ndistribution = 'uniform'\n"
+                                    "low = 1.0\nhigh = 2.0\nsamples = 10000000000\n"),
+        "space_huge_product.toml": "".join(
+            f"[parameters.{n}]\ndistribution = 'uniform'\nlow = 0.1\nhigh = 0.2\n"
+            "samples = 1000000\n" for n in ("ped_accel", "ped_speed", "ped_offset")),
+        "space_name_int.toml": "name = 5\n[parameters.ped_speed]\nvalues = [1.2]\n",
+        "space_name_array.toml": "name = [1, 2]\n[parameters.ped_speed]\nvalues = [1.2]\n",
+        "space_name_table.toml": "[name]\na = 1\n[parameters.ped_speed]\nvalues = [1.2]\n",
+        "space_name_nul.toml": 'name = "a\\u0000b"\n[parameters.ped_speed]\nvalues = [1.2]\n',
+        "space_name_long.toml": f'name = "{"x" * 300}"\n[parameters.ped_speed]\nvalues = [1.2]\n',
+        "space_name_slash.toml": 'name = "../up"\n[parameters.ped_speed]\nvalues = [1.2]\n',
+        "nested.toml": "x = " + "[" * 5000 + "]" * 5000 + "\n",
     }
     for name, text in files.items():
         (w / name).write_text(text)
+    (w / "latin1.toml").write_bytes("seed = 1 # caf\xe9\n".encode("latin-1"))
+    (w / "a_folder.toml").mkdir()
+    os.mkfifo(w / "fifo.toml")
     # a finished run and sweep
     assert main(["run", "--space", str(w / "tiny.toml"), "--strategy", "random",
                  "--evaluations", "40", "--batch", "8", "--out", str(w / "done"), "--quiet",
@@ -155,14 +173,51 @@ CASES = [
     (["run", "--resume", "unfinished", "--seed", "3"], "--seed cannot be combined"),
     (["run", "--out", "sweep_done"], "holds a sweep"),
     (["run", "--resume", "unfinished", "--force"], "--force cannot be combined"),
-    (["run", "--resume", "corrupt_carry"], "carry-000002.npz is corrupt"),
+    (["run", "--resume", "corrupt_carry"], "carry-000002.npz does not match its commit record"),
     (["sweep", "--resume", "done"], "holds a run, not a sweep"),
     (["run", "--resume", "corrupt_state"], "state.json is corrupt"),
     (["run", "--resume", "missing_records"], "records-000000.npz is missing"),
-    (["run", "--resume", "foreign_checkpoint"], "another configuration"),
+    (["run", "--resume", "foreign_checkpoint"], "state.json was edited or damaged"),
     (["sweep", "--resume", "sweep_corrupt"], "corrupt"),
     (["sweep", "--resume", "sweep_done"], "already complete"),
     (["sweep", "--resume", "sweep_unfinished", "--sut", "none"], "--sut cannot be combined"),
+    # sizes and ranges checked before anything is allocated
+    (["sweep", "--space", "space_huge_integers.toml"], "outside the allowed"),
+    (["sweep", "--space", "space_huge_samples.toml"], "exceeds 1,000,000 values"),
+    (["run", "--space", "space_huge_product.toml"], "at most 2,147,483,647"),
+    (["run", "--batch", "1000000000"], "batch must be in 1..1000000"),
+    (["run", "--evaluations", "99999999999999999999"], "evaluations must be in 1..1000000000"),
+    (["run", "--seed", "18446744073709551616"], "seed must be in 0..18446744073709551615"),
+    (["sweep", "--chunk", "100000000"], "chunk must be in 1..16777216"),
+    # unreadable inputs
+    (["run", "--config", "a_folder.toml"], "is a folder"),
+    (["run", "--config", "/dev/zero"], "not a regular file"),
+    (["run", "--config", "fifo.toml"], "not a regular file"),
+    (["run", "--config", "/proc/self/mem"], "/proc/self/mem"),
+    (["run", "--config", "latin1.toml"], "latin1.toml: not UTF-8"),
+    (["run", "--config", "nested.toml"], "nested.toml: malformed TOML"),
+    (["sweep", "--space", "space_name_int.toml"], "name must be a string"),
+    (["sweep", "--space", "space_name_array.toml"], "name must be a string"),
+    (["sweep", "--space", "space_name_table.toml"], "name must be a string"),
+    (["sweep", "--space", "space_name_nul.toml"], "printable"),
+    (["sweep", "--space", "space_name_long.toml"], "1-64 printable"),
+    (["sweep", "--space", "space_name_slash.toml"], "without /"),
+    # output paths
+    (["replay", "done", "--save", "/proc/x.rrd"], "cannot write in /proc"),
+    (["replay", "done", "--save", "a_folder.toml"], "must end in .rrd"),
+    (["replay", "done", "--save", "nowhere/x.rrd"], "no folder nowhere"),
+    (["compare", "--out", "done", "--seeds", "1"], "holds a run"),
+    (["sweep", "--out", "done"], "holds a run"),
+    # distributed
+    (["sweep", "--distributed", "--coordinator", "nohost", "--num-processes", "2",
+      "--process-id", "0"], "expected HOST:PORT"),
+    # simulate validates like a space does
+    (["simulate", "weather=99"], "weather=99 outside the allowed"),
+    (["simulate", "weather=2.5"], "weather=2.5 must be an integer"),
+    (["simulate", "ped_speed=-1"], "ped_speed=-1 outside the allowed"),
+    (["simulate", "ped_offset=-100"], "outside the allowed"),
+    (["simulate", "ped_change_step=-5"], "outside the allowed"),
+    (["simulate", "ego_offset=1e30"], "ego_offset=1e+30 outside the allowed"),
 ]
 
 

@@ -147,3 +147,17 @@ def test_two_process_sweep_killed_and_resumed_equals_single_process(tmp_path):
     for k, v in single.items():
         np.testing.assert_array_equal(np.asarray(union[k]), v, err_msg=k)
     assert json.loads((out / "timing.json").read_text())["resumed_from_scenario"] > 0
+
+
+def test_an_unreachable_coordinator_fails_in_time_with_one_line():
+    """Process 1 of 2 pointed at a port nobody listens on: a one-line error after the
+    initialisation timeout, not a hang."""
+    code = ("from jaxfalsify.distributed import initialize\n"
+            "try:\n    initialize('127.0.0.1:%d', 2, 1, timeout=3)\n"
+            "except ValueError as e:\n    print('ERR', e)\n" % _free_port())
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       timeout=120)
+    out = r.stdout.strip().splitlines()
+    assert out and out[-1].startswith("ERR --coordinator 127.0.0.1:"), (r.stdout, r.stderr[-500:])
+    assert "not reachable within 3 s" in out[-1]

@@ -166,7 +166,7 @@ def test_sigkilled_sweep_resumes_to_identical_results(tmp_path, capsys):
     assert b.column("scenario").to_pylist() == list(range(100_000))
     _same_table(ref / "sweep.parquet", out / "sweep.parquet")
     assert json.loads((out / "timing.json").read_text())["resumed_from_scenario"] > 0
-    assert sorted(os.listdir(out)) == ["config.toml", "status.json", "summary.json",
+    assert sorted(os.listdir(out)) == [".lock", "config.toml", "status.json", "summary.json",
                                        "sweep.parquet", "timing.json"]
     assert json.loads((out / "status.json").read_text())["state"] == "complete"
 

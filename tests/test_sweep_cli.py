@@ -78,7 +78,7 @@ def test_cli_sweep_writes_parquet_summary_config(small_space, tmp_path, capsys):
     config = tomllib.loads((out / "config.toml").read_text())
     assert config["sut"] == "carla-tm" and config["space"]["name"] == "small"
     assert config["kind"] == "sweep"
-    assert not [p for p in os.listdir(out) if p.startswith(".")]  # no temporary leftovers
+    assert [p for p in os.listdir(out) if p.startswith(".")] == [".lock"]  # no temporary leftovers
     # a second sweep into the same folder is refused, --force overwrites
     mtime = (out / "sweep.parquet").stat().st_mtime_ns
     assert main(["sweep", "--space", str(small_space), "--out", str(out), "--quiet"]) == 2

@@ -1,0 +1,353 @@
+"""Nothing lost, nothing silently wrong.
+
+* Fuzzing (hypothesis, derandomised): malformed space and config TOML and random flag values
+  through the real command line give exit 2, one line starting ``jaxfalsify: error:``, no
+  traceback, and no file of the working folder changed.
+* Random damage to checkpoints (bit flips, truncation, swapped, copied and foreign files,
+  edited commit records, deletions): a resume is refused with one line, or it ends identical to
+  the uninterrupted run — never exit 0 with other results.
+* Locks: a second writer of a folder (resume, force, another kind) is refused with the
+  holder's pid while the first process runs; after a kill -9 the folder is free again.
+* A failed write (disk full) gives one line naming the file, and status.json says failed.
+"""
+
+import contextlib
+import errno
+import hashlib
+import io
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from jaxfalsify import runs, store, sweep
+from jaxfalsify.cli import main
+from conftest import TINY_SPACE
+
+FAST = settings(max_examples=25, deadline=None, derandomize=True,
+                suppress_health_check=list(HealthCheck))
+SLOW = settings(max_examples=200, deadline=None, derandomize=True,
+                suppress_health_check=list(HealthCheck))
+
+
+def _snapshot(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): (hashlib.sha256(p.read_bytes()).hexdigest()
+                                       if p.is_file() else "dir")
+            for p in sorted(root.rglob("*")) if not p.is_fifo()}
+
+
+def cli(argv) -> tuple[int, str]:
+    """``main(argv)`` with stderr captured (no pytest fixture: hypothesis calls it often)."""
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        code = main([str(a) for a in argv])
+    return code, err.getvalue()
+
+
+def assert_one_line_error(code: int, err: str) -> None:
+    assert code == 2, (code, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("jaxfalsify: error: "), err
+    assert "Traceback" not in err
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    w = tmp_path_factory.mktemp("fuzz")
+    (w / "afile").write_text("in the way of every --out\n")
+    (w / "tiny.toml").write_text(TINY_SPACE)
+    return w
+
+
+# ----------------------------------------------------------------------------- fuzzing
+KEYS = ["name", "description", "parameters", "ego_offset", "ped_speed", "ped_accel", "weather",
+        "distribution", "low", "high", "mean", "sd", "samples", "values", "decimals", "unit",
+        "strategy", "sut", "seed", "evaluations", "batch", "space", "space_seed", "kind",
+        "sut_params", "strategy_params", "checkpoint_every", "bogus", ""]
+SCALARS = st.one_of(
+    st.integers(-2**70, 2**70), st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=12), st.booleans(),
+    st.sampled_from(["uniform", "normal", "integers", "values", "paper", "random", "carla-tm",
+                     "reinforce/paper", "m", "m/s", "../x", "a:b", "x.toml"]))
+VALUES = st.recursive(SCALARS, lambda inner: st.one_of(
+    st.lists(inner, max_size=4),
+    st.dictionaries(st.sampled_from(KEYS), inner, max_size=4)), max_leaves=12)
+DOCS = st.dictionaries(st.sampled_from(KEYS), VALUES, max_size=6)
+
+
+def toml_text(doc, prefix="") -> str:
+    """A TOML writer that also writes what our configs never hold (nan, inf, odd keys)."""
+    def value(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, float):
+            return "nan" if v != v else ("inf" if v == float("inf") else
+                                         "-inf" if v == float("-inf") else repr(v))
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, list):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, dict):
+            return "{" + ", ".join(f"{json.dumps(k)} = {value(x)}" for k, x in v.items()) + "}"
+        return str(v)
+
+    return "".join(f"{json.dumps(k)} = {value(v)}\n" for k, v in doc.items())
+
+
+def _fuzz_file(workdir: Path, data: bytes, command: list[str]) -> None:
+    f = workdir / "fuzzed.toml"
+    f.write_bytes(data)
+    before = _snapshot(workdir)
+    code, err = cli(command + [f, "--out", workdir / "afile"])
+    assert_one_line_error(code, err)
+    assert _snapshot(workdir) == before
+
+
+@FAST
+@given(DOCS, st.one_of(st.none(), st.binary(max_size=64)), st.booleans())
+def test_fuzzed_toml_through_the_cli(workdir, doc, raw, as_space):
+    data = toml_text(doc).encode() if raw is None else raw
+    if as_space:
+        _fuzz_file(workdir, data, ["sweep", "--quiet", "--space"])
+    else:
+        _fuzz_file(workdir, data, ["run", "--quiet", "--no-figures", "--config"])
+
+
+FLAG_VALUES = st.sampled_from(["", "0", "-1", "1", "3", "1e30", "nan", "inf", "abc", "../x",
+                               "tiny.toml", "paper", "random", "reinforce/paper", "a=b", "=",
+                               "lr=nan", "ttc_full=0.8,0.8", "x" * 300, "9" * 30, "1,2",
+                               "carla-tm", "nowhere:AEB", "collisions", "\x00", "/dev/zero"])
+FLAGS = {
+    "run": ["--space", "--space-seed", "--sut", "--sut-param", "--strategy",
+            "--strategy-param", "--evaluations", "--batch", "--seed", "--checkpoint-every",
+            "--config", "--resume"],
+    "sweep": ["--space", "--space-seed", "--sut", "--sut-param", "--seed", "--chunk", "--rows",
+              "--resume"],
+    "compare": ["--strategies", "--seeds", "--evaluations", "--space", "--space-seed", "--sut",
+                "--sut-param"],
+}
+
+
+@FAST
+@given(st.sampled_from(sorted(FLAGS)), st.data())
+def test_fuzzed_flags_through_the_cli(workdir, command, data):
+    flags = data.draw(st.lists(st.sampled_from(FLAGS[command]), min_size=1, max_size=4))
+    argv = [command, "--quiet"]
+    for f in flags:
+        argv += [f, data.draw(FLAG_VALUES)]
+    if "--resume" not in flags:
+        argv += ["--out", "afile"]  # a valid combination must still not run or write
+    cwd = os.getcwd()
+    os.chdir(workdir)
+    try:
+        before = _snapshot(workdir)
+        code, err = cli(argv)
+        assert_one_line_error(code, err)
+        assert _snapshot(workdir) == before
+    finally:
+        os.chdir(cwd)
+
+
+# ----------------------------------------------------------------------------- damage
+def _stopper(n):
+    calls = iter(range(10_000))
+    return lambda: next(calls) >= n
+
+
+RUN = dict(strategy="reinforce", evaluations=200, batch=20, checkpoint_every=1)
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory):
+    """An uninterrupted run and sweep (the oracles), and interrupted ones to damage, plus
+    interrupted ones of another seed (foreign files of the same shapes)."""
+    base = tmp_path_factory.mktemp("damage")
+    space = base / "tiny.toml"
+    space.write_text(TINY_SPACE)
+    made = {}
+    for seed, name in ((3, "run"), (4, "foreign_run")):
+        rc = runs.RunConfig(space=str(space), seed=seed, **RUN)
+        with pytest.raises(runs.Interrupted):
+            runs.execute(rc, base / name, stop=_stopper(4), figures=False)
+    runs.execute(runs.RunConfig(space=str(space), seed=3, **RUN), base / "run_ref",
+                 figures=False)
+    for seed, name in ((0, "sweep"), (1, "foreign_sweep")):
+        with pytest.raises(runs.Interrupted):
+            sweep.execute(sweep.SweepConfig(chunk=4096, seed=seed), base / name,
+                          stop=_stopper(5))
+    sweep.execute(sweep.SweepConfig(chunk=4096), base / "sweep_ref")
+    made["base"] = base
+    return made
+
+
+def _files(ck: Path, pattern: str) -> list[Path]:
+    return sorted(ck.glob(pattern))
+
+
+def damage(folder: Path, foreign: Path, kind: str, rng: np.random.Generator) -> str:
+    """Apply one random damage of ``kind`` to ``folder/checkpoint``; returns what was done."""
+    ck, fck = folder / "checkpoint", foreign / "checkpoint"
+    data_glob = "records-*.npz" if (ck / "carry-000004.npz").exists() else "rows-*.parquet"
+    data = _files(ck, data_glob)
+    every = [p for p in ck.iterdir() if p.is_file()]
+    pick = lambda xs: xs[int(rng.integers(len(xs)))]  # noqa: E731
+    if kind == "bitflip":
+        f = pick(every)
+        b = bytearray(f.read_bytes())
+        i = int(rng.integers(len(b)))
+        b[i] ^= 1 << int(rng.integers(8))
+        f.write_bytes(bytes(b))
+        return f"flip a bit of {f.name} at {i}"
+    if kind == "truncate":
+        f = pick(every)
+        n = int(rng.integers(f.stat().st_size))
+        f.write_bytes(f.read_bytes()[:n])
+        return f"truncate {f.name} to {n}"
+    if kind == "swap":
+        a, b = rng.choice(len(data), 2, replace=False)
+        x, y = data[a].read_bytes(), data[b].read_bytes()
+        data[a].write_bytes(y)
+        data[b].write_bytes(x)
+        return f"swap {data[a].name} and {data[b].name}"
+    if kind == "copy":
+        a, b = rng.choice(len(data), 2, replace=False)
+        shutil.copyfile(data[a], data[b])
+        return f"copy {data[a].name} over {data[b].name}"
+    if kind == "foreign_file":
+        f = pick([p for p in every if p.name != "state.json" and (fck / p.name).exists()])
+        shutil.copyfile(fck / f.name, f)
+        return f"{f.name} from another seed"
+    if kind == "foreign_state":
+        shutil.copyfile(fck / "state.json", ck / "state.json")
+        return "state.json from another seed"
+    if kind == "edit_state":
+        doc = json.loads((ck / "state.json").read_text())
+        key = pick([k for k in ("chunks_done", "evaluations_done", "scenarios_done") if k in doc])
+        doc[key] += int(rng.choice([-1, 1, -2]))
+        (ck / "state.json").write_text(json.dumps(doc))
+        return f"edit {key} in state.json"
+    if kind == "reseal_state":  # an edit that also recomputes the seal: files must still match
+        doc = json.loads((ck / "state.json").read_text())
+        name = pick(sorted(doc["files"]))
+        doc["files"][name]["sha256"] = "0" * 64
+        store.write_commit(ck / "state.json", {k: v for k, v in doc.items()
+                                               if k not in ("sha256", "format")})
+        return f"resealed state.json with a wrong hash for {name}"
+    if kind == "delete":
+        f = pick(every)
+        f.unlink()
+        return f"delete {f.name}"
+    raise AssertionError(kind)
+
+
+KINDS = ["bitflip", "truncate", "swap", "copy", "foreign_file", "foreign_state", "edit_state",
+         "reseal_state", "delete"]
+
+
+def _same_parquet(a: Path, b: Path) -> bool:
+    ta, tb = pq.read_table(a), pq.read_table(b)
+    return ta.schema.equals(tb.schema) and all(
+        np.array_equal(ta.column(c).to_numpy(), tb.column(c).to_numpy(), equal_nan=True)
+        for c in ta.column_names)
+
+
+def _resume_damaged(checkpoints, what: str, kind: str, seed: int) -> None:
+    base = checkpoints["base"]
+    tmp = Path(tempfile.mkdtemp(dir=base))
+    folder = tmp / what
+    shutil.copytree(base / what, folder)
+    done = damage(folder, base / f"foreign_{what}", kind, np.random.default_rng(seed))
+    code, err = cli([what, "--resume", folder, "--quiet"]
+                    + (["--no-figures"] if what == "run" else []))
+    if code == 0:  # accepted: then it must be exactly the uninterrupted result
+        ref = base / f"{what}_ref"
+        assert (folder / "summary.json").read_bytes() == (ref / "summary.json").read_bytes(), done
+        table = "episodes.parquet" if what == "run" else "sweep.parquet"
+        assert _same_parquet(folder / table, ref / table), done
+    else:
+        assert_one_line_error(code, err)
+        assert "checkpoint" in err or "state.json" in err, (done, err)
+    shutil.rmtree(tmp)
+
+
+@FAST
+@given(st.sampled_from(KINDS), st.integers(0, 2**31))
+def test_damaged_run_checkpoint_is_refused_or_resumes_identically(checkpoints, kind, seed):
+    _resume_damaged(checkpoints, "run", kind, seed)
+
+
+@settings(max_examples=15, deadline=None, derandomize=True,
+          suppress_health_check=list(HealthCheck))
+@given(st.sampled_from(KINDS), st.integers(0, 2**31))
+def test_damaged_sweep_checkpoint_is_refused_or_resumes_identically(checkpoints, kind, seed):
+    _resume_damaged(checkpoints, "sweep", kind, seed)
+
+
+@pytest.mark.slow
+@SLOW
+@given(st.sampled_from(["run", "sweep"]), st.sampled_from(KINDS), st.integers(0, 2**31))
+def test_damaged_checkpoints_many(checkpoints, what, kind, seed):
+    _resume_damaged(checkpoints, what, kind, seed)
+
+
+# ----------------------------------------------------------------------------- locks
+def _wait_for(path: Path, proc, timeout=300):
+    deadline = time.monotonic() + timeout
+    while not path.exists():
+        assert proc.poll() is None, proc.communicate()[1][-2000:]
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+
+
+def test_a_second_writer_is_refused_with_the_holders_pid(tmp_path):
+    out = tmp_path / "sw"
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    first = subprocess.Popen([sys.executable, "-m", "jaxfalsify.cli", "sweep", "--space",
+                              "paper-extended", "--chunk", "4096", "--quiet", "--out", str(out)],
+                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for(out / "checkpoint" / "state.json", first)
+        for argv in (["sweep", "--resume", out], ["sweep", "--out", out, "--force"],
+                     ["compare", "--out", out, "--force"]):
+            code, err = cli(argv)
+            assert_one_line_error(code, err)
+        code, err = cli(["sweep", "--resume", out])
+        assert f"being written by process {first.pid}" in err
+        # a second real process is refused the same way
+        r = subprocess.run([sys.executable, "-m", "jaxfalsify.cli", "sweep", "--resume",
+                            str(out)], env=env, capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2 and f"process {first.pid}" in r.stderr
+        assert (out / "checkpoint").exists()  # --force deleted nothing
+    finally:
+        first.send_signal(signal.SIGKILL)
+        first.communicate()
+    # kill -9 leaves no stale lock: the folder resumes
+    assert json.loads((out / "status.json").read_text())["state"] == "running"
+    with pytest.raises(runs.Interrupted):
+        sweep.execute(sweep.resume_config(out)[0], out, resume=True, stop=_stopper(1))
+
+
+# ----------------------------------------------------------------------------- full disk
+def test_a_full_disk_gives_one_line_and_a_truthful_status(tmp_path, monkeypatch, capsys):
+    def full(path, columns):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(store, "write_parquet", full)
+    out = tmp_path / "r"
+    assert main(["run", "--strategy", "random", "--evaluations", "40", "--batch", "20",
+                 "--out", str(out), "--quiet", "--no-figures"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "No space left on device" in err[0] and "episodes.parquet" in err[0]
+    status = json.loads((out / "status.json").read_text())
+    assert status["state"] == "failed" and "ENOSPC" not in status["state"]
+    assert not (out / "episodes.parquet").exists() and not (out / "summary.json").exists()
