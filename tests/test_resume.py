@@ -88,7 +88,7 @@ def _interrupt(args, out: Path, chunks: int, sig) -> tuple[int, str]:
     return proc.returncode, err
 
 
-RUN_ARGS = ["run", "--evaluations", "3000", "--batch", "20", "--checkpoint-every", "1",
+RUN_ARGS = ["run", "--evaluations", "1200", "--batch", "20", "--checkpoint-every", "1",
             "--seed", "7", "--no-figures", "--quiet"]
 
 
@@ -104,7 +104,7 @@ def _same_table(a: Path, b: Path):
 def _same_run(a: Path, b: Path):
     assert (a / "summary.json").read_bytes() == (b / "summary.json").read_bytes()
     tb = pq.read_table(b / "episodes.parquet")
-    assert tb.column("evaluation").to_pylist() == list(range(1, 3001))  # no gaps, no duplicates
+    assert tb.column("evaluation").to_pylist() == list(range(1, 1201))  # no gaps, no duplicates
     _same_table(a / "episodes.parquet", b / "episodes.parquet")
     assert (a / "critical.csv").read_text() == (b / "critical.csv").read_text()
     assert (a / "config.toml").read_text() == (b / "config.toml").read_text()
@@ -143,7 +143,7 @@ def test_sigint_or_sigterm_leaves_a_resumable_run(tmp_path, sig, code):
     status = json.loads((out / "status.json").read_text())
     saved = json.loads((out / "checkpoint" / "state.json").read_text())
     assert status["state"] == "interrupted"
-    assert status["evaluations_done"] == saved["evaluations_done"] < 3000
+    assert status["evaluations_done"] == saved["evaluations_done"] < 1200
     assert not (out / "summary.json").exists()
     assert main(["run", "--resume", str(out), "--quiet", "--no-figures"]) == 0
     _same_run(reference, out)

@@ -84,7 +84,7 @@ def test_sweep_and_compare_by_import_path(tiny, tmp_path):
         assert row["n_collisions"] == int(alone["collision"].sum())
     assert s["calibrations"][0]["n_collisions"] > s["calibrations"][1]["n_collisions"]
     cmp = tmp_path / "cmp"
-    assert main(["compare", "--space", str(tiny), "--sut", SPEC, "--strategies", "random,cem",
+    assert main(["compare", "--space", str(tiny), "--sut", SPEC, "--strategies", "random",
                  "--seeds", "2", "--evaluations", "40", "--out", str(cmp), "--quiet"]) == 0
     result = json.loads((cmp / "compare.json").read_text())
-    assert result["sut"] == SPEC and [r["strategy"] for r in result["rows"]] == ["random", "cem"]
+    assert result["sut"] == SPEC and [r["strategy"] for r in result["rows"]] == ["random"]
