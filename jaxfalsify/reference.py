@@ -1,8 +1,8 @@
 """A plain NumPy reference of the crossing rollout: the test oracle and the benchmark baseline.
 
 Independent of the JAX code path: float64, an explicit Python loop over time steps (vectorised
-over the batch only), its own implementation of the pedestrian profile, the Traffic Manager's
-emergency stop, the metrics and the paper's reward. It shares only the constants (``World``,
+over the batch only), its own implementation of the pedestrian profile (the original's loop),
+CARLA's PID and the Traffic Manager's collision stage, the metrics and the paper's reward. It shares only the constants (``World``,
 the SUT parameter tuples). Supports the ``carla-tm`` and ``none`` SUTs.
 """
 
@@ -31,111 +31,155 @@ def reference_evaluate(scenario: dict, sut: str = "carla-tm", world: World = WOR
                        record: bool = False) -> dict:
     """Evaluate a flat batch ``{name: (B,)}``; returns a dict of ``(B,)`` NumPy arrays with the
     same outcome fields as :class:`jaxfalsify.sim.Outcome` (float64); with ``record`` also
-    ``ego_x``, ``ego_speed``, ``ped_y`` and ``valid`` histories ``(B, T)``."""
+    ``ego_x``, ``ego_speed``, ``ped_y`` and ``valid`` histories ``(B, T)`` (after each step)."""
     if sut not in ("carla-tm", "none"):
         raise ValueError(f"the reference supports carla-tm and none, not '{sut}'")
     w = world
     B = len(np.atleast_1d(next(iter(scenario.values()))))
     p = {k: np.broadcast_to(np.asarray(scenario.get(k, spec["default"]), np.float64), (B,))
          for k, spec in KNOWN_PARAMETERS.items()}
-    cruise = REGISTRY[sut].default_params
-    tm = REGISTRY["carla-tm"].default_params
+    tm = REGISTRY[sut].default_params
     dt = w.dt
     L, W, PL, PW = w.ego_length, w.ego_width, w.ped_length, w.ped_width
     ego_y = -w.lane_width / 2
-    right, left = -w.lane_width * w.lanes_right, w.lane_width * w.lanes_left
+    right = -w.lane_width * w.lanes_right
     px = w.crosswalk_x
 
     x = -p["ego_offset"].copy()
     v = np.zeros(B)
-    py = right - (p["ped_offset"] + 1.0)
-    hold = np.zeros(B, bool)
+    py = right + w.walker_base - (p["ped_offset"] + 1.0)
+    ped_v = np.zeros(B)  # the walker's velocity, as the SUT sees it (last step's)
+    integral, prev_e = np.zeros(B), np.zeros(B)
     alive = np.ones(B, bool)
     collided = np.zeros(B, bool)
     coll_step = np.full(B, -1)
     hr_flags = np.zeros((B, w.horizon), bool)
     n = np.zeros(B, int)
-    min_d = np.full(B, np.inf)
-    last_d = np.full(B, np.nan)
+    min_d = _box_gap(x, py, w)
+    last_c = np.full(B, np.nan)
     min_ttc = np.full(B, np.inf)
-
-    # pedestrian profile: start, then +accel per step from step 5 until above speed + 0.25
     hist = {k: np.zeros((B, w.horizon)) for k in ("ego_x", "ego_speed", "ped_y", "valid")}
-    start = p["ped_speed"] - 5 * p["ped_accel"]
-    vp_prev = start.copy()
+
+    # the original's pdf.py loop: s starts at speed - 5*accel; steps 0..5 at s; then s += accel
+    # per step until it exceeds speed + 0.25; the change window (6 steps from T) walks at
+    # s + change and does not advance s
+    s = p["ped_speed"] - 5 * p["ped_accel"]
+    on = p["ped_speed_change"] != 0
+    T = p["ped_change_step"]
     for k in range(w.horizon):
-        if k < 5:
-            vp = start.copy()
-        else:
-            grow = vp_prev <= p["ped_speed"] + 0.25 + 1e-4 * p["ped_accel"]
-            vp = np.where(grow & (p["ped_accel"] > 0), vp_prev + p["ped_accel"], vp_prev)
-        vp_prev = vp
-        win = (k >= p["ped_change_step"]) & (k < p["ped_change_step"] + 5) & \
-            (p["ped_speed_change"] != 0)
-        vp_eff = np.maximum(np.where(win, start + p["ped_speed_change"], vp), 0.0)
+        in_win = on & (k >= T) & (k <= T + 5)
+        grow = ~in_win & (k > 5) & (s <= p["ped_speed"] + 0.25 + 1e-4 * p["ped_accel"]) \
+            & (p["ped_accel"] > 0)
+        s = np.where(grow, s + p["ped_accel"], s)
+        vp = np.maximum(np.where(in_win, s + p["ped_speed_change"], s), 0.0)
 
-        # SUT
-        cruise_a = np.clip(cruise.gain * (cruise.cruise_speed - v), -cruise.decel_max,
-                           cruise.accel_max)
+        # SUT: CARLA's PID, and for carla-tm the collision stage's hazard decision
+        target = tm.speed_limit / 3.6 * (1 - tm.below_limit / 100)
+        e = (v - target) / target
+        integral = np.clip(integral + e * tm.pid_dt, -5, 5)
+        expr = tm.kp * e + tm.ki * integral + tm.kd * (e - prev_e) / tm.pid_dt
+        prev_e = e
+        cmd = np.where(expr < 0, np.minimum(-expr, tm.max_throttle) * tm.throttle_accel,
+                       -np.minimum(expr, 1.0) * tm.full_brake)
         if sut == "carla-tm":
-            ext = tm.walker_time * vp_eff
-            lat = (py + PW / 2 + ext > ego_y - W / 2) & (py - PW / 2 < ego_y + W / 2)
-            front = x + L / 2
-            lon = (px + PL / 2 > front) & \
-                (px - PL / 2 < front + tm.boundary_min + tm.boundary_rate * v)
-            crossed = py - PW / 2 > left
-            behind = px + PL / 2 < x - L / 2
-            hold = (lat & lon) | (hold & ~crossed & ~behind)
-            cmd = np.where(hold, -tm.full_brake, cruise_a)
-        else:
-            cmd = cruise_a
+            hazard = tm_hazard_reference(x, ego_y, v, px, py, ped_v, L, W, PL, PW, tm)
+            cmd = np.where(hazard, -tm.full_brake, cmd)
+            integral = np.where(hazard, 0.0, integral)
 
-        # metrics
-        gx = abs(px - x) - (L + PL) / 2
-        gy = abs(py - ego_y) - (W + PW) / 2
-        d = np.hypot(np.maximum(gx, 0), np.maximum(gy, 0))
-        valid = alive.copy()
-        for key, val in (("ego_x", x), ("ego_speed", v), ("ped_y", py), ("valid", valid)):
-            hist[key][:, k] = val
-        ahead = px + PL / 2 > x + L / 2
-        hr_flags[:, k] = valid & ahead & (_rss(v) > d)
-        n += valid
-        min_d = np.where(valid, np.minimum(min_d, d), min_d)
-        last_d = np.where(valid, d, last_d)
-        # time to collision: per-axis overlap windows under constant velocities
-        cx = np.where(px > x, v, -v)
-        cy = np.where(py < ego_y, vp_eff, -vp_eff)
-        ttc = _ttc_vector(gx, gy, cx, cy, L + PL, W + PW)
-        min_ttc = np.where(valid, np.minimum(min_ttc, ttc), min_ttc)
-        hit = valid & (gx <= 0) & (gy <= 0)
-        collided |= hit
-        coll_step = np.where(hit, k, coll_step)
-        done = hit | (x >= w.end_x)
-        alive = valid & ~done
-
-        # integrate
+        # the tick
         a = np.clip(cmd, -w.max_brake, w.max_accel)
         v_new = v + a * dt
         stop = v_new < 0
         dx = np.where(stop, v**2 / (2 * np.maximum(-a, 1e-12)), (v + v_new) / 2 * dt)
-        x = np.where(alive, x + dx, x)
-        v = np.where(alive, np.maximum(v_new, 0), v)
-        py = np.where(alive, py + vp_eff * dt, py)
+        v1, x1, y1 = np.maximum(v_new, 0), x + dx, py + vp * dt
+
+        # metrics on the state after the tick
+        gx = abs(px - x1) - (L + PL) / 2
+        gy = abs(y1 - ego_y) - (W + PW) / 2
+        d = np.hypot(np.maximum(gx, 0), np.maximum(gy, 0))
+        centre_after = np.sqrt((px - x1) ** 2 + (y1 - ego_y) ** 2 + w.origin_dz ** 2)
+        centre_before = np.sqrt((px - x) ** 2 + (py - ego_y) ** 2 + w.origin_dz ** 2)
+        valid = alive.copy()
+        ahead = px + PL / 2 > x1 + L / 2
+        hr_flags[:, k] = valid & ahead & (_rss(v1) > centre_after)
+        n += valid
+        min_d = np.where(valid, np.minimum(min_d, d), min_d)
+        last_c = np.where(valid, centre_before, last_c)
+        cx = np.where(px > x1, v1, -v1)
+        cy = np.where(y1 < ego_y, vp, -vp)
+        ttc = _ttc_vector(gx, gy, cx, cy, L + PL, W + PW)
+        min_ttc = np.where(valid, np.minimum(min_ttc, ttc), min_ttc)
+        hit = valid & (gx <= 0) & (gy <= 0)
+        collided |= hit
+        coll_step = np.where(hit, k + 1, coll_step)
+        done = hit | (x > w.end_x)
+        x, v = np.where(valid, x1, x), np.where(valid, v1, v)
+        py, ped_v = np.where(valid, y1, py), np.where(valid, vp, ped_v)
+        alive = valid & ~done
+        for key, val in (("ego_x", x), ("ego_speed", v), ("ped_y", py), ("valid", valid)):
+            hist[key][:, k] = val
 
     hr = hr_flags.sum(1)
     second = np.array([hr_flags[i, n[i] // 2:n[i]].sum() for i in range(B)])
     frac_rss = _round_half_up((hr - 1) / np.maximum(n - 1, 1), 2)
     r_rss = 0.02 * frac_rss - 0.01
-    r_dist = 0.02 * (1 - np.round((last_d - 1) / 9, 2)) - 0.01
+    r_dist = 0.02 * (1 - np.round((last_c - 1) / 9, 2)) - 0.01
     r_col = np.where(collided, 0.25, 0.0)
     return dict(
         reward=r_rss + r_dist + r_col, reward_rss=r_rss, reward_distance=r_dist,
         reward_collision=r_col, collision=collided,
         collision_time=np.where(collided, coll_step * dt, np.nan),
-        min_distance=min_d, final_distance=last_d, high_risk_steps=hr,
+        min_distance=min_d, final_distance=last_c, high_risk_steps=hr,
         high_risk_share=hr / np.maximum(n, 1),
         high_risk_share_second_half=second / np.maximum(n - n // 2, 1),
         robustness=min_d - w.epsilon, steps=n, min_ttc=min_ttc, **(hist if record else {}))
+
+
+def _box_gap(x, py, w):
+    gx = abs(w.crosswalk_x - x) - (w.ego_length + w.ped_length) / 2
+    gy = abs(py + w.lane_width / 2) - (w.ego_width + w.ped_width) / 2
+    return np.hypot(np.maximum(gx, 0), np.maximum(gy, 0))
+
+
+def _extension(v, tm):
+    """The pipeline-era GetBoundingBoxExtention, written as CARLA's if/else chain."""
+    out = np.empty_like(v)
+    for i, s in enumerate(v):
+        if s > tm.highway_speed:
+            out[i] = tm.highway_time * s
+        elif s < tm.crawl_speed:
+            out[i] = tm.ext_min
+        else:
+            out[i] = math.sqrt(tm.ext_square_point * s) + tm.time_horizon * s + tm.ext_min
+    return out
+
+
+def _interval_gap(a0, a1, b0, b1):
+    return np.maximum(np.maximum(b0 - a1, a0 - b1), 0.0)
+
+
+def tm_hazard_reference(ex, ey, v, px, py, pv, L, W, PL, PW, tm):
+    """The collision stage's decision for a walker, NumPy (float64): the same rules as
+    ``jaxfalsify.sut.carla_tm_hazard``, written separately from CARLA's description."""
+    ex, v, py, pv = (np.asarray(a, np.float64) for a in (ex, v, py, pv))
+    ext = _extension(np.atleast_1d(v), tm).reshape(v.shape)
+    geo_ext = np.maximum(tm.leading_distance, ext)
+    grow = tm.walker_time * np.abs(pv)
+    wx0, wx1 = px - PL / 2 - grow, px + PL / 2 + grow
+    wy0, wy1 = py - PW / 2 - grow, py + PW / 2 + grow
+    gy = _interval_gap(ey - W / 2, ey + W / 2, wy0, wy1)
+    g_geo = _interval_gap(ex - L / 2, ex + L + geo_ext, wx0, wx1)
+    g_box = _interval_gap(ex - L / 2, ex + L / 2, wx0, wx1)
+    geo, bb = np.hypot(g_geo, gy), np.hypot(g_box, gy)
+    dx, dy = px - ex, py - ey
+    d2 = dx**2 + dy**2
+    lim = tm.bbox_multiplier * (L / 2 + PW / 2)
+    behind_far = (dx < 0) & (d2 > (ext + lim) ** 2)
+    ahead_far = (dx > 0) & (d2 > np.maximum((ext + lim) ** 2, (tm.leading_distance + lim) ** 2))
+    unit = np.sqrt(np.maximum(d2, 1e-300))
+    dr, do = dx / unit, -dy / unit
+    rule = ((bb > tm.touch) & (bb > geo)) | ((bb < tm.touch) & (dr > do))
+    return ~behind_far & ~ahead_far & (geo < tm.touch) & rule
 
 
 def _ttc_vector(gx, gy, cx, cy, span_x, span_y):

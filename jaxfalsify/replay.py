@@ -7,9 +7,10 @@ Entities of a recording:
 
 * ``world/road`` (static): road edges, lane lines; ``world/crosswalk`` (static);
 * ``world/ego``, ``world/pedestrian``: boxes on the ``sim_time`` timeline; the ego is red while
-  its SUT brakes; ``world/detection_zone``: the Traffic Manager's hazard corridor ahead of the
-  car (2.5 m + 4.35 s x speed, the car's width; ``carla-tm`` only); ``world/collision``: a
-  marker at the collision;
+  its SUT brakes; ``world/hazard_corridor`` and ``world/walker_grown_box``: the Traffic
+  Manager's polygons (``carla-tm`` only: the car's geodesic boundary, its width, reaching one
+  car length plus the speed-dependent extension ahead; the walker's box grown by 1.5 s x its
+  speed on every side); ``world/collision``: a marker at the collision;
 * ``metrics/distance``, ``metrics/rss_distance``, ``metrics/high_risk`` (1 red / 0 green),
   ``metrics/ego_speed``, ``metrics/ped_speed``: scalar series on ``sim_time``;
 * ``info``: the scenario's parameters and outcome as a markdown document;
@@ -92,7 +93,7 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
     traj = jf.simulate(sp.scenario(idx), sut=rc.sut, sut_params=dict(rc.sut_params))
     tr = {k: np.asarray(v)[0] for k, v in vars(traj).items()}
     valid = tr["valid"]
-    tm = rc.sut_params
+    corridor = _tm_polygons(rc, tr, w) if rc.sut == "carla-tm" else None
     for k in np.nonzero(valid)[0]:
         rec.set_time("sim_time", duration=float(tr["t"][k]))
         braking = bool(tr["braking"][k])
@@ -102,12 +103,13 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
         rec.log("world/pedestrian", rr.Boxes2D(centers=[[tr["ped_x"][k], tr["ped_y"][k]]],
                                                sizes=[[w.ped_length, w.ped_width]],
                                                colors=[(240, 160, 0)]))
-        if rc.sut == "carla-tm":
-            length = tm["boundary_min"] + tm["boundary_rate"] * float(tr["ego_speed"][k])
-            front = float(tr["ego_x"][k]) + w.ego_length / 2
-            rec.log("world/detection_zone",
-                    rr.Boxes2D(centers=[[front + length / 2, tr["ego_y"][k]]],
-                               sizes=[[length, w.ego_width]], colors=[(120, 120, 255, 80)]))
+        if corridor is not None:  # the Traffic Manager's polygons at this step
+            for name, (x0, x1, y0, y1), color in zip(
+                    ("hazard_corridor", "walker_grown_box"), corridor,
+                    ((120, 120, 255, 80), (240, 160, 0, 60))):
+                rec.log(f"world/{name}", rr.Boxes2D(
+                    centers=[[(x0[k] + x1[k]) / 2, (y0[k] + y1[k]) / 2]],
+                    sizes=[[x1[k] - x0[k], y1[k] - y0[k]]], colors=[color]))
         if tr["collided"][k]:
             rec.log("world/collision", rr.Points2D([[tr["ped_x"][k], tr["ped_y"][k]]],
                                                    radii=[0.6], colors=[RED],
@@ -181,3 +183,22 @@ def check_save_path(path: Path) -> Path:
     except OSError as e:
         raise ValueError(f"--save {path}: cannot write in {parent} ({e.strerror})") from None
     return parent / f".{path.name}.partial"
+
+
+def _tm_polygons(rc, tr: dict, w) -> tuple:
+    """carla-tm's geodesic corridor and the walker's grown box at every recorded step, as
+    ``(x0, x1, y0, y1)`` arrays (the SUT's own geometry, see ``sut.tm_polygons``)."""
+    from jaxfalsify import sut as sut_lib
+
+    s = sut_lib.resolve(rc.sut)
+    params = sut_lib.with_params(s, dict(rc.sut_params))
+    n = len(tr["t"])
+    full = lambda v: np.full(n, v, np.float32)  # noqa: E731
+    obs = sut_lib.Observation(
+        t=tr["t"], dt=full(w.dt), ego_x=tr["ego_x"], ego_y=tr["ego_y"], ego_speed=tr["ego_speed"],
+        ego_length=full(w.ego_length), ego_width=full(w.ego_width), ped_x=tr["ped_x"],
+        ped_y=tr["ped_y"], ped_vx=full(0.0), ped_vy=tr["ped_speed"],
+        ped_length=full(w.ped_length), ped_width=full(w.ped_width),
+        road_right=full(w.road_right), road_left=full(w.road_left), weather=full(0))
+    _, geo, walker = sut_lib.tm_polygons(obs, params)
+    return tuple(tuple(np.asarray(a) for a in poly) for poly in (geo, walker))

@@ -1,9 +1,9 @@
 """The crossing world and its batched simulator (paper Fig. 1/3: a pedestrian crosses an urban road).
 
 Frame: x along the ego's lane (direction of travel), y to the left, origin at the ego's *base*
-start (its box centre), SI units. The road is straight with ``lanes_right`` lanes in the ego's
-direction (the ego drives in the innermost one, next to the centre line at y = 0) and
-``lanes_left`` lanes the other way. A marked crosswalk crosses it at ``x = crosswalk_x``.
+start (its box centre), SI units. The road is straight with ``lanes_right`` lanes right of
+the centre line y = 0 (the ego drives in the innermost one) and ``lanes_left`` lanes left of
+it; the pedestrian comes from the right. A marked crosswalk crosses it at ``x = crosswalk_x``.
 
 One episode (written for one concrete scenario; ``vmap`` + ``jit`` are applied outside):
 
@@ -11,17 +11,21 @@ One episode (written for one concrete scenario; ``vmap`` + ``jit`` are applied o
 * The pedestrian starts ``ped_offset + 1`` m behind the right kerb (as the original spawns it)
   and walks straight across, starting when the ego starts moving (t = 0), with the original
   code's speed profile (:func:`ped_speed_profile`).
-* Every 0.1 s step: the SUT observes, metrics are taken, then the ego integrates the SUT's
-  command (exactly, for constant acceleration over the step, stopping at v = 0) and the
-  pedestrian its profile speed.
-* The episode ends on collision (box overlap), when the ego has travelled ``30 m +
-  ego_offset`` (reached x = 30 m), or at the 30 s horizon. ``lax.scan`` runs the fixed horizon
-  with a done mask; metrics are reduced inside the carry.
+* Every 0.1 s step (one tick of the original's loop): the SUT observes, the ego integrates
+  the SUT's command (exactly, for constant acceleration over the step, stopping at v = 0) and
+  the pedestrian its profile speed, then the metrics are taken on the new state.
+* The episode ends on collision (box overlap), after the step that starts beyond ``30 m +
+  ego_offset`` travelled (x > 30 m), or at the 30 s horizon. ``lax.scan`` runs the fixed
+  horizon with a done mask; metrics are reduced inside the carry.
 
-The geometry constants in :class:`World` were chosen (see README, 'The crossing world') so
-that the paper's mechanism appears with its SUT: a slow pedestrian stays outside the Traffic
-Manager's narrow hazard corridor (the car's own width) until the car can no longer stop clear
-of the crosswalk.
+Distances: collision, STL robustness, ``min_distance`` and the figures use the gap between
+the two boxes; the paper reward (RSS comparison and distance term) uses the original's 3-D
+distance between the actors' origins (``centre_distance``).
+
+The geometry constants in :class:`World` were calibrated (``experiments/calibrate_world.py``;
+README, 'The crossing world') so that the paper's mechanism appears with its SUT: a slow
+pedestrian's grown box stays outside the Traffic Manager's narrow hazard corridor (the car's
+own width) until the car can no longer stop clear of the crosswalk.
 """
 
 from __future__ import annotations
@@ -38,6 +42,9 @@ from jaxfalsify import sut as sut_lib
 from jaxfalsify.space import KNOWN_PARAMETERS
 
 
+NON_NEGATIVE = ("lanes_left", "crosswalk_x", "end_x", "walker_base", "origin_dz")
+
+
 @pytree.dataclass
 class World:
     """World constants: a pytree whose numbers are traced (a geometry study vmaps over them);
@@ -45,10 +52,12 @@ class World:
 
     dt: float = 0.1  # s
     horizon: int = pytree.static(300)  # steps (30 s)
-    lane_width: float = 3.5  # m
-    lanes_right: float = 2.0  # lanes in the ego's direction; the ego uses the inner one
-    lanes_left: float = 2.0  # lanes in the other direction
-    crosswalk_x: float = 11.0  # m ahead of the ego's base start (box centre)
+    lane_width: float = 3.0  # m (the original's notes: 'each lane is 3 meters wide')
+    lanes_right: float = 3.0  # lanes right of the centre line; the ego uses the inner one
+    lanes_left: float = 1.0  # lanes left of it (4 lanes; the ego in the third from the walker)
+    crosswalk_x: float = 6.0  # m ahead of the ego's base start (box centre), calibrated
+    walker_base: float = 4.5  # m from the right kerb to the walker's base spawn point (a
+    # vehicle spawn point: here the second lane's centre, calibrated); the walker starts ped_offset + 1 m behind it
     end_x: float = 30.0  # m: the ego has travelled 30 m + ego_offset
     ego_length: float = 4.6  # m, BMW Gran Tourer-class box incl. mirrors
     ego_width: float = 2.1  # m
@@ -57,6 +66,8 @@ class World:
     max_accel: float = 4.0  # m/s^2, vehicle limit on the SUT's command
     max_brake: float = 9.0  # m/s^2, vehicle limit on the SUT's command
     epsilon: float = 1.0  # m, the STL requirement's clash distance (paper Eq. 1)
+    origin_dz: float = 0.9  # m, height of the walker's origin (capsule centre) above the
+    # car's (on the ground): the z part of the original's 3-D centre distance (assumption)
 
     def check(self) -> "World":
         """Host-side validation; ValueError naming the bad field."""
@@ -71,10 +82,10 @@ class World:
                 a = np.asarray(v, np.float64)
             except (TypeError, ValueError):
                 raise ValueError(f"world.{f} must be a number (got {v!r})") from None
-            low_ok = np.all(a >= 0) if f in ("lanes_left", "crosswalk_x", "end_x") else \
+            low_ok = np.all(a >= 0) if f in NON_NEGATIVE else \
                 np.all(a > 0)
             if isinstance(v, bool) or not np.all(np.isfinite(a)) or not low_ok:
-                raise ValueError(f"world.{f} must be a finite {'non-negative' if f in ('lanes_left', 'crosswalk_x', 'end_x') else 'positive'} number (got {v!r})")
+                raise ValueError(f"world.{f} must be a finite {'non-negative' if f in NON_NEGATIVE else 'positive'} number (got {v!r})")
         return self
 
     @property
@@ -108,9 +119,10 @@ class Trajectory:
     ped_x: jax.Array  # m
     ped_y: jax.Array  # m
     ped_speed: jax.Array  # m/s
-    distance: jax.Array  # m, Euclidean distance between the two boxes
+    distance: jax.Array  # m, Euclidean distance between the two boxes (the gap)
+    centre_distance: jax.Array  # m, 3-D distance between the actors' origins (the original's)
     rss_distance: jax.Array  # m, RSS minimum safe distance (paper Eq. 4)
-    high_risk: jax.Array  # bool, rss_distance > distance, pedestrian ahead of the ego's front
+    high_risk: jax.Array  # bool, rss_distance > centre_distance, pedestrian ahead of the ego
     braking: jax.Array  # bool, the SUT commands deceleration
     collided: jax.Array  # bool, boxes overlap at this step
     valid: jax.Array  # bool, step belongs to the episode
@@ -127,8 +139,8 @@ class Outcome:
     reward_collision: jax.Array
     collision: jax.Array  # bool
     collision_time: jax.Array  # s, NaN if no collision
-    min_distance: jax.Array  # m
-    final_distance: jax.Array  # m
+    min_distance: jax.Array  # m, smallest box gap (0 on collision)
+    final_distance: jax.Array  # m, centre distance before the last step (the reward's term)
     high_risk_steps: jax.Array  # int32
     high_risk_share: jax.Array  # over the episode's steps
     high_risk_share_second_half: jax.Array  # over its second half (paper Fig. 9)
@@ -139,6 +151,8 @@ class Outcome:
 
 
 BLOCK = 32  # steps per block: one uint32 word of high-risk bits, early exit between blocks
+STILL = 6  # the original profile is constant for steps 0..5 (pdf.py, starting_speed_upto + 1)
+WINDOW = 6  # the original speed-change window covers steps T..T+5 (change_speed_timesteps + 1)
 
 
 def ped_profile_constants(ped_speed, ped_accel):
@@ -153,26 +167,35 @@ def ped_profile_constants(ped_speed, ped_accel):
 
 
 def ped_speed_profile(k, ped_speed, ped_accel, ped_speed_change=0.0, ped_change_step=0.0):
-    """Pedestrian speed at step k [m/s], the original code's profile.
+    """Pedestrian speed during step k [m/s], the original code's profile (``pdf.py``).
 
-    start = speed - 5*accel; constant for steps 0..4; from step 5 it grows by ``accel`` per step
-    (per step, not accel*dt, as the original) until it first exceeds speed + 0.25, then stays.
-    In the extended space, steps [change_step, change_step + 5) use start + change. Never < 0.
+    ``s = speed - 5*accel``; steps 0..5 walk at ``s``; from step 6, ``s`` grows by ``accel``
+    per step (per step, not accel*dt, as the original) until it first exceeds speed + 0.25,
+    then stays. In the extended space (``ped_speed_change != 0``) the steps
+    ``change_step .. change_step + 5`` (six) walk at the current ``s + change`` and the growth
+    pauses during them. Never < 0 (the original does not guard; CARLA cannot walk backwards).
     """
     start, n_grow = ped_profile_constants(ped_speed, ped_accel)
     return _profile_at(k, start, n_grow, ped_accel, ped_speed_change, ped_change_step)
 
 
 def _profile_at(k, start, n_grow, accel, change, change_step):
-    v = start + jnp.clip(k - 4.0, 0.0, n_grow) * accel
-    window = (k >= change_step) & (k < change_step + 5.0) & (change != 0)
-    return jnp.maximum(jnp.where(window, start + change, v), 0.0)
+    on = change != 0
+    # growth steps done by step k: steps 6..k outside the window [T, T+5]
+    paused = jnp.where(on, jnp.clip(jnp.minimum(k, change_step + WINDOW - 1)
+                                    - jnp.maximum(float(STILL), change_step) + 1.0,
+                                    0.0, None), 0.0)
+    grown = jnp.clip(jnp.maximum(k - (STILL - 1.0), 0.0) - paused, 0.0, n_grow)
+    v = start + grown * accel
+    window = on & (k >= change_step) & (k < change_step + WINDOW)
+    return jnp.maximum(jnp.where(window, v + change, v), 0.0)
 
 
 class _Carry(NamedTuple):
     ego_x: jax.Array
     ego_v: jax.Array
     ped_y: jax.Array
+    ped_v: jax.Array
     sut_state: object
     alive: jax.Array
     nonfinite: jax.Array
@@ -180,7 +203,7 @@ class _Carry(NamedTuple):
     hr_count: jax.Array
     hr_word: jax.Array
     min_dist: jax.Array
-    last_dist: jax.Array
+    last_centre: jax.Array
     collided: jax.Array
     coll_step: jax.Array
     min_ttc: jax.Array
@@ -194,104 +217,120 @@ def rollout(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array,
             world: World = WORLD, record: bool = False):
     """Simulate one concrete scenario (all values scalars).
 
+    Step k (one simulator tick, as one iteration of the original's loop): the SUT observes
+    the state, the tick integrates both actors, then the metrics are taken on the new state
+    (as the original measures its RSS comparison after ``world.tick()``); the paper reward's
+    distance term uses the centre distance before the last tick (the original's
+    ``eucld_dist``). The episode ends on a collision during the tick, or after the tick that
+    started ``30 m + ego_offset`` past the ego's start (the original checks the distance
+    travelled before the tick), or at the horizon.
+
     Args:
       scenario: ``{name: scalar}`` for every known parameter.
       sut: the system under test (static); ``params`` its parameter pytree (traced).
       key: typed PRNG key of this rollout (the SUT's ``init`` and per-step ``act`` keys are
         derived from it).
       world: world constants (traced, ``horizon`` static).
-    Returns ``(Outcome, Trajectory | None)``; the trajectory only if ``record``.
+    Returns ``(Outcome, Trajectory | None)``; the trajectory (the state after each step) only
+    if ``record``.
     """
     s = _scenario_scalars(scenario)
     w = world
     dt = jnp.asarray(w.dt, jnp.float32)
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     k_init, k_act = jax.random.split(key) if sut.stochastic else (key, key)
     half_x = (w.ego_length + w.ped_length) / 2
     half_y = (w.ego_width + w.ped_width) / 2
     start_x = -s["ego_offset"]
-    ped_y0 = w.road_right - (s["ped_offset"] + 1.0)
+    ped_y0 = w.road_right + w.walker_base - (s["ped_offset"] + 1.0)
     weather_idx = s["weather"].astype(jnp.int32)
     p_start, p_grow = ped_profile_constants(s["ped_speed"], s["ped_accel"])
     n_blocks = -(-w.horizon // BLOCK)
+
+    def box_gap(ego_x, ped_y):
+        return metrics.box_gaps(w.crosswalk_x - ego_x, ped_y - w.ego_y, half_x, half_y)
+
+    def centre(ego_x, ped_y):
+        """3-D distance between the actors' origins (the original's ``loc.distance``)."""
+        return jnp.sqrt((w.crosswalk_x - ego_x) ** 2 + (ped_y - w.ego_y) ** 2 + w.origin_dz ** 2)
 
     def step(c: _Carry, k):
         kf = k.astype(jnp.float32)
         vp = _profile_at(kf, p_start, p_grow, s["ped_accel"], s["ped_speed_change"],
                          s["ped_change_step"])
         obs = sut_lib.Observation(
-            t=kf * dt, dt=dt, ego_x=c.ego_x, ego_y=jnp.asarray(w.ego_y, jnp.float32), ego_speed=c.ego_v,
-            ego_length=jnp.asarray(w.ego_length, jnp.float32),
-            ego_width=jnp.asarray(w.ego_width, jnp.float32),
-            ped_x=jnp.asarray(w.crosswalk_x, jnp.float32), ped_y=c.ped_y, ped_vx=jnp.float32(0.0),
-            ped_vy=vp,
-            ped_length=jnp.asarray(w.ped_length, jnp.float32),
-            ped_width=jnp.asarray(w.ped_width, jnp.float32),
-            road_right=jnp.asarray(w.road_right, jnp.float32),
-            road_left=jnp.asarray(w.road_left, jnp.float32),
-            weather=weather_idx)
+            t=kf * dt, dt=dt, ego_x=c.ego_x, ego_y=f32(w.ego_y), ego_speed=c.ego_v,
+            ego_length=f32(w.ego_length), ego_width=f32(w.ego_width),
+            ped_x=f32(w.crosswalk_x), ped_y=c.ped_y, ped_vx=jnp.float32(0.0), ped_vy=c.ped_v,
+            ped_length=f32(w.ped_length), ped_width=f32(w.ped_width),
+            road_right=f32(w.road_right), road_left=f32(w.road_left), weather=weather_idx)
         k_step = jax.random.fold_in(k_act, k) if sut.stochastic else k_act
         cmd, new_sut_state = sut.act(obs, c.sut_state, params, k_step)
         cmd = jnp.asarray(cmd, jnp.float32)
 
-        # --- metrics at this step (state before integration)
-        gap_x, gap_y = metrics.box_gaps(w.crosswalk_x - c.ego_x, c.ped_y - w.ego_y, half_x, half_y)
-        dist = metrics.box_distance(gap_x, gap_y)
-        d_min = metrics.rss_safe_distance(c.ego_v)
-        # the pedestrian is RSS's front object until the ego's front bumper has passed it
-        ahead = w.crosswalk_x + w.ped_length / 2 > c.ego_x + w.ego_length / 2
-        valid = c.alive & (k < w.horizon)
-        hr = valid & ahead & (d_min > dist)
-        overlap = (gap_x <= 0) & (gap_y <= 0)
-        closing_y = jnp.where(c.ped_y < w.ego_y, vp, -vp)
-        ttc = metrics.time_to_collision(gap_x, gap_y, jnp.where(w.crosswalk_x > c.ego_x, c.ego_v,
-                                                                 -c.ego_v),
-                                        closing_y, 2 * half_x, 2 * half_y)
-        ttc = jnp.where(valid, ttc, jnp.inf)
-
-        # --- integrate (exact for constant acceleration; stops at v = 0)
+        # --- the tick (exact for constant acceleration over the step; stops at v = 0)
         a = jnp.clip(cmd, -w.max_brake, w.max_accel)
         v1 = c.ego_v + a * dt
         stops = v1 < 0
         dx = jnp.where(stops, c.ego_v**2 / (2.0 * jnp.maximum(-a, 1e-6)), (c.ego_v + v1) / 2 * dt)
         v1 = jnp.maximum(v1, 0.0)
+        x1 = c.ego_x + dx
+        y1 = c.ped_y + vp * dt
+        valid = c.alive & (k < w.horizon)
         bad = ~(jnp.isfinite(cmd) & jnp.isfinite(dx) & jnp.isfinite(v1))
+        move = valid & ~bad
+
+        # --- metrics on the state after the tick
+        gap_x, gap_y = box_gap(x1, y1)
+        dist = metrics.box_distance(gap_x, gap_y)
+        d_min = metrics.rss_safe_distance(v1)
+        d_centre = centre(x1, y1)
+        # the pedestrian is RSS's front object until the ego's front bumper has passed it
+        ahead = w.crosswalk_x + w.ped_length / 2 > x1 + w.ego_length / 2
+        hr = move & ahead & (d_min > d_centre)
+        overlap = (gap_x <= 0) & (gap_y <= 0)
+        closing_y = jnp.where(y1 < w.ego_y, vp, -vp)
+        ttc = metrics.time_to_collision(gap_x, gap_y, jnp.where(w.crosswalk_x > x1, v1, -v1),
+                                        closing_y, 2 * half_x, 2 * half_y)
+        ttc = jnp.where(move, ttc, jnp.inf)
+
         nonfinite = c.nonfinite | (valid & bad)
-        collided_now = valid & overlap & ~bad
-        done = collided_now | (c.ego_x >= w.end_x) | bad
+        collided_now = move & overlap
+        done = collided_now | (c.ego_x > w.end_x) | bad
         alive = valid & ~done
-        ego_x = jnp.where(alive, c.ego_x + dx, c.ego_x)
-        ego_v = jnp.where(alive, v1, c.ego_v)
-        ped_y = jnp.where(alive, c.ped_y + vp * dt, c.ped_y)
-        sut_state = jax.tree.map(lambda n, o: jnp.where(alive, n, o), new_sut_state, c.sut_state)
+        sut_state = jax.tree.map(lambda n, o: jnp.where(move, n, o), new_sut_state, c.sut_state)
 
         bit = jnp.left_shift(hr.astype(jnp.uint32), (k % BLOCK).astype(jnp.uint32))
         new = _Carry(
-            ego_x=ego_x, ego_v=ego_v, ped_y=ped_y, sut_state=sut_state, alive=alive,
-            nonfinite=nonfinite,
-            n_valid=c.n_valid + valid.astype(jnp.int32),
+            ego_x=jnp.where(move, x1, c.ego_x), ego_v=jnp.where(move, v1, c.ego_v),
+            ped_y=jnp.where(move, y1, c.ped_y), ped_v=jnp.where(move, vp, c.ped_v),
+            sut_state=sut_state, alive=alive, nonfinite=nonfinite,
+            n_valid=c.n_valid + move.astype(jnp.int32),
             hr_count=c.hr_count + hr.astype(jnp.int32),
             hr_word=c.hr_word | bit,
-            min_dist=jnp.where(valid, jnp.minimum(c.min_dist, dist), c.min_dist),
-            last_dist=jnp.where(valid, dist, c.last_dist),
+            min_dist=jnp.where(move, jnp.minimum(c.min_dist, dist), c.min_dist),
+            last_centre=jnp.where(move, centre(c.ego_x, c.ped_y), c.last_centre),
             collided=c.collided | collided_now,
-            coll_step=jnp.where(collided_now, k, c.coll_step),
+            coll_step=jnp.where(collided_now, k + 1, c.coll_step),
             min_ttc=jnp.minimum(c.min_ttc, ttc))
         rec = None
         if record:
             rec = Trajectory(
-                t=kf * dt, ego_x=c.ego_x, ego_y=jnp.asarray(w.ego_y, jnp.float32), ego_speed=c.ego_v,
-                ego_accel=jnp.where(valid & alive, (ego_v - c.ego_v) / dt, 0.0),
-                ped_x=jnp.asarray(w.crosswalk_x, jnp.float32), ped_y=c.ped_y,
-                ped_speed=jnp.where(valid, vp, 0.0),
-                distance=dist, rss_distance=d_min, high_risk=hr, braking=valid & (cmd < 0),
-                collided=collided_now, valid=valid, ttc=ttc)
+                t=(kf + 1.0) * dt, ego_x=new.ego_x, ego_y=f32(w.ego_y), ego_speed=new.ego_v,
+                ego_accel=jnp.where(move, (v1 - c.ego_v) / dt, 0.0),
+                ped_x=f32(w.crosswalk_x), ped_y=new.ped_y, ped_speed=jnp.where(move, vp, 0.0),
+                distance=dist,
+                centre_distance=d_centre, rss_distance=d_min, high_risk=hr,
+                braking=move & (cmd < 0), collided=collided_now, valid=move, ttc=ttc)
         return new, rec
 
+    gx0, gy0 = box_gap(start_x, ped_y0)
     init = _Carry(
-        ego_x=start_x, ego_v=jnp.float32(0.0), ped_y=jnp.asarray(ped_y0, jnp.float32), sut_state=sut.init(k_init, params),
+        ego_x=start_x, ego_v=jnp.float32(0.0), ped_y=f32(ped_y0), ped_v=jnp.float32(0.0),
+        sut_state=sut.init(k_init, params),
         alive=jnp.bool_(True), nonfinite=jnp.bool_(False), n_valid=jnp.int32(0),
         hr_count=jnp.int32(0), hr_word=jnp.uint32(0),
-        min_dist=jnp.float32(jnp.inf), last_dist=jnp.float32(jnp.nan),
+        min_dist=metrics.box_distance(gx0, gy0), last_centre=jnp.float32(jnp.nan),
         collided=jnp.bool_(False), coll_step=jnp.int32(-1), min_ttc=jnp.float32(jnp.inf))
 
     def run_block(c: _Carry, b):
@@ -340,13 +379,13 @@ def _outcome(c: _Carry, hr_bits, w: World) -> Outcome:
     second = n - n // 2
     hr2 = _second_half_count(hr_bits, n)
     collision = c.collided & ~c.nonfinite
-    total, r_rss, r_dist, r_col = reward.paper_reward(c.hr_count, n, c.last_dist, collision)
+    total, r_rss, r_dist, r_col = reward.paper_reward(c.hr_count, n, c.last_centre, collision)
     total = jnp.where(c.nonfinite, jnp.nan, total)
     return Outcome(
         reward=total, reward_rss=r_rss, reward_distance=r_dist, reward_collision=r_col,
         collision=collision,
         collision_time=jnp.where(collision, c.coll_step.astype(jnp.float32) * w.dt, jnp.nan),
-        min_distance=c.min_dist, final_distance=c.last_dist,
+        min_distance=c.min_dist, final_distance=c.last_centre,
         high_risk_steps=c.hr_count,
         high_risk_share=c.hr_count / jnp.maximum(n, 1),
         high_risk_share_second_half=hr2 / jnp.maximum(second, 1),

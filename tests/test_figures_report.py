@@ -89,7 +89,8 @@ def test_replay_recording_reads_back_with_simulated_values(run_with_figures, tmp
     assert main(["replay", str(run_with_figures), "--save", str(f), "--scenarios", "3"]) == 0
     cols = _read_rrd(f)
     for ent in ("/world/road", "/world/crosswalk", "/world/ego", "/world/pedestrian",
-                "/world/detection_zone", "/metrics/distance", "/metrics/rss_distance",
+                "/world/hazard_corridor", "/world/walker_grown_box", "/metrics/distance",
+                "/metrics/rss_distance",
                 "/metrics/high_risk", "/metrics/ego_speed", "/info", "/training/reward",
                 "/overlay/0/distance"):
         assert ent in cols, ent

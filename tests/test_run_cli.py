@@ -57,7 +57,7 @@ def test_run_directory_schema(random_run):
     assert rewards == sorted(rewards, reverse=True)
     cfg = tomllib.loads((out / "config.toml").read_text())
     assert cfg["strategy"] == "random" and cfg["evaluations"] == 70 and cfg["seed"] == 3
-    assert cfg["kind"] == "run" and cfg["sut_params"]["cruise_speed"] == pytest.approx(30 / 3.6 * 0.7)
+    assert cfg["kind"] == "run" and cfg["sut_params"]["speed_limit"] == 40.0
     timing = json.loads((out / "timing.json").read_text())
     parts = sum(v for k, v in timing.items() if k.endswith("_seconds") and k != "total_seconds")
     assert timing["total_seconds"] == pytest.approx(parts) and timing["compile_seconds"] > 0

@@ -1,6 +1,7 @@
 """The crossing simulator: calibration to the paper, kinematics, closed forms, API contracts."""
 
 import dataclasses
+import math
 
 import jax.numpy as jnp
 import numpy as np
@@ -9,7 +10,7 @@ from conftest import random_scenarios
 
 import jaxfalsify as jf
 from jaxfalsify import sim
-from jaxfalsify.sut import REGISTRY, sensor_capability
+from jaxfalsify.sut import REGISTRY, SUT, CruiseParams, cruise_command, sensor_capability
 
 W = jf.WORLD
 
@@ -60,9 +61,30 @@ def test_sensor_aeb_degrades_in_rain_and_low_sun():
     p = REGISTRY["sensor-aeb"].default_params
     clear_r, clear_lat, clear_dec = map(float, sensor_capability(0, p))  # ClearNoon
     rain_r, rain_lat, rain_dec = map(float, sensor_capability(6, p))  # HardRainSunset
-    sun_r, _, _ = map(float, sensor_capability(1, p))  # ClearSunset (glare)
-    assert rain_r < sun_r < clear_r and rain_lat > clear_lat and rain_dec < clear_dec
+    sun_r, sun_lat, _ = map(float, sensor_capability(1, p))  # ClearSunset (glare, dusk)
+    assert rain_r < clear_r and sun_r < clear_r and rain_lat > sun_lat > clear_lat
+    assert rain_dec < clear_dec
     assert clear_dec == pytest.approx(p.mu_dry * 9.81)
+    # closed form of the light model: E = sin(altitude) * (1 - 0.75 * cloud^3.4)
+    e_cloudy_noon = math.sin(math.radians(75)) * (1 - 0.75 * 0.8**3.4)
+    _, lat, _ = map(float, sensor_capability(2, p))  # CloudyNoon
+    assert lat == pytest.approx(p.latency + p.dark_latency * (1 - e_cloudy_noon), abs=1e-5)
+
+
+def test_sensor_aeb_sees_sun_and_clouds():
+    """Every preset that differs in what CARLA changes (sun, cloud, rain, wetness) gives the
+    SUT a different capability; only Default (the map's ClearNoon) equals ClearNoon."""
+    p = REGISTRY["sensor-aeb"].default_params
+    caps = {tuple(round(float(x), 6) for x in sensor_capability(i, p)) for i in range(15)}
+    assert len(caps) == 14
+    # and outcomes differ between presets of the old identical groups {0-4}, {11-14}
+    sc = random_scenarios(256, seed=5)
+    outs = {}
+    for wi in (0, 1, 2, 3, 11, 12, 13, 14):
+        sc["weather"] = np.full(256, float(wi))
+        outs[wi] = np.asarray(jf.evaluate(sc, sut="sensor-aeb").reward)
+    for a, b in ((0, 1), (0, 2), (2, 3), (11, 12), (13, 14), (11, 13)):
+        assert np.any(outs[a] != outs[b]), (a, b)
 
 
 # ------------------------------------------------------------------ kinematics
@@ -76,26 +98,37 @@ def random_traj():
 # are property-based tests in test_properties.py
 
 
-def test_pedestrian_profile_matches_a_step_by_step_loop():
-    speed, accel = 1.237, 0.007
-    expected, v = [], speed - 5 * accel
-    for k in range(120):
-        if k >= 5 and v <= speed + 0.25:
-            v += accel
-        expected.append(v)
-    got = sim.ped_speed_profile(jnp.arange(120.0), speed, accel)
-    np.testing.assert_allclose(np.asarray(got), expected, atol=1e-5)
-    # speed-change window: 5 steps of start + change from the given step
-    got = np.asarray(sim.ped_speed_profile(jnp.arange(60.0), 1.4, 0.0, -0.5, 20.0))
-    np.testing.assert_allclose(got[20:25], 0.9, atol=1e-6)
-    np.testing.assert_allclose(got[[19, 25]], 1.4, atol=1e-6)
+def test_pedestrian_profile_matches_the_original_loop():
+    """pdf.py: constant for steps 0..5, then +accel per step until above speed + 0.25; the
+    change window (T..T+5, six steps) walks at the current s + change and pauses growth."""
+    def original(speed, accel, change, T, n):
+        out, s = [], round(speed - accel * 5, 3)
+        for i in range(n):
+            if change and T <= i <= T + 5:
+                out.append(s + change)
+            elif i <= 5 or s > speed + 0.25:
+                out.append(s)
+            else:
+                s += accel
+                out.append(s)
+        return out
+
+    # (no exact ties s == speed + 0.25, which the original resolves by float noise)
+    for speed, accel, change, T in ((1.237, 0.007, 0.0, 0.0), (1.4, 0.03, -0.5, 8.0),
+                                    (1.1, 0.045, 0.75, 20.0), (1.808, 0.076, 0.5, 6.0)):
+        got = np.asarray(sim.ped_speed_profile(jnp.arange(120.0), speed, accel, change, T))
+        np.testing.assert_allclose(got, original(speed, accel, change, T, 120), atol=1e-5)
 
 
 # ------------------------------------------------------------------ closed forms (sut=none)
+P_CRUISE = SUT("p-cruise", lambda o, s, p, k: (cruise_command(o.ego_speed, p), s),
+               default_params=CruiseParams(), stochastic=False)
+
+
 def _none_closed_form(ego_offset, ped_speed, ped_offset):
-    """Exact discrete-time positions of the 'none' autopilot (P controller, clipped) and of a
+    """Exact discrete-time positions of a P-controller cruise (clipped; no braking) and of a
     constant-speed pedestrian; returns the first collision time or None."""
-    p = REGISTRY["none"].default_params
+    p = P_CRUISE.default_params
     dt, k = W.dt, np.arange(W.horizon, dtype=np.float64)
     k1 = np.ceil((p.cruise_speed - p.accel_max / p.gain) / (p.accel_max * dt) + 1e-12)
     r = 1 - p.gain * dt
@@ -104,10 +137,11 @@ def _none_closed_form(ego_offset, ped_speed, ped_offset):
     m = k - k1
     x_late = x1 + dt * (m * p.cruise_speed - e1 * (1 + r) * (1 - r**m) / (2 * (1 - r)))
     x = np.where(k <= k1, -ego_offset + p.accel_max * (k * dt) ** 2 / 2, x_late)
-    y = W.road_right - (ped_offset + 1) + ped_speed * k * dt
+    y = W.road_right + W.walker_base - (ped_offset + 1) + ped_speed * k * dt
     overlap = ((np.abs(W.crosswalk_x - x) <= (W.ego_length + W.ped_length) / 2)
                & (np.abs(y - W.ego_y) <= (W.ego_width + W.ped_width) / 2))
-    ended = np.concatenate([[False], np.cumsum(x >= W.end_x)[:-1] > 0])
+    # state k is reached by step k-1, which runs unless a state before it was beyond the end
+    ended = np.concatenate([[False, False], np.cumsum(x > W.end_x)[:-2] > 0])
     hits = np.nonzero(overlap & ~ended)[0]
     return None if hits.size == 0 else hits[0] * dt
 
@@ -116,7 +150,7 @@ def test_constant_speed_crossing_collision_time_matches_closed_form():
     rng = np.random.default_rng(7)
     sc = dict(ego_offset=rng.uniform(1, 10, 300), ped_speed=rng.uniform(0.6, 2.5, 300),
               ped_offset=rng.uniform(3, 4.5, 300), ped_accel=np.zeros(300))
-    out = jf.evaluate(sc, sut="none")
+    out = jf.evaluate(sc, sut=P_CRUISE)
     expected = [_none_closed_form(*a) for a in zip(sc["ego_offset"], sc["ped_speed"],
                                                     sc["ped_offset"])]
     hit = np.array([e is not None for e in expected])
