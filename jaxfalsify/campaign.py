@@ -123,7 +123,10 @@ def make_campaign(c: Campaign):
                                    carry["eval_key"], c.sut, args.sut_params, args.world)
         in_budget = evaluation < args.budget
         r = jnp.where(jnp.isnan(out.reward) | ~in_budget, -jnp.inf, out.reward)
-        state = strategy.tell(k_tell, state, idx, r, args.strategy_params)
+        counted = in_budget & ~out.nonfinite
+        rob = jnp.where(counted & jnp.isfinite(out.robustness), out.robustness, jnp.inf)
+        state = strategy.tell_outcome(k_tell, state, idx, r, rob, out.collision & counted,
+                                      args.strategy_params)
         rec = {"indices": idx, **{f: getattr(out, f) for f in RECORD_FIELDS}}
         return {**carry, "state": state, "key": key, "update": carry["update"] + 1}, rec
 

@@ -72,8 +72,12 @@ def test_registry_options_and_errors():
         search.make("cem", SHAPE, elite=0.2)
     with pytest.raises(ValueError, match="batch"):
         search.make("random", SHAPE, 0)
+    with pytest.raises(ValueError, match="learners=7 must divide batch=20"):
+        search.make("reinforce/ar", SHAPE, 20, learners=7)
     with pytest.raises(ValueError, match="chains=7 must divide batch=20"):
-        search.make("reinforce", SHAPE, 20, chains=7)
+        search.make("reinforce/factorised", SHAPE, 20, chains=7)
+    with pytest.raises(ValueError, match="signal must be one of"):
+        search.make("cmaes", SHAPE, signal="distance")
     assert search.options("reinforce/paper")["alpha"] == pytest.approx(1e-4)
 
 
@@ -146,9 +150,10 @@ def test_log_prob_matches_manual_computation():
     assert got == pytest.approx(manual, abs=1e-4)
 
 
-@pytest.mark.parametrize("name", ["reinforce/default", "reinforce/paper"])
+@pytest.mark.parametrize("name", ["reinforce/default", "reinforce/ar", "reinforce/factorised",
+                                  "reinforce/paper"])
 def test_reinforce_moves_probability_to_rewarded_index(name):
-    strat, p = search.make(name, SHAPE, 50)
+    strat, p = search.make(name, SHAPE, 48 if name == "reinforce/ar" else 50)
     ask = jax.jit(lambda k, s: strat.ask(k, s, p))
     tell = jax.jit(lambda k, s, i, r: strat.tell(k, s, i, r, p))
     state = strat.init(jax.random.key(0), p)

@@ -20,6 +20,7 @@ from jaxfalsify.search.cmaes import CMAES
 from jaxfalsify.search.grid import Grid
 from jaxfalsify.search.random_search import RandomSearch
 from jaxfalsify.search.reinforce import Reinforce
+from jaxfalsify.search.reinforce_ar import AutoregressiveReinforce
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,8 +76,17 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
     return static, params
 
 
-register("reinforce/default", Reinforce, batch=250, chains=0, advantage="normalised",
-         doc="the LSTM controller + REINFORCE, normalised advantages (ours)")
+register("reinforce/default", Reinforce, batch=50, chains=0, advantage="normalised",
+         signal="shaped", entropy=0.1,
+         doc="the LSTM controller + REINFORCE: 50 per update (80 updates in 4000), "
+         "normalised advantages of the STL-robustness-shaped signal, entropy bonus 0.1 (ours)")
+register("reinforce/factorised", Reinforce, batch=250, chains=0, advantage="normalised",
+         doc="the LSTM controller + REINFORCE, normalised advantages, 250 per update "
+         "(the former default)")
+register("reinforce/ar", AutoregressiveReinforce, batch=32, learners=4,
+         doc="autoregressive LSTM controller + REINFORCE: 4 learners x 8 scenarios per "
+         "update, rank baseline, STL-robustness-shaped signal, entropy until a collision "
+         "(experimental)")
 register("reinforce/paper", Reinforce, batch=25, chains=1, advantage="reward", lr=0.01,
          alpha=1e-4, entropy=0.0, eps_start=1.0, eps_decay=0.995, eps_every=4.0,
          eps_floor=0.01, eps_off_after=2000.0, doc="the LSTM controller + REINFORCE as the "

@@ -12,7 +12,8 @@ import jax
 import jax.numpy as jnp
 
 from jaxfalsify import pytree
-from jaxfalsify.search.base import Strategy, sample_uniform, uniform, uniform_indices
+from jaxfalsify.search.base import (Strategy, check_signal, sample_uniform, uniform,
+                                    uniform_indices)
 
 
 @pytree.dataclass
@@ -33,7 +34,15 @@ class AnnealState:
 
 @dataclasses.dataclass(frozen=True)
 class Anneal(Strategy):
+    """Static: ``signal``, what it learns from: ``shaped`` (default,
+    :func:`jaxfalsify.search.base.shaped_signal`) or ``reward`` (the paper's reward)."""
+
+    signal: str = "shaped"
+
     Params = AnnealParams
+
+    def __post_init__(self):
+        check_signal(self.signal)
 
     def init(self, key, params):
         return AnnealState(sample_uniform(key, self.shape, self.batch),

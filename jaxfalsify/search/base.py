@@ -7,7 +7,11 @@ over integer index vectors whose hyperparameters come in as a traced ``params`` 
 * ``default_params() -> params``
 * ``init(key, params) -> state``
 * ``ask(key, state, params) -> (indices (B, P) int32, state)``: a batch of scenarios to run;
-* ``tell(key, state, indices (B, P), rewards (B,), params) -> state``: learn from the rewards.
+* ``tell(key, state, indices (B, P), rewards (B,), params) -> state``: learn from the rewards;
+* ``tell_outcome(key, state, indices, rewards, robustness (B,), collision (B,), params)``: what
+  the campaign calls: ``tell`` with the batch's STL robustness (min distance - epsilon [m],
+  ``+inf`` where unknown) and collision flags beside the rewards. The default ignores them and
+  calls ``tell``; a strategy with ``signal = "shaped"`` learns from :func:`shaped_signal`.
 
 Rewards given to ``tell`` are finite or ``-inf``: the campaign replaces NaN (a non-finite
 rollout) and evaluations beyond the budget by ``-inf``, so they never rank as best. Every
@@ -52,6 +56,14 @@ class Strategy:
     def tell(self, key: jax.Array, state, indices: jax.Array, rewards: jax.Array, params):
         raise NotImplementedError
 
+    def tell_outcome(self, key: jax.Array, state, indices: jax.Array, rewards: jax.Array,
+                     robustness: jax.Array, collision: jax.Array, params):
+        """``tell`` given the outcomes too; learns from :func:`shaped_signal` when the strategy's
+        static ``signal`` option is ``"shaped"``, from the rewards otherwise."""
+        if getattr(self, "signal", "reward") == "shaped":
+            rewards = shaped_signal(rewards, robustness, collision)
+        return self.tell(key, state, indices, rewards, params)
+
     @property
     def n_params(self) -> int:
         return len(self.shape)
@@ -59,6 +71,43 @@ class Strategy:
     @property
     def width(self) -> int:
         return max(self.shape)
+
+
+# Weight of the STL robustness [reward units per metre] in the shaped signal.
+ROBUSTNESS_WEIGHT = 0.05
+SIGNALS = ("reward", "shaped")
+
+
+def check_signal(signal: str) -> None:
+    if signal not in SIGNALS:
+        raise ValueError(f"signal must be one of {', '.join(SIGNALS)} (got {signal!r})")
+
+
+def shaped_signal(rewards: jax.Array, robustness: jax.Array, collision: jax.Array) -> jax.Array:
+    """The paper's reward, made dense where it is flat: a collision scores its reward, any
+    other scenario ``-ROBUSTNESS_WEIGHT * robustness`` (STL robustness = min distance - 1 m: the
+    closer the two road users came, the higher). Robustness is at least -1 m, so a scenario
+    without a collision scores at most 0.05 and every collision (reward above 0.22) ranks above
+    every non-collision: for a rank-based learner this is "robustness until a collision is
+    found, the paper's reward among the collisions". ``-inf`` rewards stay ``-inf``; an
+    unknown (non-finite) robustness scores as the reward."""
+    dense = jnp.where(jnp.isfinite(robustness), -ROBUSTNESS_WEIGHT * robustness, rewards)
+    shaped = jnp.where(collision, rewards, jnp.minimum(dense, ROBUSTNESS_WEIGHT))
+    return jnp.where(jnp.isfinite(rewards), shaped, -jnp.inf).astype(jnp.float32)
+
+
+def centred_ranks(x: jax.Array, valid: jax.Array | None = None) -> jax.Array:
+    """Fitness shaping over the last axis: each entry's rank among the valid ones, in
+    [-0.5, 0.5] (ties share their mean rank; invalid entries get 0). ``O(n^2)``, for the small
+    batches of one learner."""
+    if valid is None:
+        valid = jnp.isfinite(x)
+    vi, vj = valid[..., :, None], valid[..., None, :]
+    below = jnp.sum((x[..., None, :] < x[..., :, None]) & vj, axis=-1)
+    ties = jnp.sum((x[..., None, :] == x[..., :, None]) & vj & vi, axis=-1) - 1
+    n = jnp.sum(valid, axis=-1, keepdims=True)
+    rank = (below + 0.5 * jnp.maximum(ties, 0)) / jnp.maximum(n - 1, 1)
+    return jnp.where(valid & (n > 1), rank - 0.5, 0.0).astype(jnp.float32)
 
 
 def uniform(key, shape: tuple[int, ...]) -> jax.Array:

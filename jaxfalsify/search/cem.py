@@ -12,7 +12,8 @@ import jax
 import jax.numpy as jnp
 
 from jaxfalsify import pytree
-from jaxfalsify.search.base import Strategy, rank_order, sample_categorical, value_mask
+from jaxfalsify.search.base import (Strategy, check_signal, rank_order, sample_categorical,
+                                    value_mask)
 
 
 @pytree.dataclass
@@ -29,7 +30,15 @@ class CEMState:
 
 @dataclasses.dataclass(frozen=True)
 class CEM(Strategy):
+    """Static: ``signal``, what it learns from: ``shaped`` (default,
+    :func:`jaxfalsify.search.base.shaped_signal`) or ``reward`` (the paper's reward)."""
+
+    signal: str = "shaped"
+
     Params = CEMParams
+
+    def __post_init__(self):
+        check_signal(self.signal)
 
     def init(self, key, params):
         mask = value_mask(self.shape)

@@ -28,8 +28,8 @@ import optax
 
 from jaxfalsify import pytree
 from jaxfalsify.search import controller
-from jaxfalsify.search.base import (Strategy, categorical_from_uniform, sample_uniform,
-                                    uniform, uniform_indices)
+from jaxfalsify.search.base import (Strategy, categorical_from_uniform, check_signal,
+                                    sample_uniform, uniform, uniform_indices)
 
 
 @pytree.dataclass
@@ -68,10 +68,12 @@ class Reinforce(Strategy):
     hidden: int = 32
     chains: int = 0  # 0: one chain per episode of the batch
     advantage: str = "normalised"
+    signal: str = "reward"  # or "shaped": learn from base.shaped_signal (robustness + reward)
 
     Params = ReinforceParams
 
     def __post_init__(self):
+        check_signal(self.signal)
         if self.advantage not in ("reward", "normalised"):
             raise ValueError(f"advantage must be 'reward' or 'normalised' "
                              f"(got {self.advantage!r})")

@@ -1,0 +1,123 @@
+"""An autoregressive LSTM controller over a discrete space (the NAS controller of Zoph & Le,
+2017, that the paper's controller descends from): one LSTM step per parameter, each step
+conditioned on the values already chosen, so the joint distribution need not factorise (it can
+put its mass on a diagonal band of ``(ego_offset, ped_speed)``, which per-parameter softmax heads
+cannot).
+
+Step ``p`` (parameters in the space's order) reads ``x_p = [onehot_P(p), m_p * (2 r - 1)]``:
+which parameter is chosen now, and the value ranks ``r in [0, 1]`` of the parameters chosen
+before it (``m_p[q] = q < p``; the NAS controller feeds the previous choice, this feeds all
+earlier ones, which the LSTM would otherwise have to remember). One LSTM layer (tanh, ``hidden``
+units) turns it into ``h_p``; the logits over parameter p's values ``v`` (rank ``r_v``) are
+
+    logits_p(v) = (h_p W_p + b_p)[v] - (r_v - mu_p)^2 / (2 sigma_p^2),
+    mu_p = sigmoid(h_p . a_p + c_p),  sigma_p = exp(clip(h_p . s_p + d_p, ln 0.05, 1)),
+
+a free softmax head plus a Gaussian bump over the value ranks. The bump lets what is learnt
+about one value carry to its neighbours (the search moves towards a failure region as an
+evolution strategy's mean would, instead of value by value); the free head sharpens onto the
+individual values that fail. The bump is at least 0.05 of the range wide (a narrower one
+would move its mass wholesale from value to value as its mean drifts). Heads start at zero (``sigma = 1``): the first proposals are
+close to uniform. Padded values get logit ``MASKED`` (probability exactly 0).
+
+Weights are a dict of arrays (Glorot-uniform LSTM kernels, forget-gate bias 1, zero heads), so
+many controllers stack along a leading axis and are vmapped.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import jax.numpy as jnp
+
+from jaxfalsify.search.base import categorical_from_uniform, value_mask
+from jaxfalsify.search.controller import MASKED, _glorot, lstm_step
+
+
+LOG_SIGMA_MIN = float(np.log(0.05))
+
+
+def value_ranks(shape: tuple[int, ...]) -> jax.Array:
+    """``(P, max_n)`` each value's rank scaled to [0, 1] (0 for a one-value parameter)."""
+    span = jnp.maximum(jnp.asarray(shape, jnp.float32) - 1, 1.0)
+    return jnp.arange(max(shape), dtype=jnp.float32)[None, :] / span[:, None]
+
+
+def init(key, shape: tuple[int, ...], hidden: int = 32) -> dict:
+    P, width = len(shape), max(shape)
+    w, u = _glorot(key, [(2 * P, 4 * hidden), (hidden, 4 * hidden)])
+    b = jnp.zeros(4 * hidden, jnp.float32).at[hidden:2 * hidden].set(1.0)
+    z = lambda *s: jnp.zeros(s, jnp.float32)  # noqa: E731
+    return {"lstm": {"w": w, "u": u, "b": b},
+            "head": {"w": z(P, hidden, width), "b": z(P, width)},
+            "mu": {"w": z(P, hidden), "b": z(P)},
+            "sigma": {"w": z(P, hidden), "b": z(P)}}
+
+
+def step_input(p: jax.Array, chosen: jax.Array, n_params: int) -> jax.Array:
+    """``x_p (2P,)`` from the step ``p`` and the ranks ``chosen (P,)`` of the values so far
+    (entries ``q >= p`` are ignored)."""
+    q = jnp.arange(n_params)
+    return jnp.concatenate([(q == p).astype(jnp.float32),
+                            jnp.where(q < p, 2.0 * chosen - 1.0, 0.0)])
+
+
+def head_logits(w: dict, p: jax.Array, h: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """Masked logits ``(max_n,)`` of parameter ``p`` from the LSTM output ``h (H,)``."""
+    free = h @ w["head"]["w"][p] + w["head"]["b"][p]
+    mu = jax.nn.sigmoid(h @ w["mu"]["w"][p] + w["mu"]["b"][p])
+    sigma = jnp.exp(jnp.clip(h @ w["sigma"]["w"][p] + w["sigma"]["b"][p], LOG_SIGMA_MIN, 1.0))
+    r = value_ranks(shape)[p]
+    bump = -0.5 * jnp.square((r - mu) / sigma)
+    return jnp.where(value_mask(shape)[p], free + bump, MASKED)
+
+
+def _scan(w: dict, shape: tuple[int, ...], step_fn, xs):
+    """Run the controller over the P parameters for one scenario; ``step_fn(p, logits, x)``
+    returns ``(value index, output)`` where ``x`` is that step's per-scenario input."""
+    P = len(shape)
+    hidden = w["lstm"]["u"].shape[0]
+    ranks = value_ranks(shape)
+
+    def one(carry, inp):
+        h, c, chosen = carry
+        p, x = inp
+        h, c = lstm_step(w["lstm"], (h, c), step_input(p, chosen, P), activation=jnp.tanh)
+        logits = head_logits(w, p, h, shape)
+        a, out = step_fn(p, logits, x)
+        chosen = chosen.at[p].set(ranks[p, a])
+        return (h, c, chosen), out
+
+    init_c = (jnp.zeros(hidden), jnp.zeros(hidden), jnp.zeros(P))
+    return jax.lax.scan(one, init_c, (jnp.arange(P), xs))[1]
+
+
+def sample(w: dict, u: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """One scenario ``(P,)`` int32 from uniforms ``u (P,)`` in [0, 1) (inverse CDF, step by
+    step: each value is drawn given the ones before it)."""
+    def step_fn(p, logits, up):
+        a = categorical_from_uniform(up, jax.nn.softmax(logits))
+        return a, a
+
+    return _scan(w, shape, step_fn, u)
+
+
+def log_prob_and_entropy(w: dict, action: jax.Array, shape: tuple[int, ...]):
+    """``(log pi(action), sum_p H(pi_p( . | action_<p)))`` of one scenario ``action (P,)``: the
+    log-probability sums each step's log-softmax at the chosen value given the values before
+    it; the entropy is that of each step's conditional at the same prefix [nats]."""
+    def step_fn(p, logits, a):
+        lp = jax.nn.log_softmax(logits)
+        return a, (lp[a], -jnp.sum(jnp.exp(lp) * lp))
+
+    lp, ent = _scan(w, shape, step_fn, action)
+    return jnp.sum(lp), jnp.sum(ent)
+
+
+def conditionals(w: dict, action: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """``(P, max_n)`` the probabilities of every parameter's values given ``action``'s values
+    before it (row 0 is the first parameter's marginal)."""
+    def step_fn(p, logits, a):
+        return a, jax.nn.softmax(logits)
+
+    return _scan(w, shape, step_fn, action)

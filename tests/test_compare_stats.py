@@ -1,0 +1,83 @@
+"""compare's statistics against hand-computed values, seeds without a collision included."""
+
+import math
+
+import numpy as np
+import pytest
+
+from jaxfalsify import campaign, compare
+
+
+class _Space:
+    shape = (3, 2, 4)
+
+
+def _result(indices, rewards, collision):
+    n = len(rewards)
+    fields = {f: np.zeros(n, np.float32) for f in campaign.RECORD_FIELDS}
+    fields.update(reward=np.asarray(rewards, np.float32), collision=np.asarray(collision, bool),
+                  nonfinite=np.isnan(np.asarray(rewards, np.float32)))
+    return campaign.Result(_Space(), 2, np.asarray(indices, np.int32), fields)
+
+
+TRUTH = {"global_max_reward": 0.26, "global_min_reward": -0.04, "n_collisions": 5,
+         "n_scenarios": 24, "global_max_ties": 1}
+
+
+def test_uniform_first_collision_by_hand():
+    u = compare.uniform_first_collision(100, 1, 50)
+    assert u["p"] == 0.01 and u["expected"] == pytest.approx(100.0)  # (1 - p) / p + 1
+    assert u["median"] == 69  # ceil(ln 0.5 / ln 0.99) = ceil(68.97)
+    assert u["median_censored"] == 51  # beyond the budget: budget + 1
+    assert u["expected_censored"] == pytest.approx((1 - 0.99 ** 51) / 0.01)
+    assert u["found_probability"] == pytest.approx(1 - 0.99 ** 50)
+    none = compare.uniform_first_collision(100, 0, 50)
+    assert math.isinf(none["expected"]) and none["expected_censored"] == 51
+    assert compare.uniform_first_collision(10, 10, 5)["expected"] == 1.0
+
+
+def test_seed_stats_and_row_by_hand_with_a_failed_seed():
+    idx = [[0, 0, 0], [2, 1, 3], [1, 0, 2], [2, 0, 0], [0, 1, 3], [1, 1, 1], [2, 1, 0],
+           [1, 0, 1]]  # corners: rows 0, 1, 3, 4, 6 (every index first or last)
+    seeds = [
+        _result(idx, [0.0, 0.01, 0.25, 0.26, 0.0, 0.1, 0.2, 0.26],
+                [0, 0, 1, 1, 0, 0, 0, 1]),  # first collision at 3, reaches the max
+        _result(idx, [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.24],
+                [0, 0, 0, 0, 0, 0, 0, 1]),  # first at 8
+        _result(idx, [-0.02, -0.04, np.nan, -0.03, -0.01, -0.02, -0.02, -0.03],
+                [0] * 8),  # none: counts budget + 1 = 9
+    ]
+    st = [compare.seed_stats(s, r, TRUTH, budget=8) for s, r in enumerate(seeds)]
+    assert [s["first_collision"] for s in st] == [3, 8, None]
+    assert [s["first_collision_censored"] for s in st] == [3, 8, 9]
+    assert [s["reached_global_max"] for s in st] == [True, False, False]
+    # (best - min) / (max - min): (0.26 + 0.04) / 0.3, (0.24 + 0.04) / 0.3, (-0.01 + 0.04) / 0.3
+    np.testing.assert_allclose([s["best_normalised"] for s in st], [1.0, 0.28 / 0.3, 0.1],
+                               rtol=1e-5)
+    assert st[2]["best"] == pytest.approx(-0.01) and st[2]["best_normalised"] > 0
+    assert [s["distinct"] for s in st] == [3, 1, 0]  # rows 2, 3, 7 are distinct scenarios
+    assert st[0]["corner_share"] == pytest.approx(5 / 8)
+    # the last quarter (2 evaluations): mean of 0.2, 0.26; of -0.02, -0.03
+    assert st[0]["final_mean_reward"] == pytest.approx(0.23)
+    assert st[2]["final_mean_reward"] == pytest.approx(-0.025)
+    row = compare.strategy_row("x", st, TRUTH, wall=1.0)
+    assert row["found_collision_share"] == pytest.approx(2 / 3)
+    # over all seeds, 9 for the failed one: [3, 8, 9] -> median 8, IQR 5.5 .. 8.5
+    assert row["first_collision_median"] == 8.0
+    assert row["first_collision_iqr"] == [5.5, 8.5]
+    assert row["best_normalised_median"] == pytest.approx(0.28 / 0.3, rel=1e-5)
+    assert row["seeds_reaching_global_max"] == 1
+    assert row["distinct_critical_median"] == 1.0
+    assert row["corner_share_median"] == pytest.approx(5 / 8)
+    md = compare.table_markdown({"rows": [row], "evaluations": 8, "overhead": {"x": 0.002},
+                                 "n_collisions": 5, "n_scenarios": 24,
+                                 "uniform_first_collision":
+                                     compare.uniform_first_collision(24, 5, 8),
+                                 "uniform_corner_share": 8 / 24, **TRUTH})
+    assert "| x | 2/3 | 8 [5.5, 8.5] | 0.9333 | 1/3 |" in md
+    assert "1/p = 4.8" in md
+
+
+def test_corner_mask_one_value_parameter_is_always_a_corner():
+    m = compare.corner_mask(np.array([[0, 0, 4], [0, 0, 2], [2, 0, 0]]), (3, 1, 5))
+    assert m.tolist() == [True, False, True]

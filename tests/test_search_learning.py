@@ -1,0 +1,193 @@
+"""The default strategy (REINFORCE on the autoregressive LSTM controller) and what it learns
+from: the controller's log-probabilities against a step-by-step NumPy computation, learning an
+interior island of a synthetic space, the shaped signal and rank baseline by hand, CMA-ES with
+margin's correction against the normal distribution (SciPy)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats
+
+from jaxfalsify import search
+from jaxfalsify.search import autoregressive as ar
+from jaxfalsify.search import base, cmaes
+
+SHAPE = (4, 6, 3)
+
+
+def _np_lstm_tanh(p, h, c, x):
+    w, u, b = (np.asarray(p[k], np.float64) for k in ("w", "u", "b"))
+    z = x @ w + h @ u + b
+    H = len(b) // 4
+    sig = lambda v: 1 / (1 + np.exp(-v))  # noqa: E731
+    i, f, g, o = sig(z[:H]), sig(z[H:2 * H]), np.tanh(z[2 * H:3 * H]), sig(z[3 * H:])
+    c = f * c + i * g
+    return o * np.tanh(c), c
+
+
+def _random_weights(shape, hidden=8, seed=0):
+    """Controller weights with every head non-zero (init leaves the heads at zero)."""
+    w = ar.init(jax.random.key(seed), shape, hidden)
+    rng = np.random.default_rng(seed)
+    return jax.tree.map(lambda x: jnp.asarray(rng.normal(0, 0.7, x.shape), jnp.float32), w)
+
+
+def _np_log_prob(w, action, shape):
+    """log pi(action) step by step in float64: x_p = [onehot(p), earlier ranks * 2 - 1], one
+    tanh LSTM step, logits = free head + Gaussian bump over the value ranks."""
+    P, H = len(shape), np.asarray(w["lstm"]["u"]).shape[0]
+    W = jax.tree.map(lambda x: np.asarray(x, np.float64), w)
+    h, c = np.zeros(H), np.zeros(H)
+    total, ent = 0.0, 0.0
+    for p in range(P):
+        x = np.zeros(2 * P)
+        x[p] = 1.0
+        for q in range(p):
+            x[P + q] = 2.0 * action[q] / max(shape[q] - 1, 1) - 1.0
+        h, c = _np_lstm_tanh(W["lstm"], h, c, x)
+        n = shape[p]
+        free = h @ W["head"]["w"][p][:, :n] + W["head"]["b"][p][:n]
+        mu = 1 / (1 + np.exp(-(h @ W["mu"]["w"][p] + W["mu"]["b"][p])))
+        sigma = np.exp(np.clip(h @ W["sigma"]["w"][p] + W["sigma"]["b"][p], np.log(0.05), 1))
+        r = np.arange(n) / max(n - 1, 1)
+        z = free - 0.5 * ((r - mu) / sigma) ** 2
+        lse = z.max() + np.log(np.sum(np.exp(z - z.max())))
+        total += z[action[p]] - lse
+        prob = np.exp(z - lse)
+        ent -= np.sum(prob * (z - lse))
+    return total, ent
+
+
+def test_autoregressive_log_prob_matches_step_by_step_numpy():
+    w = _random_weights(SHAPE)
+    for action in ([0, 0, 0], [3, 5, 2], [1, 4, 0], [2, 0, 1]):
+        lp, ent = ar.log_prob_and_entropy(w, jnp.asarray(action), SHAPE)
+        elp, eent = _np_log_prob(w, action, SHAPE)
+        assert float(lp) == pytest.approx(elp, abs=1e-4)
+        assert float(ent) == pytest.approx(eent, abs=1e-4)
+    # a distribution over the whole space: the probabilities of all 72 scenarios sum to 1,
+    # and they do not factorise (the controller conditions on earlier values)
+    allidx = np.array(np.unravel_index(np.arange(np.prod(SHAPE)), SHAPE)).T
+    logp = jax.vmap(lambda a: ar.log_prob_and_entropy(w, a, SHAPE)[0])(jnp.asarray(allidx))
+    joint = np.exp(np.asarray(logp, np.float64)).reshape(SHAPE)
+    assert joint.sum() == pytest.approx(1.0, abs=1e-5)
+    m0, m1 = joint.sum((1, 2)), joint.sum((0, 2))
+    assert np.abs(joint.sum(2) - np.outer(m0, m1)).max() > 1e-3
+
+
+def test_autoregressive_sampling_follows_the_conditionals():
+    """Sampling by inverse CDF step by step: the empirical frequencies of 20,000 draws match
+    the exact joint probabilities."""
+    w = _random_weights((3, 4), seed=2)
+    u = jax.random.uniform(jax.random.key(0), (20000, 2))
+    draws = np.asarray(jax.vmap(lambda ui: ar.sample(w, ui, (3, 4)))(u))
+    assert draws.min() >= 0 and np.all(draws.max(0) <= [2, 3])
+    freq = np.bincount(draws[:, 0] * 4 + draws[:, 1], minlength=12) / len(draws)
+    allidx = np.array(np.unravel_index(np.arange(12), (3, 4))).T
+    exact = np.array([np.exp(_np_log_prob(w, a, (3, 4))[0]) for a in allidx])
+    np.testing.assert_allclose(freq, exact, atol=0.012)
+
+
+def test_shaped_signal_and_centred_ranks_by_hand():
+    rew = jnp.array([0.01, -0.02, 0.26, 0.24, -jnp.inf, 0.0])
+    rob = jnp.array([3.0, 0.2, -1.0, -1.0, 5.0, jnp.nan])
+    col = jnp.array([False, False, True, True, False, False])
+    got = np.asarray(base.shaped_signal(rew, rob, col))
+    np.testing.assert_allclose(got, [-0.15, -0.01, 0.26, 0.24, -np.inf, 0.0], atol=1e-7)
+    r = np.asarray(base.centred_ranks(jnp.array([3.0, 1.0, 2.0, 2.0, -jnp.inf])))
+    # valid: 3, 1, 2, 2 -> ranks 3, 0, 1.5, 1.5 over n - 1 = 3, minus 0.5; -inf gets 0
+    np.testing.assert_allclose(r, [0.5, -0.5, 0.0, 0.0, 0.0], atol=1e-7)
+
+
+# ------------------------------------------------------------------ learning
+ISLAND_SHAPE = (20, 20, 20)
+CENTRE = np.array([13, 6, 9])  # the optimum, inside an island away from every face
+
+
+def island_outcome(idx):
+    """A synthetic falsification problem: 'collisions' within Chebyshev distance 1 of CENTRE
+    (27 of 8000 scenarios), reward 0.25 minus 0.01 per unit of L1 distance to CENTRE there
+    (the unique maximum 0.25 at CENTRE), -0.02 elsewhere; robustness = Euclidean index
+    distance to the island's faces (< 0 inside)."""
+    d = jnp.abs(idx - jnp.asarray(CENTRE))
+    collision = jnp.max(d, axis=-1) <= 1
+    reward = jnp.where(collision, 0.25 - 0.01 * jnp.sum(d, axis=-1), -0.02).astype(jnp.float32)
+    robustness = jnp.sqrt(jnp.sum(jnp.square(jnp.maximum(d - 1.0, 0.0)), -1)) - 0.5
+    return reward, robustness.astype(jnp.float32), collision
+
+
+@pytest.fixture(scope="module", params=["reinforce/default", "reinforce/ar"])
+def island_runs(request):
+    """A learner on the island for seeds 0..3, 80 updates each (the paper's 4000 evaluations
+    for the default's batch of 50), one compiled call."""
+    strat, p = search.make(request.param, ISLAND_SHAPE)
+
+    def one(key):
+        def upd(state, k):
+            k1, k2 = jax.random.split(k)
+            idx, state = strat.ask(k1, state, p)
+            r, rob, col = island_outcome(idx)
+            return strat.tell_outcome(k2, state, idx, r, rob, col, p), (idx, r)
+
+        k0, k1 = jax.random.split(key)
+        return jax.lax.scan(upd, strat.init(k0, p), jax.random.split(k1, 80))[1]
+
+    idx, r = jax.jit(jax.vmap(one))(jax.vmap(jax.random.key)(jnp.arange(4)))
+    return request.param, np.asarray(idx).reshape(4, -1, 3), np.asarray(r).reshape(4, -1)
+
+
+@pytest.mark.slow
+def test_learners_find_and_concentrate_on_the_interior_island(island_runs):
+    name, idx, r = island_runs
+    n = idx.shape[1]
+    reached = 0
+    for s in range(4):
+        # finds the island (27 of 8000 scenarios; uniform random within these evaluations:
+        # probability 1 - (1 - 27/8000)^n) and concentrates there: over 10 % of the last 256
+        # evaluations collide (uniform random: 0.34 %)
+        assert r[s].max() > 0.2, (name, s)
+        assert np.mean(r[s, -256:] > 0.2) > 0.1, (name, s)
+        # never piles on box corners (uniform: 8 / 8000)
+        corners = np.all((idx[s] == 0) | (idx[s] == 19), axis=-1)
+        assert corners.mean() < 0.005, (name, s)
+        reached += bool(np.any(np.all(idx[s] == CENTRE, axis=-1)))
+    # the unique optimum inside the island (uniform random: 1 - (1 - 1/8000)^n per seed)
+    assert reached >= (4 if name == "reinforce/ar" else 3), (name, reached)
+    assert n >= 1536
+
+
+# ------------------------------------------------------------------ CMA-ES with margin
+def test_margin_correction_against_normal_distribution():
+    shape = (5, 9, 2)
+    margin = 0.05
+    mean = jnp.array([0.5, 0.52, 1.6])  # inner value, inner value, far beyond the last
+    sigma = jnp.float32(0.01)  # tiny: without the margin every candidate rounds to the mean
+    c_diag = jnp.array([1.0, 4.0, 1.0])
+    m, A = cmaes.margin_correction(mean, sigma, c_diag, jnp.ones(3), shape, margin)
+    m, A = np.asarray(m, np.float64), np.asarray(A, np.float64)
+    sd = 0.01 * A * np.sqrt([1.0, 4.0, 1.0])
+    for j, (n, k) in enumerate([(5, 2), (9, 4)]):  # the inner values the means sit in
+        lo, up = (k - 0.5) / (n - 1), (k + 0.5) / (n - 1)
+        assert lo <= m[j] <= up
+        assert stats.norm.cdf(lo, m[j], sd[j]) == pytest.approx(margin / 2, rel=1e-3)
+        assert stats.norm.sf(up, m[j], sd[j]) == pytest.approx(margin / 2, rel=1e-3)
+    # edge: the mean is pulled in to the last midpoint (0.5 for 2 values) plus the distance
+    # at which the probability of crossing it is the margin
+    assert A[2] == 1.0
+    assert stats.norm.cdf(0.5, m[2], sd[2]) == pytest.approx(margin, rel=1e-3)
+    # margin 0: unchanged
+    m0, A0 = cmaes.margin_correction(mean, sigma, c_diag, jnp.ones(3), shape, 0.0)
+    np.testing.assert_array_equal(np.asarray(m0), np.asarray(mean))
+    np.testing.assert_array_equal(np.asarray(A0), np.ones(3))
+
+
+def test_cmaes_encoding_uses_midpoints_and_the_margin_scaling():
+    strat, _ = search.make("cmaes", (5, 3), 8)
+    x = jnp.array([[0.12, 0.24], [0.13, 0.26], [-3.0, 9.0], [0.5, 0.5]])
+    got = np.asarray(strat.encode(x, jnp.zeros(2), jnp.ones(2)))
+    np.testing.assert_array_equal(got, [[0, 0], [1, 1], [0, 2], [2, 1]])
+    # A scales the deviation from the mean before the encoding
+    got = np.asarray(strat.encode(jnp.array([[0.6, 0.5]]), jnp.array([0.5, 0.5]),
+                                  jnp.array([2.0, 1.0])))
+    np.testing.assert_array_equal(got, [[3, 1]])
