@@ -1,5 +1,8 @@
 """Many devices, one process: results on 4 forced host devices equal those on 1 device
-(evaluation, sweep, and search strategies' proposal batches)."""
+(evaluation, sweep, and search strategies' proposal batches): discrete outcomes and indices
+exactly, floats to a few ulp (XLA:CPU vectorises a 64-row shard and a 256-row chunk
+differently, which can move the last bit of a square root; CI saw one 1-ulp difference in
+1003 final distances)."""
 
 import os
 import subprocess
@@ -55,4 +58,7 @@ def test_sharded_equals_unsharded(probes, prefix):
     keys = [k for k in one if k.startswith(prefix)]
     assert keys
     for k in keys:
-        np.testing.assert_array_equal(four[k], one[k], err_msg=k)
+        if np.issubdtype(one[k].dtype, np.floating):
+            np.testing.assert_allclose(four[k], one[k], rtol=4e-6, atol=1e-6, err_msg=k)
+        else:
+            np.testing.assert_array_equal(four[k], one[k], err_msg=k)
