@@ -45,11 +45,11 @@ def plateau_episode(curve: np.ndarray, window: int = 100, tol: float = 0.05) -> 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--episodes", type=int, default=4000)
+    ap.add_argument("--evaluations", type=int, default=4000, help="budget per seed (the paper: 4000 episodes)")
     ap.add_argument("--out", type=Path,
                     default=Path(__file__).parent / "results" / "paper_reproduction")
     args = ap.parse_args()
-    b = RunConfig(strategy="reinforce/paper", evaluations=args.episodes).build()
+    b = RunConfig(strategy="reinforce/paper", evaluations=args.evaluations).build()
     sp = b.space
     t0 = time.perf_counter()
     results = campaign.run_seeds(sp, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan,
@@ -105,12 +105,12 @@ def main() -> None:
                  "plateau_episode": plateau_episode(r.fields["reward"]),
                  "final_mean_reward_last_500": float(r.fields["reward"][-500:].mean())}
                 for s, r in enumerate(results)]
-    summary = {"seeds": args.seeds, "episodes": args.episodes, "global_max_reward": gmax,
+    summary = {"seeds": args.seeds, "evaluations": args.evaluations, "global_max_reward": gmax,
                "plateau_episode_of_mean": plateau_episode(mean), "per_seed": per_seed,
                "wall_seconds_all_seeds": wall, "compile_seconds": results[0].compile_seconds}
     (args.out / "summary.json").write_text(json.dumps(jsonable(summary), indent=2) + "\n")
 
-    print(f"paper preset, {args.seeds} seeds x {args.episodes} episodes in {wall:.1f} s "
+    print(f"paper preset, {args.seeds} seeds x {args.evaluations} evaluations in {wall:.1f} s "
           f"(all seeds together, compile included)")
     print("mean reward per 500 episodes: "
           + " ".join(f"{mean[i:i + 500].mean():.3f}" for i in range(0, len(mean), 500)))

@@ -2,9 +2,11 @@
 iteration on search hyperparameters. The table is an ``.npz`` with ``collision``, ``reward``,
 ``robustness`` per scenario in space order (``--make`` sweeps and writes it).
 
-    python experiments/search_offline.py --space experiments/spaces/rare-2e4.toml \\
-        --sut-param ttc_full=2.0 --sut-param ttc_partial=3.0 --table /tmp/rare-2e4.npz \\
-        --strategies reinforce/default,cmaes --opt reinforce/default:lr=0.1
+    python experiments/search_offline.py --space experiments/suite/aeb-2e4.toml \\
+        --sut-param ttc_full=2.0 --sut-param ttc_partial=3.0 --table /tmp/aeb-2e4.npz \\
+        --strategies reinforce/default,cmaes --opt reinforce/default:lr=0.05
+
+(a development tool: ``jaxfalsify compare --suite`` is the benchmark, on the simulator)
 """
 from __future__ import annotations
 
@@ -99,7 +101,6 @@ def main(argv=None):
         parts = o.split(":")
         kv = dict((x.split("=")[0], _value(x.split("=")[1])) for x in parts[1].split(",") if x)
         configs.append((parts[0], kv, int(parts[2]) if len(parts) > 2 else None))
-    truth = {"global_max_reward": gmax, "global_min_reward": gmin}
     for name, kv, batch in configs:
         strat, params = search.make(name, sp.shape, batch, **kv)
         (idx, rr, cc), dt = run(strat, params, table, sp.shape, a.evaluations, a.seeds)

@@ -142,12 +142,18 @@ def build_parser() -> argparse.ArgumentParser:
     _distributed_flags(s)
 
     c = sub.add_parser("compare", help="strategies x seeds against the exhaustive ground truth")
-    c.add_argument("--strategies", default=",".join(DEFAULT_STRATEGIES),
+    c.add_argument("--strategies",
                    help=f"comma-separated (default {','.join(DEFAULT_STRATEGIES)})")
-    c.add_argument("--seeds", type=_int("--seeds", 1), default=10)
+    c.add_argument("--seeds", type=_int("--seeds", 1), help="seeds 0..N-1 (default 10)")
     c.add_argument("--evaluations", type=_int("--evaluations", 1), default=4000)
-    c.add_argument("--space", default="paper")
-    c.add_argument("--space-seed", type=_int("--space-seed"), default=0, dest="space_seed")
+    c.add_argument("--budgets", help="also report at these budgets, comma-separated "
+                   "(the first evaluations of the same runs)")
+    c.add_argument("--suite", type=Path, metavar="FILE",
+                   help="a benchmark suite (e.g. experiments/suite/suite.toml): every entry's "
+                   "space and SUT, at every budget of the suite")
+    c.add_argument("--space", help="built-in name or TOML file (default paper)")
+    c.add_argument("--space-seed", type=_int("--space-seed"), dest="space_seed",
+                   help="discretisation seed of the space (default 0)")
     _add_sut(c)
     c.add_argument("--out", type=Path, help="folder for compare.json/.md "
                    "(default runs/compare-<timestamp>)")
@@ -236,6 +242,17 @@ def cmd_run(args, stop, startup) -> int:
     print(f"wrote {out}/ (config.toml, episodes.parquet, summary.json, critical.csv, "
           f"timing.json{'' if args.no_figures else ', figures/, report.md'}"
           f"{', best.rrd' if args.rerun else ''})")
+    return _late_signal(stop)
+
+
+def _late_signal(stop) -> int:
+    """0, or the signal's exit code when SIGINT / SIGTERM came after the last chunk: the work
+    was complete and written (status.json says so), and the exit code still tells the caller
+    that a signal arrived."""
+    if stop():
+        print("jaxfalsify: signal received while writing; the results are complete",
+              file=sys.stderr)
+        return stop.exit_code
     return 0
 
 
@@ -286,7 +303,7 @@ def cmd_sweep(args, stop, startup) -> int:
     from jaxfalsify.progress import timing_line
     print(f"wall time {timing_line(s)}")
     print(f"wrote {out}/{', '.join(s['parts'] + ['summary.json', 'timing.json', 'config.toml'])}")
-    return 0
+    return _late_signal(stop)
 
 
 def cmd_compare(args, stop, startup) -> int:
@@ -295,13 +312,24 @@ def cmd_compare(args, stop, startup) -> int:
     from jaxfalsify import compare
     from jaxfalsify.progress import timing_line
 
-    names = tuple(n.strip() for n in args.strategies.split(",") if n.strip())
+    names = (tuple(n.strip() for n in args.strategies.split(",") if n.strip())
+             if args.strategies else None)
+    if args.suite is not None:
+        return _compare_suite(args, names, stop, startup)
     if args.distributed and not args.out:
         raise UsageError("compare --distributed needs --out (a folder all processes share)")
-    config = compare.CompareConfig(strategies=names, seeds=args.seeds,
-                                   evaluations=args.evaluations, space=args.space,
-                                   space_seed=args.space_seed, sut=args.sut or "carla-tm",
-                                   sut_params=_assignments(args.sut_param, "--sut-param"))
+    budgets = ()
+    if args.budgets:
+        try:
+            budgets = tuple(int(b) for b in args.budgets.split(",") if b.strip())
+        except ValueError:
+            raise UsageError(f"--budgets {args.budgets!r}: comma-separated integers") from None
+    config = compare.CompareConfig(strategies=names or compare.DEFAULT_STRATEGIES,
+                                   seeds=args.seeds or 10,
+                                   evaluations=args.evaluations, space=args.space or "paper",
+                                   space_seed=args.space_seed or 0, sut=args.sut or "carla-tm",
+                                   sut_params=_assignments(args.sut_param, "--sut-param"),
+                                   budgets=budgets)
     config.check()
     out = args.out or Path("runs") / f"compare-{time.strftime('%Y%m%d-%H%M%S')}"
     pid, n_proc = _start_distributed(args)
@@ -311,13 +339,47 @@ def cmd_compare(args, stop, startup) -> int:
     if pid != 0:
         print(f"process {pid}: done")
         return 0
-    print(f"{result['space']} space, {result['sut']}, {args.evaluations} evaluations, "
-          f"{args.seeds} seeds; global max reward {result['global_max_reward']:.4f} "
-          f"({result['global_max_ties']} scenarios), {result['n_collisions']} critical of "
-          f"{result['n_scenarios']} scenarios")
+    if result.get("global_max_reward") is not None:
+        print(f"{result['space']} space, {result['sut']}, {args.evaluations} evaluations, "
+              f"{config.seeds} seeds; global max reward {result['global_max_reward']:.4f} "
+              f"({result['global_max_ties']} scenarios), {result['n_collisions']:,} critical of "
+              f"{result['n_scenarios']:,} scenarios")
+    else:
+        print(f"{result['space']} space, {result['sut']}, {args.evaluations} evaluations, "
+              f"{config.seeds} seeds; {result['n_scenarios']:.3g} scenarios (too many to "
+              f"sweep): collision share estimated {result['collision_share']:.2g} from "
+              f"{result['sampled']:,} uniform draws")
     print(compare.table_markdown(result))
+    if budgets:
+        print()
+        print(compare.budgets_markdown(result))
     print(f"wall time {timing_line(result['timing'])}")
     print(f"wrote {out}/compare.json, compare.md")
+    return 0
+
+
+def _compare_suite(args, names, stop, startup) -> int:
+    import time
+
+    from jaxfalsify import compare
+    from jaxfalsify.progress import timing_line
+
+    for flag, given in (("--space", args.space), ("--space-seed", args.space_seed is not None),
+                        ("--sut", args.sut),
+                        ("--sut-param", args.sut_param), ("--budgets", args.budgets),
+                        ("--distributed", args.distributed),
+                        ("--evaluations", args.evaluations != 4000)):
+        if given:
+            raise UsageError(f"--suite takes its spaces, SUTs and budgets from the suite file; "
+                             f"drop {flag}")
+    suite = compare.load_suite(args.suite, seeds=args.seeds, strategies=names)
+    out = args.out or Path("runs") / f"suite-{time.strftime('%Y%m%d-%H%M%S')}"
+    result = compare.execute_suite(suite, out, force=args.force,
+                                   progress=_progress(args.quiet), stop=stop,
+                                   startup_seconds=startup)
+    print(compare.suite_markdown(result))
+    print(f"wall time {timing_line(result['timing'])}")
+    print(f"wrote {out}/suite.json, suite.md (and a comparison folder per space)")
     return 0
 
 
@@ -348,11 +410,29 @@ def cmd_simulate(args, stop, startup) -> int:
     return 0
 
 
+def _run_folder_lock(run_dir: Path, what: str):
+    """The run folder's lock, held while a command writes into it (figures, report, a
+    recording): never while the run itself, or another writer, holds it."""
+    from jaxfalsify import store
+
+    if not (Path(run_dir) / "config.toml").is_file():
+        raise UsageError(f"{run_dir}: not a run folder (no config.toml)")
+    lk = store.lock(Path(run_dir), "run")
+    lk.claim(what)
+    return lk
+
+
 def cmd_replay(args, stop, startup) -> int:
     from jaxfalsify.replay import record
 
-    path = record(args.run_dir, args.scenario, save=args.save, spawn=args.spawn,
-                  overlay=args.scenarios)
+    inside = args.save is None and not args.spawn  # the default recording is in the run folder
+    lk = _run_folder_lock(args.run_dir, "replay") if inside else None
+    try:
+        path = record(args.run_dir, args.scenario, save=args.save, spawn=args.spawn,
+                      overlay=args.scenarios)
+    finally:
+        if lk is not None:
+            lk.release()
     print(f"wrote {path}" if path else "sent to the rerun viewer")
     return 0
 
@@ -373,8 +453,9 @@ def cmd_figures(args, stop, startup) -> int:
     from jaxfalsify.figures import make_figures
     from jaxfalsify.report import write_report
 
-    files = make_figures(args.run_dir)
-    report = write_report(args.run_dir)
+    with _run_folder_lock(args.run_dir, "figures"):
+        files = make_figures(args.run_dir)
+        report = write_report(args.run_dir)
     print(f"wrote {len(files)} figures to {args.run_dir}/figures/ and {report}")
     return 0
 

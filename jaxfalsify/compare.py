@@ -32,12 +32,13 @@ from typing import Any, Mapping
 import numpy as np
 
 from jaxfalsify import analysis, campaign, config as cfg, search, store
+from jaxfalsify import sut as sut_lib
 from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.runs import RunConfig
 
 TOL = 1e-6  # reward equality with the global maximum (rewards are float32 sums)
-DEFAULT_STRATEGIES = ("reinforce/default", "reinforce/paper", "random", "grid", "cem",
-                      "anneal", "cmaes")
+DEFAULT_STRATEGIES = ("reinforce/default", "reinforce/factorised", "reinforce/paper", "random",
+                      "grid", "cem", "anneal", "cmaes")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,6 +51,7 @@ class CompareConfig:
     sut: str = "carla-tm"
     sut_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
     overhead: bool = True  # time each strategy's ask/tell alone (search overhead)
+    budgets: tuple[int, ...] = ()  # also report at these smaller budgets (first evaluations)
 
     def run_config(self, strategy: str) -> RunConfig:
         return RunConfig(space=self.space, space_seed=self.space_seed, sut=self.sut,
@@ -60,6 +62,8 @@ class CompareConfig:
         from jaxfalsify.runs import check_int
 
         check_int("seeds", self.seeds, 1, 10_000)
+        for b in self.budgets:
+            check_int("budgets", b, 1, self.evaluations)
         if not self.strategies:
             raise ValueError("strategies: none given")
         for s in self.strategies:
@@ -108,10 +112,24 @@ def corner_mask(indices: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return np.all((idx == 0) | (idx == last), axis=-1)
 
 
+def truncate(r: campaign.Result, budget: int) -> campaign.Result:
+    """The first ``budget`` evaluations of a campaign: what a run with that budget evaluates
+    (no strategy's behaviour depends on the total budget)."""
+    if budget >= r.n:
+        return r
+    return dataclasses.replace(r, indices=r.indices[:budget],
+                               fields={k: v[:budget] for k, v in r.fields.items()})
+
+
 def seed_stats(seed: int, r: campaign.Result, truth: dict, budget: int | None = None) -> dict:
-    """One seed's figures (see the module docstring). ``truth``: :func:`truth_summary`."""
+    """One seed's figures (see the module docstring), over its first ``budget`` evaluations
+    (default all). ``truth``: :func:`truth_summary` (``global_max_reward`` None when the
+    space is too large to sweep)."""
     budget = r.n if budget is None else int(budget)
+    r = truncate(r, budget)
     gmax, gmin = truth["global_max_reward"], truth["global_min_reward"]
+    if gmax is None:  # no ground truth: normalise against nothing
+        gmax = gmin = None
     ranked = analysis.ranked_reward(r.fields)
     best = float(ranked.max()) if r.n else -np.inf
     first = analysis.first_collision(r.fields)
@@ -120,9 +138,11 @@ def seed_stats(seed: int, r: campaign.Result, truth: dict, budget: int | None = 
     return {"seed": seed, "first_collision": first,
             "first_collision_censored": first if first is not None else budget + 1,
             "best": best if np.isfinite(best) else None,
-            "best_normalised": (float((best - gmin) / (gmax - gmin)) if np.isfinite(best)
+            "best_normalised": (None if gmax is None else
+                                float((best - gmin) / (gmax - gmin)) if np.isfinite(best)
                                 and gmax > gmin else (1.0 if np.isfinite(best) else None)),
-            "reached_global_max": bool(np.isfinite(best) and best >= gmax - TOL),
+            "reached_global_max": (None if gmax is None else
+                                   bool(np.isfinite(best) and best >= gmax - TOL)),
             "distinct": len(analysis.distinct_critical(r.indices, r.fields)),
             "corner_share": float(np.mean(corner_mask(r.indices, r.space.shape)))
             if r.n else 0.0,
@@ -135,6 +155,7 @@ def _median(xs) -> float:
 
 
 def strategy_row(name: str, stats: list[dict], truth: dict, wall: float) -> dict:
+    """A strategy's summary over its seeds (``stats``: :func:`seed_stats` rows)."""
     first = np.array([s["first_collision_censored"] for s in stats], np.float64)
     q = np.percentile(first, [25, 50, 75])
     found = sum(s["first_collision"] is not None for s in stats)
@@ -145,26 +166,96 @@ def strategy_row(name: str, stats: list[dict], truth: dict, wall: float) -> dict
             "first_collision_iqr": [float(q[0]), float(q[2])],
             "best_normalised_median": best_norm,
             "best_over_global_max_median": best_norm,  # the former name: the same figure
-            "seeds_reaching_global_max": int(sum(s["reached_global_max"] for s in stats)),
+            "seeds_reaching_global_max": (None if any(s["reached_global_max"] is None
+                                                      for s in stats) else
+                                          int(sum(s["reached_global_max"] for s in stats))),
             "distinct_critical_median": _median(s["distinct"] for s in stats),
-            "all_critical": int(truth["n_collisions"]),
+            "all_critical": truth["n_collisions"],
             "corner_share_median": _median(s["corner_share"] for s in stats),
             "final_mean_reward_median": _median(s["final_mean_reward"] for s in stats),
             "wall_seconds": wall, "per_seed": stats}
 
 
+TRUTH_SAMPLE = 1_000_000  # uniform scenarios that estimate the collision share of a space
+# too large to sweep
+
+
+def sampled_truth(sp, b, budget: int | None = None, n: int | None = None,
+                  seed: int = 0) -> dict:
+    """What can be known of a space too large to sweep: its collision share estimated from
+    ``n`` uniformly drawn scenarios (with a 95 % Clopper-Pearson interval), and uniform random
+    search's expectation from that estimate. No global maximum."""
+    from scipy import stats as st
+
+    from jaxfalsify import sim
+
+    n = TRUTH_SAMPLE if n is None else n
+    import jax
+
+    from jaxfalsify import sut as sut_lib
+
+    s = sut_lib.resolve(b.sut)
+    params = sut_lib.with_params(s, b.sut_params)
+    layout, table = sp.layout, sp.table_array
+    chunk = 1 << 16
+
+    @jax.jit
+    def run(idx, key_data, params):  # one compiled call per chunk (sut.NAME values traced)
+        out, _ = sim.batch_rollout(layout.scenario(idx, table), jax.numpy.arange(chunk),
+                                   jax.random.wrap_key_data(key_data), s, params)
+        return out.collision & ~out.nonfinite, jax.numpy.where(
+            jax.numpy.isnan(out.reward), -jax.numpy.inf, out.reward)
+
+    rng = np.random.default_rng([seed, 7919])
+    shape = np.asarray(sp.shape)
+    coll = 0
+    best = -np.inf
+    key_data = sim.seed_key_data(seed)
+    for start in range(0, n, chunk):
+        m = min(chunk, n - start)
+        idx = np.zeros((chunk, len(shape)), np.int32)
+        idx[:m] = (rng.random((m, len(shape))) * shape).astype(np.int32)
+        c, r = run(idx, key_data, params)
+        coll += int(np.sum(np.asarray(c)[:m]))
+        best = max(best, float(np.max(np.asarray(r)[:m])))
+    lo = float(st.beta.ppf(0.025, coll, n - coll + 1)) if coll else 0.0
+    hi = float(st.beta.ppf(0.975, coll + 1, n - coll))
+    out = {"n_scenarios": int(sp.size), "n_collisions": None, "sampled": n,
+           "sampled_collisions": coll, "collision_share": coll / n,
+           "collision_share_ci95": [lo, hi], "global_max_reward": None,
+           "global_min_reward": None, "global_max_ties": None, "sampled_best_reward": best,
+           "uniform_corner_share": float(2.0 ** np.sum(shape > 1) / sp.size)}
+    if budget is not None:
+        u = uniform_first_collision(n, coll, budget)
+        u["estimated"] = True
+        out["uniform_first_collision"] = u
+    return out
+
+
 def truth_summary(sp, b, budget: int | None = None) -> dict:
+    from jaxfalsify.space import MAX_SIZE
     from jaxfalsify.sweep import ground_truth
 
+    if sp.size > MAX_SIZE:
+        return sampled_truth(sp, b, budget)
     t = ground_truth(sp, b.sut, b.sut_params)
     r = np.where(np.isnan(t["reward"]), -np.inf, t["reward"]).astype(np.float64)
     gmax = float(r.max())
     finite = r[np.isfinite(r)]
     n_coll = int(np.sum(t["collision"]))
     shape = np.asarray(sp.shape)
-    out = {"n_scenarios": int(len(r)), "n_collisions": n_coll, "global_max_reward": gmax,
+    hits = sp.unravel(np.nonzero(t["collision"])[0])
+    multi = shape > 1
+    # the failure set lies away from every edge of the index box (an interior island)
+    interior = bool(n_coll and np.all((hits[:, multi] > 0)
+                                      & (hits[:, multi] < shape[multi] - 1)))
+    out = {"n_scenarios": int(len(r)), "n_collisions": n_coll,
+           "collision_share": n_coll / len(r), "global_max_reward": gmax,
            "global_min_reward": float(finite.min()) if finite.size else gmax,
            "global_max_ties": int(np.sum(r == gmax)),
+           "failures_interior": interior,
+           "failure_index_range": ({n: [int(hits[:, p].min()), int(hits[:, p].max())]
+                                    for p, n in enumerate(sp.names)} if n_coll else None),
            "uniform_corner_share": float(2.0 ** np.sum(shape > 1) / len(r))}
     if budget is not None:
         out["uniform_first_collision"] = uniform_first_collision(len(r), n_coll, budget)
@@ -264,11 +355,14 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
         progress.close()
         wall = time.perf_counter() - t0
         stats = [seed_stats(s, r, truth, config.evaluations) for s, r in zip(mine, results)]
+        small = {b: [seed_stats(s, r, truth, b) for s, r in zip(mine, results)]
+                 for b in sorted(set(config.budgets)) if b < config.evaluations}
         with clock("overhead"):
             overhead = (search_overhead(b.strategy, b.strategy_params, b.plan, len(mine))
                         if mine and config.overhead else None)
         parts[label] = {"stats": stats, "wall": wall, "overhead": overhead,
-                        "compile": results[0].compile_seconds if results else 0.0}
+                        "compile": results[0].compile_seconds if results else 0.0,
+                        "small": {str(b): v for b, v in small.items()}}
         clock.add("compile", parts[label]["compile"])
         clock.add("search", wall - parts[label]["compile"])
     if num_processes > 1:
@@ -279,14 +373,28 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
                      for i in range(num_processes)]
         merged = {k: {"stats": sum((p[k]["stats"] for p in all_parts), []),
                       "wall": max(p[k]["wall"] for p in all_parts),
-                      "overhead": _median(p[k].get("overhead") for p in all_parts)}
+                      "overhead": _median(p[k].get("overhead") for p in all_parts),
+                      "small": {b: sum((p[k]["small"][b] for p in all_parts), [])
+                                for b in parts[k]["small"]}}
                   for k in parts}
     else:
         merged = parts
     rows = [strategy_row(k, v["stats"], truth, v["wall"]) for k, v in merged.items()]
+    by_budget = []
+    for b in sorted(set(config.budgets) | {config.evaluations}):
+        if b == config.evaluations:
+            b_rows = rows
+        else:
+            b_rows = [strategy_row(k, v["small"][str(b)], truth, v["wall"])
+                      for k, v in merged.items()]
+        u = (uniform_first_collision(truth["n_scenarios"], truth["n_collisions"], b)
+             if truth["n_collisions"] is not None else
+             uniform_first_collision(truth["sampled"], truth["sampled_collisions"], b))
+        by_budget.append({"budget": b, "uniform_first_collision": u, "rows": b_rows})
     result = {"space": sp.name, "space_seed": config.space_seed, "sut": config.sut,
+              "sut_params": dict(config.sut_params),
               "evaluations": config.evaluations, "seeds": config.seeds,
-              "processes": num_processes, **truth, "rows": rows,
+              "processes": num_processes, **truth, "rows": rows, "budgets": by_budget,
               "overhead": {k: v.get("overhead") for k, v in merged.items()},
               "versions": cfg.versions()}
     if process_id == 0:
@@ -306,6 +414,36 @@ def _num(x, fmt: str) -> str:
     return "-" if x is None or not np.isfinite(x) else format(x, fmt)
 
 
+def _frac(n, of) -> str:
+    return "-" if n is None else f"{n}/{of}"
+
+
+def _share(p: float | None) -> str:
+    """A share for humans: percent above 1 %, scientific notation below."""
+    if p is None or not np.isfinite(p):
+        return "-"
+    return f"{p:.1%}" if p >= 0.01 else f"{p:.1e}"
+
+
+def uniform_line(result: dict, u: dict, budget: int) -> str:
+    """Uniform random's analytic expectation (from the ground truth, or estimated from a
+    uniform sample of a space too large to sweep)."""
+    if result.get("n_collisions") is None:
+        lo, hi = result["collision_share_ci95"]
+        src = (f"estimated from {result['sampled']:,} uniform scenarios "
+               f"({result['sampled_collisions']} collided: p = {_share(u['p'])}, 95 % interval "
+               f"{lo:.2g}..{hi:.2g})")
+    else:
+        src = (f"{result['n_collisions']:,} collisions in {result['n_scenarios']:,} scenarios, "
+               f"p = {_share(u['p'])}")
+    return (f"Uniform random, analytically ({src}): expected evaluations to the first collision "
+            f"1/p = {_num(u['expected'], '.4g')} (median {_num(u['median'], '.4g')}); censored "
+            f"at {budget + 1}: expected {u['expected_censored']:.4g}, median "
+            f"{u['median_censored']:g}; a collision within {budget} evaluations with "
+            f"probability {u['found_probability']:.3f}. Uniform's share of evaluations on box "
+            f"corners: {_share(result['uniform_corner_share'])}.")
+
+
 def table_markdown(result: dict) -> str:
     """The comparison as a Markdown table, with uniform random's analytic expectation."""
     budget = result["evaluations"]
@@ -321,24 +459,211 @@ def table_markdown(result: dict) -> str:
         first = f"{r['first_collision_median']:g} [{iqr[0]:g}, {iqr[1]:g}]"
         lines.append(f"| {r['strategy']} | {r['found_collision_share'] * r['seeds']:.0f}/"
                      f"{r['seeds']} | {first} | {_num(r['best_normalised_median'], '.4f')} | "
-                     f"{r['seeds_reaching_global_max']}/{r['seeds']} | "
-                     f"{_num(r['distinct_critical_median'], 'g')} / {r['all_critical']} | "
-                     f"{_num(r['corner_share_median'], '.2%')} | "
+                     f"{_frac(r['seeds_reaching_global_max'], r['seeds'])} | "
+                     f"{_num(r['distinct_critical_median'], 'g')} / "
+                     f"{'-' if r['all_critical'] is None else r['all_critical']} | "
+                     f"{_share(r['corner_share_median'])} | "
                      f"{_num(r['final_mean_reward_median'], '.4f')} | "
                      f"{_num(overhead.get(r['strategy']), '.3f')} | "
                      f"{r['wall_seconds']:.1f} |")
     u = result.get("uniform_first_collision")
     if u:
-        lines.append("")
-        lines.append(f"Uniform random, analytically ({result['n_collisions']} collisions in "
-                     f"{result['n_scenarios']} scenarios, p = {u['p']:.3g}): expected evaluations "
-                     f"to the first collision 1/p = {_num(u['expected'], '.4g')} (median "
-                     f"{_num(u['median'], '.4g')}); censored at {budget + 1}: expected "
-                     f"{u['expected_censored']:.4g}, median {u['median_censored']:g}; a collision "
-                     f"within {budget} evaluations with probability {u['found_probability']:.3f}."
-                     f" Uniform's share of evaluations on box corners: "
-                     f"{result['uniform_corner_share']:.2%}.")
-    lines.append("Best, normalised: (best - global min) / (global max - global min) over the "
-                 f"space ({result['global_min_reward']:.4f} .. {result['global_max_reward']:.4f})"
-                 ", median over seeds with a finite best.")
+        lines += ["", uniform_line(result, u, budget)]
+    if result.get("global_max_reward") is not None:
+        lines.append("Best, normalised: (best - global min) / (global max - global min) over "
+                     f"the space ({result['global_min_reward']:.4f} .. "
+                     f"{result['global_max_reward']:.4f}), median over seeds with a finite best.")
+    else:
+        lines.append("No ground truth (the space is too large to sweep): no global maximum; "
+                     "the share of collisions is estimated from a uniform sample.")
     return "\n".join(lines)
+
+
+def budgets_markdown(result: dict) -> str:
+    """One table per comparison: per strategy and budget, seeds with a collision, evaluations
+    to the first collision (median [IQR] over all seeds, none = budget + 1) and seeds at the
+    global maximum; uniform random's expectation in the last row."""
+    blist = result["budgets"]
+    head = "| strategy | " + " | ".join(
+        f"{b['budget']}: collision / first [IQR] / global max" for b in blist) + \
+        " | distinct failures | box corners | overhead ms / evaluation |"
+    lines = [head, "|" + "---|" * (len(blist) + 4)]
+    overhead = result.get("overhead", {})
+    names = [r["strategy"] for r in blist[-1]["rows"]]
+    for k, name in enumerate(names):
+        cells = []
+        for b in blist:
+            r = b["rows"][k]
+            iqr = r["first_collision_iqr"]
+            cells.append(f"{r['found_collision_share'] * r['seeds']:.0f}/{r['seeds']} / "
+                         f"{r['first_collision_median']:g} [{iqr[0]:g}, {iqr[1]:g}] / "
+                         f"{_frac(r['seeds_reaching_global_max'], r['seeds'])}")
+        last = blist[-1]["rows"][k]
+        o = overhead.get(name)
+        lines.append(f"| {name} | " + " | ".join(cells) +
+                     f" | {_num(last['distinct_critical_median'], 'g')} | "
+                     f"{_share(last['corner_share_median'])} | "
+                     f"{'-' if o is None else f'{o:.3f}'} |")
+    cells = []
+    for b in blist:
+        u = b["uniform_first_collision"]
+        cells.append(f"{u['found_probability']:.0%} / E {_num(u['expected_censored'], '.4g')}, "
+                     f"median {u['median_censored']:g}")
+    lines.append("| uniform random (analytic) | " + " | ".join(cells) +
+                 f" | | {_share(result['uniform_corner_share'])} | |")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ the benchmark suite
+@dataclasses.dataclass(frozen=True)
+class SuiteEntry:
+    """One logical scenario of a suite: a space file and the SUT to search it with."""
+
+    space: str  # path (relative paths are resolved against the suite file)
+    sut: str = "carla-tm"
+    sut_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    space_seed: int = 0
+    exclude: tuple[str, ...] = ()  # strategies not run on this entry (grid on a huge space)
+
+
+@dataclasses.dataclass(frozen=True)
+class SuiteConfig:
+    """A benchmark suite (``experiments/suite/suite.toml``): entries x strategies x seeds,
+    reported at every budget."""
+
+    name: str
+    entries: tuple[SuiteEntry, ...]
+    budgets: tuple[int, ...] = (250, 1000, 4000)
+    seeds: int = 10
+    strategies: tuple[str, ...] = DEFAULT_STRATEGIES
+
+    def compare_config(self, entry: SuiteEntry) -> CompareConfig:
+        names = tuple(n for n in self.strategies
+                      if search.canonical(n) not in {search.canonical(x) for x in entry.exclude})
+        return CompareConfig(strategies=names, seeds=self.seeds,
+                             evaluations=max(self.budgets), space=entry.space,
+                             space_seed=entry.space_seed, sut=entry.sut,
+                             sut_params=dict(entry.sut_params), budgets=tuple(self.budgets))
+
+    def check(self) -> None:
+        from jaxfalsify.runs import check_int
+
+        if not self.entries:
+            raise ValueError("suite: no [[entry]] given")
+        for b in self.budgets:
+            check_int("suite budgets", b, 1, 10**9)
+        for e in self.entries:
+            self.compare_config(e).check()
+
+
+_SUITE_KEYS = {"name", "budgets", "seeds", "strategies", "entry"}
+_ENTRY_KEYS = {"space", "sut", "sut_params", "space_seed", "exclude"}
+
+
+def load_suite(path: Path | str, seeds: int | None = None,
+               strategies: tuple[str, ...] | None = None) -> SuiteConfig:
+    """A suite from its TOML file (one-line ValueError naming the bad key); ``seeds`` and
+    ``strategies`` override the file's."""
+    path = Path(path)
+    doc = cfg.read_toml(path, "--suite")
+    where = str(path)
+    unknown = set(doc) - _SUITE_KEYS
+    if unknown:
+        raise ValueError(f"{where}: unknown key '{sorted(unknown)[0]}' "
+                         f"(allowed: {', '.join(sorted(_SUITE_KEYS))})")
+    entries = doc.get("entry")
+    if not isinstance(entries, list) or not entries:
+        raise ValueError(f"{where}: needs at least one [[entry]] table")
+    out = []
+    for k, e in enumerate(entries):
+        key = f"{where}: entry[{k}]"
+        if not isinstance(e, dict):
+            raise ValueError(f"{key} must be a table")
+        bad = set(e) - _ENTRY_KEYS
+        if bad:
+            raise ValueError(f"{key}: unknown key '{sorted(bad)[0]}' "
+                             f"(allowed: {', '.join(sorted(_ENTRY_KEYS))})")
+        if not isinstance(e.get("space"), str):
+            raise ValueError(f"{key}.space must be a space name or a .toml path")
+        sp = e["space"]
+        if sp.endswith(".toml") and not Path(sp).is_absolute():
+            sp = str(path.parent / sp)
+        sut_params = e.get("sut_params", {})
+        if not isinstance(sut_params, dict):
+            raise ValueError(f"{key}.sut_params must be a table of NAME = VALUE")
+        exclude = e.get("exclude", [])
+        if not isinstance(exclude, list) or not all(isinstance(x, str) for x in exclude):
+            raise ValueError(f"{key}.exclude must be a list of strategy names")
+        out.append(SuiteEntry(sp, e.get("sut", "carla-tm"), sut_params,
+                              e.get("space_seed", 0), tuple(exclude)))
+    budgets = doc.get("budgets", [250, 1000, 4000])
+    if not isinstance(budgets, list) or not budgets:
+        raise ValueError(f"{where}: budgets must be a list of evaluation counts")
+    names = strategies or tuple(doc.get("strategies", DEFAULT_STRATEGIES))
+    suite = SuiteConfig(str(doc.get("name", path.stem)), tuple(out),
+                        tuple(sorted(set(budgets))), seeds or doc.get("seeds", 10), names)
+    suite.check()
+    return suite
+
+
+def execute_suite(config: SuiteConfig, out: Path | str, *, force: bool = False,
+                  progress: Progress | None = None, stop=None,
+                  startup_seconds: float = 0.0) -> dict:
+    """Every entry of the suite as a comparison (its own folder under ``out``, named after
+    the space), then ``suite.json`` and ``suite.md`` with a table per space."""
+    out = Path(out)
+    config.check()
+    progress = progress or Progress()
+    clock = Clock(startup_seconds)
+    lk = store.open_folder(out, "suite", force=force)
+    try:
+        lk.claim("suite")
+        out.mkdir(parents=True, exist_ok=True)
+        store.write_atomic(out / "config.toml", cfg.dumps_toml({
+            "kind": "suite", "name": config.name, "budgets": list(config.budgets),
+            "seeds": config.seeds, "strategies": list(config.strategies),
+            "entry": None}) + "".join(
+            "\n[[entry]]\n" + cfg.dumps_toml({"space": e.space, "sut": e.sut,
+                                             "space_seed": e.space_seed,
+                                             "exclude": list(e.exclude)})
+            + ("" if not e.sut_params else "sut_params = { " + ", ".join(
+                f"{k} = {float(v)!r}" for k, v in e.sut_params.items()) + " }\n")
+            for e in config.entries))
+        results = []
+        for k, e in enumerate(config.entries):
+            c = config.compare_config(e)
+            name = c.run_config(c.strategies[0]).build().space.name
+            progress.phase(f"suite entry {k + 1}/{len(config.entries)}: {name} x {e.sut}")
+            folder = out / f"{k + 1:02d}-{name}-{sut_lib.resolve(e.sut).name}"[:120]
+            res = execute(c, folder, force=force, progress=progress, stop=stop)
+            results.append(res)
+        summary = {"suite": config.name, "budgets": list(config.budgets),
+                   "seeds": config.seeds, "strategies": list(config.strategies),
+                   "entries": results, "versions": cfg.versions()}
+        with clock("writing"):
+            store.write_json(out / "suite.json", summary, indent=2)
+            store.write_atomic(out / "suite.md", suite_markdown(summary) + "\n")
+        summary["timing"] = clock.summary()
+        return summary
+    finally:
+        lk.release()
+
+
+def suite_markdown(summary: dict) -> str:
+    """A section per space: what it is, its ground truth, and the per-budget table."""
+    parts = [f"# Search benchmark: {summary['suite']} ({summary['seeds']} seeds per strategy)"]
+    for r in summary["entries"]:
+        share = r.get("collision_share")
+        truth = (f"{r['n_collisions']:,} collisions of {r['n_scenarios']:,} scenarios "
+                 f"(p = {_share(share)})" if r.get("n_collisions") is not None else
+                 f"{r['n_scenarios']:.3g} scenarios, too many to sweep; collision share "
+                 f"estimated {_share(share)} from {r['sampled']:,} uniform draws")
+        extra = ""
+        if r.get("global_max_reward") is not None:
+            extra = (f"; global maximum {r['global_max_reward']:.4f} "
+                     f"({r['global_max_ties']} scenario{'s' if r['global_max_ties'] != 1 else ''})"
+                     f"; failures {'away from every edge (interior island)' if r.get('failures_interior') else 'touch an edge of the box'}")
+        sp = ", ".join(f"{k}={v:g}" for k, v in r.get("sut_params", {}).items())
+        parts += ["", f"## {r['space']} x {r['sut']}{f' ({sp})' if sp else ''}", "",
+                  truth + extra + ".", "", budgets_markdown(r)]
+    return "\n".join(parts)

@@ -50,6 +50,13 @@ def _toml_value(v: Any) -> str:
     raise ValueError(f"cannot write {type(v).__name__} to TOML")
 
 
+def _toml_key(k: str) -> str:
+    """A bare key where TOML allows one, else a quoted key (``"sut.ttc_full"``)."""
+    k = str(k)
+    return k if k and all(c.isascii() and (c.isalnum() or c in "_-") for c in k) \
+        else _toml_value(k)
+
+
 def dumps_toml(doc: dict[str, Any], _prefix: str = "") -> str:
     """Minimal TOML writer for nested dicts of scalars and lists (what our configs hold)."""
     lines, tables = [], []
@@ -57,10 +64,10 @@ def dumps_toml(doc: dict[str, Any], _prefix: str = "") -> str:
         if isinstance(v, dict):
             tables.append((k, v))
         elif v is not None:
-            lines.append(f"{k} = {_toml_value(v)}")
+            lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
     out = "\n".join(lines)
     for k, v in tables:
-        name = f"{_prefix}{k}"
+        name = f"{_prefix}{_toml_key(k)}"
         body = dumps_toml(v, name + ".")
         out = out.rstrip("\n") + ("\n\n" if out else "") + f"[{name}]\n" + body
     return out + ("\n" if out and not out.endswith("\n") else "")

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfalsify import analysis
+from jaxfalsify import analysis, store
 
 FIGSIZE = (8, 4.5)
 DPI = 100
@@ -124,7 +124,8 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
 
     def save(fig, name):
         path = out / name
-        fig.savefig(path, dpi=DPI)
+        with store.atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=DPI, format="png")
         plt.close(fig)
         written.append(path)
 

@@ -60,22 +60,33 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
            spawn: bool = False, overlay: int = 0):
     """Write (or spawn a viewer with) a recording of one scenario of a run; returns the path."""
     import rerun as rr
+
+    sp, rc, summary, ep = load_run(run_dir)
+    row = resolve_scenario(scenario, ep, sp)
+    rec = rr.RecordingStream("jaxfalsify", recording_id=f"{Path(run_dir).name}-{scenario}")
+    if spawn:
+        rec.spawn()
+        _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row)
+        return None
+    path = Path(save) if save else Path(run_dir) / f"replay-{scenario.replace(':', '-')}.rrd"
+    check_save_path(path)
+    from jaxfalsify import store
+
+    with store.atomic_path(path) as tmp:  # complete under its final name, or not at all
+        rec.save(tmp)
+        _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row)
+        rec.disconnect()  # closes the file sink
+    return path
+
+
+def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
+    """Everything a recording holds (see :func:`record`)."""
+    import rerun as rr
     import rerun.blueprint as rrb
 
     import jaxfalsify as jf
 
-    sp, rc, summary, ep = load_run(run_dir)
-    row = resolve_scenario(scenario, ep, sp)
     w = jf.WORLD
-    rec = rr.RecordingStream("jaxfalsify", recording_id=f"{Path(run_dir).name}-{scenario}")
-    path = tmp = None
-    if spawn:
-        rec.spawn()
-    else:
-        path = Path(save) if save else Path(run_dir) / f"replay-{scenario.replace(':', '-')}.rrd"
-        tmp = check_save_path(path)
-        rec.save(tmp)
-
     # static world
     x0, x1 = -15.0, w.end_x + 10.0
     edges = [[[x0, w.road_right], [x1, w.road_right]], [[x0, w.road_left], [x1, w.road_left]]]
@@ -156,17 +167,11 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
                      rrb.TimeSeriesView(origin="overlay" if overlay else "training",
                                         name="overlay" if overlay else "training")))))
     rec.flush()
-    if tmp is not None:
-        import os
-
-        rec.disconnect()  # closes the file sink
-        os.replace(tmp, path)
-    return path
 
 
 def check_save_path(path: Path) -> Path:
     """A writable place for ``path`` (a .rrd file): its folder exists and can be written, it
-    is not a folder itself. Returns the temporary name to record to (renamed when done)."""
+    is not a folder itself. Returns the path."""
     import tempfile
 
     path = Path(path)
@@ -182,7 +187,7 @@ def check_save_path(path: Path) -> Path:
             pass
     except OSError as e:
         raise ValueError(f"--save {path}: cannot write in {parent} ({e.strerror})") from None
-    return parent / f".{path.name}.partial"
+    return path
 
 
 def _tm_polygons(rc, tr: dict, w) -> tuple:

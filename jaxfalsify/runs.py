@@ -60,6 +60,17 @@ def build_space(space: Any, space_seed: int) -> Space:
     raise ValueError(f"space must be a name, a TOML path or a table (got {space!r})")
 
 
+def check_space_sut(sp: Space, sut: sut_lib.SUT) -> None:
+    """ValueError naming a space parameter ``sut.NAME`` the SUT does not have."""
+    from jaxfalsify.space import SUT_PREFIX, is_sut_parameter
+
+    known = sut_lib.param_names(sut)
+    for n in sp.names:
+        if is_sut_parameter(n) and n[len(SUT_PREFIX):] not in known:
+            raise ValueError(f"space parameter {n}: the SUT '{sut.name}' has no parameter "
+                             f"'{n[len(SUT_PREFIX):]}' (it has: {', '.join(known) or 'none'})")
+
+
 def check_mapping(key: str, m) -> dict:
     if not isinstance(m, Mapping):
         raise ValueError(f"{key} must be a table of NAME = VALUE (got {m!r})")
@@ -108,6 +119,7 @@ class RunConfig:
         sp = build_space(self.space, self.space_seed)
         sut, sut_params = sut_lib.make(self.sut, **check_mapping("sut_params",
                                                                  self.sut_params))
+        check_space_sut(sp, sut)
         name = search.canonical(self.strategy)
         strat, strat_params = search.make(name, sp.shape, self.batch,
                                           **check_mapping("strategy_params",
@@ -268,7 +280,7 @@ class RunOutcome:
     timing: dict
 
 
-def _stats_progress(progress: Progress, total: int, desc: str):
+def _stats_progress(progress: Progress, total: int, desc: str, start_from: int = 0):
     """The campaign's per-chunk callback: start the bar after the first (compiling) chunk and
     show the best reward and collisions so far."""
     state = {"best": -np.inf, "collisions": 0, "seen": 0, "started": False}
@@ -349,6 +361,7 @@ def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: 
 def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: bool,
              force: bool, progress: Progress, stop, figures: bool, rerun: bool,
              clock: Clock) -> RunOutcome:
+    lk.claim("run")  # the holder's pid is readable from the moment the lock is held
     ckpt = store.CampaignCheckpoint(out / "checkpoint", fingerprint(rc, b.plan))
     resumed = None
     if resume:
@@ -357,37 +370,48 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
             raise store.CheckpointError(f"--resume {out}: config.toml does not match the run "
                                         "configuration given")
         resumed = restore(ckpt, b, rc.seed)
-    lk.claim("run")
     start_from = b.plan.done_after(len(resumed[1])) if resumed else 0
     if resumed is None:
         if force:
             store.clear(out, "run")
         out.mkdir(parents=True, exist_ok=True)
         store.write_atomic(out / "config.toml", rc.to_toml())
-    store.write_status(out, "run", "running", budget=b.plan.budget,
+    store.write_status(out, "run", "running", evaluations=b.plan.budget,
                        resumed_from_evaluation=start_from)
     if start_from:
         progress.message(f"resuming {out} at evaluation {start_from} of {b.plan.budget}")
-    t0 = time.perf_counter()
-    campaign.program(campaign.Campaign(b.space.layout, b.sut, b.strategy,
-                                       b.plan.updates_per_chunk),
-                     campaign.args_for(b.space, b.sut_params, b.strategy_params, WORLD,
-                                       b.plan.budget), 1)  # export (or load) the program
-    clock.add("compile", time.perf_counter() - t0)
-    # then, while XLA compiles it (without the GIL), prepare the figures in the background
-    prep = _prepare_figures(b) if figures else None
-    progress.phase(f"compiling {rc.strategy} x {rc.sut} on {b.space.name}")
     try:
+        t0 = time.perf_counter()
+        progress.phase(f"compiling {rc.strategy} x {rc.sut} on {b.space.name}")
+        campaign.program(campaign.Campaign(b.space.layout, b.sut, b.strategy,
+                                           b.plan.updates_per_chunk),
+                         campaign.args_for(b.space, b.sut_params, b.strategy_params, WORLD,
+                                           b.plan.budget), 1)  # export (or load) the program
+        clock.add("compile", time.perf_counter() - t0)
+        # then, while XLA compiles it (without the GIL), prepare the figures in the background
+        prep = _prepare_figures(b) if figures else None
         res = campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan,
                            rc.seed, progress=_stats_progress(progress, b.plan.budget,
-                                                             f"{rc.strategy} on {b.space.name}"),
+                                                             f"{rc.strategy} on {b.space.name}",
+                                                             start_from),
                            checkpoint=ckpt, resumed=resumed, stop=stop)
+        if stop is not None and stop():  # the signal came during the last chunk: commit
+            raise campaign.Stopped(b.plan.n_chunks)
     except (campaign.Stopped, KeyboardInterrupt):
         progress.close()
         done = ckpt.evaluations_done()
         store.write_status(out, "run", "interrupted", evaluations_done=done,
-                           budget=b.plan.budget)
+                           evaluations=b.plan.budget)
         raise Interrupted("run", out, done, b.plan.budget, "evaluations") from None
+    except BaseException as e:
+        progress.close()
+        try:  # status.json tells the truth: the search failed
+            store.write_status(out, "run", "failed", evaluations_done=ckpt.evaluations_done(),
+                               evaluations=b.plan.budget,
+                               error=f"{type(e).__name__}: {e}"[:300])
+        except OSError:
+            pass
+        raise
     progress.close()
     clock.add("compile", res.compile_seconds)
     clock.add("search", res.search_seconds)
@@ -395,8 +419,8 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
         return _finish(b, rc, out, res, ckpt, start_from, prep, figures, rerun, progress, clock)
     except BaseException as e:
         try:  # status.json tells the truth: the search is done, its outputs are not
-            store.write_status(out, "run", "failed", evaluations_done=res.n, budget=res.n,
-                               error=f"{type(e).__name__}: {e}"[:300])
+            store.write_status(out, "run", "failed", evaluations_done=res.n,
+                               evaluations=res.n, error=f"{type(e).__name__}: {e}"[:300])
         except OSError:
             pass
         raise
@@ -428,7 +452,7 @@ def _finish(b: Built, rc: RunConfig, out: Path, res: campaign.Result, ckpt, star
         from jaxfalsify.report import write_report
 
         write_report(out)
-    store.write_status(out, "run", "complete", evaluations_done=res.n, budget=res.n)
+    store.write_status(out, "run", "complete", evaluations_done=res.n, evaluations=res.n)
     ckpt.remove()
     return RunOutcome(out, rc, res, summary, timing)
 

@@ -39,7 +39,7 @@ import numpy as np
 
 from jaxfalsify import metrics, pytree, reward
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.space import KNOWN_PARAMETERS
+from jaxfalsify.space import KNOWN_PARAMETERS, SUT_PREFIX, is_sut_parameter
 
 
 NON_NEGATIVE = ("lanes_left", "crosswalk_x", "end_x", "walker_base", "origin_dz")
@@ -394,6 +394,36 @@ def _outcome(c: _Carry, hr_bits, w: World) -> Outcome:
 
 
 # ---------------------------------------------------------------------------- batched API
+def split_sut_values(scenario: dict, sut_params, sut) -> tuple[dict, dict]:
+    """A scenario's ``sut.NAME`` values (scalars, or arrays of one value) merged into the SUT
+    parameter overrides: ``(scenario without them, sut_params)``; ValueError (one line) for
+    a name the SUT does not have or values that differ across the batch."""
+    keys = [k for k in scenario if isinstance(k, str) and is_sut_parameter(k)]
+    if not keys:
+        return scenario, sut_params
+    s = sut_lib.resolve(sut)
+    known = sut_lib.param_names(s)
+    over = {}
+    for k in keys:
+        name = k[len(SUT_PREFIX):]
+        if name not in known:
+            raise ValueError(f"scenario parameter {k}: the SUT '{s.name}' has no parameter "
+                             f"'{name}' (it has: {', '.join(known) or 'none'})")
+        v = np.unique(np.asarray(scenario[k], np.float64))
+        if v.size != 1 or not np.isfinite(v[0]):
+            raise ValueError(f"scenario parameter {k}: one finite value per call (got "
+                             f"{v.size} values); evaluate each calibration separately or "
+                             "sweep them")
+        over[name] = float(v[0])
+    if sut_params is None:
+        base = {}
+    elif isinstance(sut_params, dict):
+        base = dict(sut_params)
+    else:
+        base = sut_lib.params_dict(sut_params)
+    return {k: v for k, v in scenario.items() if k not in keys}, {**base, **over}
+
+
 def _check_scenario(scenario: dict) -> dict:
     if not isinstance(scenario, dict):
         raise ValueError(f"scenario must be a dict of parameter values (got {type(scenario).__name__})")
@@ -439,10 +469,17 @@ def batch_rollout(flat: dict, offsets: jax.Array, key: jax.Array, sut: sut_lib.S
     Rollout ``i`` draws from ``fold_in(key, offsets[i])``: pass scenario or evaluation numbers
     as ``offsets`` so a scenario's randomness does not depend on how batches are cut.
     """
+    over = {k[len(SUT_PREFIX):]: v for k, v in flat.items() if is_sut_parameter(k)}
+    flat = {k: v for k, v in flat.items() if not is_sut_parameter(k)}
+
+    def one(sc, ov, k):  # a space's sut.NAME values replace the SUT's parameters per scenario
+        p = sut_lib.override(params, ov) if ov else params
+        return rollout(sc, sut, p, k, world, record)
+
     if not sut.stochastic:  # the key is never used: no per-scenario keys to derive
-        return jax.vmap(lambda sc: rollout(sc, sut, params, key, world, record))(flat)
+        return jax.vmap(lambda sc, ov: one(sc, ov, key))(flat, over)
     keys = jax.vmap(lambda o: jax.random.fold_in(key, o))(offsets)
-    return jax.vmap(lambda sc, k: rollout(sc, sut, params, k, world, record))(flat, keys)
+    return jax.vmap(one)(flat, over, keys)
 
 
 def _f32(tree):
@@ -537,6 +574,7 @@ def simulate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = 
     Returns:
       :class:`Trajectory` with fields ``(*batch, T)``.
     """
+    scenario, sut_params = split_sut_values(scenario, sut_params, sut)
     s, params, world = _resolve(sut, sut_params, world)
     full = _check_scenario(scenario)
     flat, shape = _flat(full)
@@ -561,6 +599,7 @@ def evaluate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = 
     """
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size <= 0:
         raise ValueError(f"chunk_size must be a positive integer (got {chunk_size!r})")
+    scenario, sut_params = split_sut_values(scenario, sut_params, sut)
     s, params, world = _resolve(sut, sut_params, world)
     full = _check_scenario(scenario)
     flat, shape = _flat(full)

@@ -41,14 +41,44 @@ KNOWN_PARAMETERS: dict[str, dict[str, Any]] = {
     "weather": dict(unit="preset", default=0.0, domain=(0.0, weather.N_PRESETS - 1.0),
                     integer=True, doc="CARLA weather preset index (name-sorted)"),
     "ped_speed_change": dict(unit="m/s", default=0.0, domain=(-3.0, 3.0), integer=False,
-                             doc="speed change during a 5-step window (extended space)"),
+                             doc="speed change during a six-step window (extended space)"),
     "ped_change_step": dict(unit="step", default=0.0, domain=(0.0, 299.0), integer=True,
                             doc="first step of the speed-change window (extended space)"),
 }
 
 DISTRIBUTIONS = ("uniform", "normal", "integers", "values")
 MAX_SAMPLES = 1_000_000  # concrete values per parameter
-MAX_SIZE = 2**31 - 1  # concrete scenarios per space (int32 scenario numbers)
+MAX_SIZE = 2**31 - 1  # concrete scenarios a sweep enumerates (int32 scenario numbers)
+MAX_SEARCH_SIZE = 10**18  # concrete scenarios a space may have (searched, never enumerated)
+SUT_PREFIX = "sut."  # a space parameter named sut.NAME sets the SUT's parameter NAME
+
+
+def is_sut_parameter(name: str) -> bool:
+    """Whether a space parameter is a SUT parameter (``sut.NAME``: a calibration searched or
+    swept like a scenario parameter)."""
+    return name.startswith(SUT_PREFIX)
+
+
+def parameter_spec(name: str) -> dict[str, Any]:
+    """The spec of a known parameter, or of a SUT parameter (no unit here: the SUT's
+    parameter docs give it; any finite value)."""
+    if is_sut_parameter(name):
+        return dict(unit="", default=None, domain=(-math.inf, math.inf), integer=False,
+                    doc=f"the SUT's parameter {name[len(SUT_PREFIX):]}")
+    return KNOWN_PARAMETERS[name]
+
+
+def check_name_known(name: str, key: str) -> None:
+    """ValueError unless ``name`` is a known scenario parameter or ``sut.NAME``."""
+    if is_sut_parameter(name):
+        rest = name[len(SUT_PREFIX):]
+        if not rest.isidentifier():
+            raise ValueError(f"{key}: '{rest}' is not a SUT parameter name")
+        return
+    if name not in KNOWN_PARAMETERS:
+        raise ValueError(f"{key}: unknown parameter '{name}' "
+                         f"(known: {', '.join(KNOWN_PARAMETERS)}, or sut.NAME for a SUT "
+                         "parameter)")
 _PARAM_KEYS = {"unit", "distribution", "low", "high", "mean", "sd", "samples", "values", "decimals"}
 _TOP_KEYS = {"name", "description", "parameters"}
 
@@ -74,7 +104,7 @@ class Parameter:
 
     @property
     def unit(self) -> str:
-        return KNOWN_PARAMETERS[self.name]["unit"]
+        return parameter_spec(self.name)["unit"]
 
     def discretise(self, seed: int) -> np.ndarray:
         """Concrete value set ``(samples,)`` float64, sorted ascending; deterministic in seed."""
@@ -130,9 +160,7 @@ def make_parameter(name: str, distribution: str, args: tuple, samples: int,
                    decimals: int = 3, where: str = "") -> Parameter:
     """Validated :class:`Parameter`; raises ``ValueError`` naming the offending key."""
     key = where or f"parameters.{name}"
-    if name not in KNOWN_PARAMETERS:
-        raise ValueError(f"{key}: unknown parameter '{name}' "
-                         f"(known: {', '.join(KNOWN_PARAMETERS)})")
+    check_name_known(name, key)
     if distribution not in DISTRIBUTIONS:
         raise ValueError(f"{key}.distribution: unknown distribution '{distribution}' "
                          f"(one of {', '.join(DISTRIBUTIONS)})")
@@ -344,13 +372,13 @@ def build(name: str, parameters: list[Parameter], seed: int) -> Space:
     if dup:
         raise ValueError(f"space '{name}': parameter declared twice: {sorted(dup)}")
     size = math.prod(p.samples for p in parameters)
-    if size > MAX_SIZE:  # checked before anything is drawn or allocated
-        raise ValueError(f"space '{name}' has {size:,} scenarios; at most {MAX_SIZE:,} "
-                         "(2**31 - 1) supported")
+    if size > MAX_SEARCH_SIZE:  # checked before anything is drawn or allocated
+        raise ValueError(f"space '{name}' has {size:.3g} scenarios; at most "
+                         f"{MAX_SEARCH_SIZE:.0e} supported")
     table = []
     for p in parameters:
         vals = p.discretise(int(seed))
-        spec = KNOWN_PARAMETERS[p.name]
+        spec = parameter_spec(p.name)
         lo, hi = spec["domain"]
         bad = vals[(vals < lo) | (vals > hi) | ~np.isfinite(vals)]
         if bad.size:
@@ -391,12 +419,10 @@ def parse_parameter(name: str, spec: Any, where: str) -> Parameter:
     if unknown:
         raise ValueError(f"{where}: unknown key '{sorted(unknown)[0]}' "
                          f"(allowed: {', '.join(sorted(_PARAM_KEYS))})")
-    if name not in KNOWN_PARAMETERS:
-        raise ValueError(f"{where}: unknown parameter '{name}' "
-                         f"(known: {', '.join(KNOWN_PARAMETERS)})")
-    unit = spec.get("unit", KNOWN_PARAMETERS[name]["unit"])
-    if unit != KNOWN_PARAMETERS[name]["unit"]:
-        raise ValueError(f"{where}.unit: '{name}' is in {KNOWN_PARAMETERS[name]['unit']!r}, "
+    check_name_known(name, where)
+    unit = spec.get("unit", parameter_spec(name)["unit"])
+    if unit != parameter_spec(name)["unit"]:
+        raise ValueError(f"{where}.unit: '{name}' is in {parameter_spec(name)['unit']!r}, "
                          f"not {unit!r}")
     if "values" in spec:
         dist = spec.get("distribution", "values")
@@ -437,7 +463,14 @@ def space_from_dict(doc: dict[str, Any], seed: int = 0, default_name: str = "cus
     params = doc.get("parameters")
     if not isinstance(params, dict) or not params:
         raise ValueError("'parameters' table is missing or empty")
-    parsed = [parse_parameter(n, s, f"parameters.{n}") for n, s in params.items()]
+    flat = {}
+    for n, s in params.items():  # [parameters.sut.NAME] tables: SUT parameters
+        if n == "sut" and isinstance(s, dict) and s and all(isinstance(v, dict)
+                                                           for v in s.values()):
+            flat.update({SUT_PREFIX + k: v for k, v in s.items()})
+        else:
+            flat[n] = s
+    parsed = [parse_parameter(n, s, f"parameters.{n}") for n, s in flat.items()]
     return build(check_name(doc.get("name", default_name)), parsed, seed)
 
 

@@ -28,6 +28,7 @@ writer is refused with the holder's pid (:class:`FolderLock`).
 from __future__ import annotations
 
 import fcntl
+import contextlib
 import hashlib
 import io
 import json
@@ -75,6 +76,22 @@ def write_atomic(path: Path, data: str | bytes) -> str:
             os.unlink(tmp)
         raise
     return sha256(data)
+
+
+@contextlib.contextmanager
+def atomic_path(path: Path):
+    """``with atomic_path(final) as tmp: write(tmp)``: whatever writes ``tmp`` (a library
+    that wants a file name: matplotlib, rerun, a Parquet writer), the result appears under
+    ``final`` only once complete (a rename in the same folder); on failure the temporary
+    file is removed and ``final`` is untouched."""
+    path = Path(path)
+    tmp = _tmp_in(path.parent, path.name)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
 
 
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
@@ -284,8 +301,10 @@ RESULT_FILES = {
             "best.rrd"),
     "sweep": ("sweep.parquet", "summary.json", "timing.json"),
     "compare": ("compare.json", "compare.md", "timing.json"),
+    "suite": ("suite.json", "suite.md", "timing.json"),
 }
-FINISHED = {"run": "summary.json", "sweep": "summary.json", "compare": "compare.json"}
+FINISHED = {"run": "summary.json", "sweep": "summary.json", "compare": "compare.json",
+            "suite": "suite.json"}
 
 
 def folder_kind(out: Path) -> str | None:
@@ -301,7 +320,8 @@ def folder_kind(out: Path) -> str | None:
     except ValueError as e:
         raise FolderError(str(e)) from None
     if kind not in RESULT_FILES:
-        raise FolderError(f"{path}: not a jaxfalsify run, sweep or compare (kind = {kind!r})")
+        raise FolderError(f"{path}: not a jaxfalsify run, sweep, compare or suite "
+                          f"(kind = {kind!r})")
     return kind
 
 
@@ -335,7 +355,7 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
         if (out / FINISHED[kind]).exists() and not force:
             raise FolderError(f"--out {out} already holds {FINISHED[kind]}; pass --force to "
                               "overwrite")
-        if kind != "compare" and unfinished(out) and not force:
+        if kind not in ("compare", "suite") and unfinished(out) and not force:
             raise FolderError(f"--out {out} holds an unfinished {kind}; pass --resume {out} to "
                               "continue it or --force to start over")
     parent = out if out.exists() else next((a for a in out.parents if a.exists()), Path("."))

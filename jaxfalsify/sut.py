@@ -487,6 +487,17 @@ def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
     return {**p, **{k: float(v) for k, v in params.items()}}
 
 
+def override(params: Any, values: dict) -> Any:
+    """``params`` with the fields in ``values`` replaced (traced values welcome: a space's
+    ``sut.NAME`` parameters, one value per scenario under ``vmap``)."""
+    if dataclasses.is_dataclass(params):
+        return dataclasses.replace(params, **values)
+    if isinstance(params, dict):
+        return {**params, **values}
+    raise ValueError(f"cannot set {', '.join(values)} on SUT parameters of type "
+                     f"{type(params).__name__}")
+
+
 def make(spec: str | SUT | Callable = "carla-tm", **params) -> tuple[SUT, Any]:
     """``(sut, params)``: a SUT by name or import path, and its parameters with ``params``
     overriding the defaults (``make("sensor-aeb", ttc_full=0.8)``)."""

@@ -27,7 +27,6 @@ import functools
 import itertools
 import json
 import math
-import os
 import shutil
 import time
 from pathlib import Path
@@ -183,12 +182,23 @@ def calibrations(sut: sut_lib.SUT, sut_params: Mapping[str, Any]) -> Calibration
                         tuple((n, tuple(float(x) for x in vals)) for n, vals in swept))
 
 
+def check_sweepable(space: Space) -> None:
+    """ValueError for a space too large to enumerate (int32 scenario numbers)."""
+    from jaxfalsify.space import MAX_SIZE
+
+    if space.size > MAX_SIZE:
+        raise ValueError(f"space '{space.name}' has {space.size:.3g} scenarios: too many to "
+                         f"sweep (at most {MAX_SIZE:,}); search it (jaxfalsify run, or compare, "
+                         "which then estimates the collision share from a uniform sample)")
+
+
 def iter_sweep(space: Space, calib: Calibrations, world: sim.World = sim.WORLD,
                chunk: int = DEFAULT_CHUNK, start: int = 0, stop: int | None = None,
                planned: int | None = None, key=None):
     """Yield ``(begin, end, columns)`` for consecutive chunks of scenarios ``[start, stop)``
     (host-side loop; each chunk is one call of the same compiled function, sharded over the
     local devices). ``planned`` fixes the compiled chunk size."""
+    check_sweepable(space)
     stop = space.size if stop is None else stop
     chunk = planned or plan_chunks(max(stop - start, 1), max(256, chunk // calib.count))
     table, params = space.table_array, calib.stacked()
@@ -349,6 +359,24 @@ def _load_progress(ck: Path, fingerprint: dict, n_calib: int, begin: int, end: i
             raise store.CheckpointError(f"checkpoint file {ck / name}: its record names "
                                         "another chunk or sweep")
         store.read_verified(ck / name, entry)
+    if rows == "all" and done:  # the totals must be what the verified rows add up to
+        import pyarrow.parquet as pq
+
+        again = [Reducer() for _ in range(n_calib)]
+        for c in range(done):
+            cols = {k: np.asarray(v) for k, v in
+                    pq.read_table(ck / f"rows-{c:06d}.parquet").to_pydict().items()}
+            n = len(cols["scenario"]) // n_calib
+            for i, red in enumerate(again):
+                red.add({k: v[i * n:(i + 1) * n] for k, v in cols.items()})
+        for red, got in zip(again, reds):
+            same = (red.n, red.collisions, red.nonfinite, red.best_ties) == \
+                (got.n, got.collisions, got.nonfinite, got.best_ties) and \
+                red.best_reward == got.best_reward and \
+                (red.best_row or {}).get("scenario") == (got.best_row or {}).get("scenario")
+            if not same:
+                raise store.CheckpointError(f"checkpoint {where}: its totals disagree with "
+                                            "its rows files (edited)")
     return done, reds, files
 
 
@@ -381,6 +409,10 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     clock = Clock(startup_seconds)
     progress = progress or Progress()
     space, calib = config.build()
+    check_sweepable(space)
+    from jaxfalsify.runs import check_space_sut
+
+    check_space_sut(space, calib.sut)
     out = Path(out) if out is not None else default_out(space, config.sut, config.space_seed)
     cfg.check_memory(max(256, config.chunk // calib.count) * calib.count
                      * (len(space.shape) * 2 + len(OUTCOME_FIELDS) + 4) * 16
@@ -494,7 +526,7 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
         n_chunks = -(-(end - begin) // planned)
         if config.rows != "none":
             _merge_rows([(ck / f"rows-{c:06d}.parquet", files.get(f"rows-{c:06d}.parquet"))
-                         for c in range(n_chunks)], out / f".{name}.partial", out / name)
+                         for c in range(n_chunks)], out / name)
         part = {"process_id": process_id,
                 "totals": [{"n": r.n, "collisions": r.collisions, "nonfinite": r.nonfinite,
                             "best_reward": r.best_reward, "best_ties": r.best_ties,
@@ -570,27 +602,24 @@ def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts
     return summary
 
 
-def _merge_rows(files: list[tuple[Path, dict | None]], tmp: Path, final: Path) -> None:
+def _merge_rows(files: list[tuple[Path, dict | None]], final: Path) -> None:
     """Concatenate the chunks' Parquet files (each verified against its commit-record entry)
     into one, under a temporary name, then rename."""
     import io
 
     import pyarrow.parquet as pq
 
-    writer = None
-    try:
-        for f, entry in files:
-            table = pq.read_table(io.BytesIO(store.read_verified(f, entry)))
-            if writer is None:
-                writer = pq.ParquetWriter(tmp, table.schema)
-            writer.write_table(table)
-    except BaseException:
-        if writer is not None:
-            writer.close()
-        tmp.unlink(missing_ok=True)
-        raise
-    writer.close()
-    os.replace(tmp, final)
+    with store.atomic_path(final) as part:
+        writer = None
+        try:
+            for f, entry in files:
+                table = pq.read_table(io.BytesIO(store.read_verified(f, entry)))
+                if writer is None:
+                    writer = pq.ParquetWriter(part, table.schema)
+                writer.write_table(table)
+        finally:
+            if writer is not None:
+                writer.close()
 
 
 def resume_config(out: Path | str) -> tuple[SweepConfig, int]:

@@ -81,3 +81,43 @@ def test_seed_stats_and_row_by_hand_with_a_failed_seed():
 def test_corner_mask_one_value_parameter_is_always_a_corner():
     m = compare.corner_mask(np.array([[0, 0, 4], [0, 0, 2], [2, 0, 0]]), (3, 1, 5))
     assert m.tolist() == [True, False, True]
+
+
+def test_smaller_budgets_are_the_first_evaluations_by_hand():
+    """The suite's budgets: statistics over the first 4 of 8 evaluations, failed seeds
+    counting budget + 1 = 5; the per-budget table shows them beside uniform's expectation."""
+    idx = [[0, 0, 0], [2, 1, 3], [1, 0, 2], [2, 0, 0], [0, 1, 3], [1, 1, 1], [2, 1, 0],
+           [1, 0, 1]]
+    seeds = [
+        _result(idx, [0.0, 0.01, 0.25, 0.26, 0.0, 0.1, 0.2, 0.26], [0, 0, 1, 1, 0, 0, 0, 1]),
+        _result(idx, [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.24], [0, 0, 0, 0, 0, 0, 0, 1]),
+    ]
+    st4 = [compare.seed_stats(s, r, TRUTH, budget=4) for s, r in enumerate(seeds)]
+    assert [s["first_collision_censored"] for s in st4] == [3, 5]
+    assert [s["reached_global_max"] for s in st4] == [True, False]
+    assert [s["distinct"] for s in st4] == [2, 0]
+    assert st4[0]["corner_share"] == pytest.approx(3 / 4)  # rows 0, 1, 3
+    row4 = compare.strategy_row("x", st4, TRUTH, wall=1.0)
+    assert row4["first_collision_median"] == 4.0 and row4["seeds_reaching_global_max"] == 1
+    row8 = compare.strategy_row("x", [compare.seed_stats(s, r, TRUTH, 8)
+                                      for s, r in enumerate(seeds)], TRUTH, wall=1.0)
+    result = {"budgets": [{"budget": 4, "rows": [row4],
+                           "uniform_first_collision": compare.uniform_first_collision(24, 5, 4)},
+                          {"budget": 8, "rows": [row8],
+                           "uniform_first_collision": compare.uniform_first_collision(24, 5, 8)}],
+              "overhead": {"x": 0.5}, "uniform_corner_share": 8 / 24}
+    md = compare.budgets_markdown(result)
+    assert "| x | 1/2 / 4 [3.5, 4.5] / 1/2 | 2/2 / 5.5 [4.25, 6.75] / 1/2 |" in md
+    # uniform: p = 5/24; within 4 evaluations with probability 1 - (19/24)^4
+    assert f"{1 - (19 / 24) ** 4:.0%}" in md.splitlines()[-1]
+
+
+def test_no_ground_truth_rows():
+    """A space too large to sweep: no global maximum, so nothing is normalised against it."""
+    truth = {"global_max_reward": None, "global_min_reward": None, "n_collisions": None}
+    r = _result([[0, 0, 0], [1, 1, 1]], [0.0, 0.25], [0, 1])
+    st = compare.seed_stats(0, r, truth, budget=2)
+    assert st["first_collision"] == 2 and st["best"] == pytest.approx(0.25)
+    assert st["best_normalised"] is None and st["reached_global_max"] is None
+    row = compare.strategy_row("x", [st], truth, wall=1.0)
+    assert row["seeds_reaching_global_max"] is None and row["all_critical"] is None

@@ -205,3 +205,22 @@ def test_library_run_interrupt_resume_equals_cli(tmp_path):
     strip = lambda t: [ln for ln in t.splitlines()  # noqa: E731  (paths and times differ)
                        if not any(w in ln for w in ("wall time", "jaxfalsify", "run `"))]
     assert strip((cli_out / "report.md").read_text()) == strip((lib / "report.md").read_text())
+
+
+def test_a_signal_during_the_last_chunk_still_interrupts_and_resumes(tmp_path):
+    """stop() turns true only after the last chunk (a SIGINT/SIGTERM that arrived while it
+    ran): the run commits, says interrupted with every evaluation saved, raises Interrupted;
+    --resume finishes it to the uninterrupted run's files."""
+    rc = runs.RunConfig(strategy="random", evaluations=64, batch=16, checkpoint_every=1, seed=2)
+    n_chunks = rc.build().plan.n_chunks
+    calls = iter(range(1000))
+    with pytest.raises(runs.Interrupted):
+        runs.execute(rc, tmp_path / "late", stop=lambda: next(calls) >= n_chunks,
+                     figures=False)
+    status = json.loads((tmp_path / "late" / "status.json").read_text())
+    assert status["state"] == "interrupted" and status["evaluations_done"] == 64
+    runs.execute(runs.resume_config(tmp_path / "late"), tmp_path / "late", resume=True,
+                 figures=False)
+    runs.execute(rc, tmp_path / "ref", figures=False)
+    for f in ("summary.json", "critical.csv"):
+        assert (tmp_path / "late" / f).read_bytes() == (tmp_path / "ref" / f).read_bytes(), f

@@ -14,21 +14,24 @@ from jaxfalsify.search import controller, reinforce
 
 SHAPE = (6, 5, 4)
 TARGET = np.array([4, 1, 2])
+# the contract's space has a one-value parameter too (every index must stay 0 there)
+CONTRACT_SHAPE = (6, 1, 5, 4)
+CONTRACT_TARGET = np.array([4, 0, 1, 2])
 
 
-def synthetic_reward(idx):
-    """Unique optimum at TARGET (reward 0), smooth elsewhere."""
-    return -jnp.sum(jnp.abs(idx - TARGET), axis=-1).astype(jnp.float32)
+def synthetic_reward(idx, target=TARGET):
+    """Unique optimum at ``target`` (reward 0), smooth elsewhere."""
+    return -jnp.sum(jnp.abs(idx - target), axis=-1).astype(jnp.float32)
 
 
-def make_loop(strategy, n_updates):
+def make_loop(strategy, n_updates, target=TARGET):
     """The whole search on the synthetic objective as one jitted function of (key, params)."""
     def loop(key, params):
         def one(carry, _):
             state, key = carry
             key, k_ask, k_tell = jax.random.split(key, 3)
             idx, state = strategy.ask(k_ask, state, params)
-            r = synthetic_reward(idx)
+            r = synthetic_reward(idx, target)
             return (strategy.tell(k_tell, state, idx, r, params), key), (idx, r)
 
         k_init, k_run = jax.random.split(key)
@@ -41,13 +44,13 @@ def make_loop(strategy, n_updates):
 # ------------------------------------------------------------------ the registry contract
 @pytest.mark.parametrize("name", list(search.REGISTRY))
 def test_strategy_contract(name, compile_events):
-    strat, p = search.make(name, SHAPE, 40)
-    loop = make_loop(strat, 25)  # 1000 evaluations of a 120-scenario space
+    strat, p = search.make(name, CONTRACT_SHAPE, 40)
+    loop = make_loop(strat, 25, CONTRACT_TARGET)  # 1000 evaluations of a 120-scenario space
     idx, r = loop(jax.random.key(3), p)
-    # shapes and bounds
-    assert idx.shape == (25, 40, 3) and idx.dtype == jnp.int32 and r.shape == (25, 40)
-    flat = np.asarray(idx).reshape(-1, 3)
-    assert np.all((flat >= 0) & (flat < np.array(SHAPE)))
+    # shapes and bounds (the one-value parameter always at its only value)
+    assert idx.shape == (25, 40, 4) and idx.dtype == jnp.int32 and r.shape == (25, 40)
+    flat = np.asarray(idx).reshape(-1, 4)
+    assert np.all((flat >= 0) & (flat < np.array(CONTRACT_SHAPE)))
     # finds the optimum of the synthetic objective
     assert float(jnp.max(r)) == 0.0
     # deterministic per key, different across keys
@@ -73,7 +76,7 @@ def test_registry_options_and_errors():
     with pytest.raises(ValueError, match="batch"):
         search.make("random", SHAPE, 0)
     with pytest.raises(ValueError, match="learners=7 must divide batch=20"):
-        search.make("reinforce/ar", SHAPE, 20, learners=7)
+        search.make("reinforce/default", SHAPE, 20, learners=7)
     with pytest.raises(ValueError, match="chains=7 must divide batch=20"):
         search.make("reinforce/factorised", SHAPE, 20, chains=7)
     with pytest.raises(ValueError, match="signal must be one of"):
@@ -150,10 +153,10 @@ def test_log_prob_matches_manual_computation():
     assert got == pytest.approx(manual, abs=1e-4)
 
 
-@pytest.mark.parametrize("name", ["reinforce/default", "reinforce/ar", "reinforce/factorised",
+@pytest.mark.parametrize("name", ["reinforce/default", "reinforce/factorised",
                                   "reinforce/paper"])
 def test_reinforce_moves_probability_to_rewarded_index(name):
-    strat, p = search.make(name, SHAPE, 48 if name == "reinforce/ar" else 50)
+    strat, p = search.make(name, SHAPE, 50)
     ask = jax.jit(lambda k, s: strat.ask(k, s, p))
     tell = jax.jit(lambda k, s, i, r: strat.tell(k, s, i, r, p))
     state = strat.init(jax.random.key(0), p)

@@ -77,14 +77,15 @@ def test_sensor_aeb_sees_sun_and_clouds():
     p = REGISTRY["sensor-aeb"].default_params
     caps = {tuple(round(float(x), 6) for x in sensor_capability(i, p)) for i in range(15)}
     assert len(caps) == 14
-    # and outcomes differ between presets of the old identical groups {0-4}, {11-14}
+    # and outcomes differ between presets of every old identical group {0-4}, {5-6},
+    # {7-10}, {11-14} (one batch over all presets)
     sc = random_scenarios(256, seed=5)
-    outs = {}
-    for wi in (0, 1, 2, 3, 11, 12, 13, 14):
-        sc["weather"] = np.full(256, float(wi))
-        outs[wi] = np.asarray(jf.evaluate(sc, sut="sensor-aeb").reward)
-    for a, b in ((0, 1), (0, 2), (2, 3), (11, 12), (13, 14), (11, 13)):
-        assert np.any(outs[a] != outs[b]), (a, b)
+    sc = {k: np.tile(v, 15) for k, v in sc.items()}
+    sc["weather"] = np.repeat(np.arange(15.0), 256)
+    rew = np.asarray(jf.evaluate(sc, sut="sensor-aeb").reward).reshape(15, 256)
+    for a, b in ((0, 1), (0, 2), (2, 3), (5, 6), (7, 8), (8, 9), (9, 10), (7, 10), (11, 12),
+                 (13, 14), (11, 13)):
+        assert np.any(rew[a] != rew[b]), (a, b)
 
 
 # ------------------------------------------------------------------ kinematics

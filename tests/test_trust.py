@@ -243,6 +243,19 @@ def damage(folder: Path, foreign: Path, kind: str, rng: np.random.Generator) -> 
         store.write_commit(ck / "state.json", {k: v for k, v in doc.items()
                                                if k not in ("sha256", "format")})
         return f"resealed state.json with a wrong hash for {name}"
+    if kind == "reseal_edit":  # a consistent forgery of the numbers, seal recomputed
+        doc = json.loads((ck / "state.json").read_text())
+        if "totals" in doc and rng.random() < 0.7:
+            field = pick(["collisions", "nonfinite", "best_ties"])
+            doc["totals"][0][field] += int(rng.choice([1, 7]))
+            what = f"totals.{field}"
+        else:
+            what = pick([k for k in ("chunks_done", "evaluations_done", "scenarios_done")
+                         if k in doc])
+            doc[what] += int(rng.choice([-1, 1]))
+        store.write_commit(ck / "state.json", {k: v for k, v in doc.items()
+                                               if k not in ("sha256", "format")})
+        return f"edited {what} in state.json and resealed it"
     if kind == "delete":
         f = pick(every)
         f.unlink()
@@ -251,7 +264,7 @@ def damage(folder: Path, foreign: Path, kind: str, rng: np.random.Generator) -> 
 
 
 KINDS = ["bitflip", "truncate", "swap", "copy", "foreign_file", "foreign_state", "edit_state",
-         "reseal_state", "delete"]
+         "reseal_state", "reseal_edit", "delete"]
 
 
 def _same_parquet(a: Path, b: Path) -> bool:
@@ -291,6 +304,13 @@ def test_damaged_run_checkpoint_is_refused_or_resumes_identically(checkpoints, k
 @given(st.sampled_from(KINDS), st.integers(0, 2**31))
 def test_damaged_sweep_checkpoint_is_refused_or_resumes_identically(checkpoints, kind, seed):
     _resume_damaged(checkpoints, "sweep", kind, seed)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_resealed_forged_totals_are_refused(checkpoints, seed):
+    """A consistent forgery (numbers edited, the record's seal recomputed) of a sweep's
+    running totals: the totals are recomputed from the verified rows files on resume."""
+    _resume_damaged(checkpoints, "sweep", "reseal_edit", seed)
 
 
 @pytest.mark.slow
@@ -351,3 +371,25 @@ def test_a_full_disk_gives_one_line_and_a_truthful_status(tmp_path, monkeypatch,
     status = json.loads((out / "status.json").read_text())
     assert status["state"] == "failed" and "ENOSPC" not in status["state"]
     assert not (out / "episodes.parquet").exists() and not (out / "summary.json").exists()
+
+
+def test_a_full_disk_during_the_search_marks_the_run_failed(tmp_path, monkeypatch, capsys):
+    """ENOSPC while committing a checkpoint (during the search, not at the end): one line,
+    exit 1, and status.json says failed, not running."""
+    real = store.CampaignCheckpoint.save
+    calls = iter(range(100))
+
+    def full_on_second(self, *a, **kw):
+        if next(calls) == 1:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.folder))
+        return real(self, *a, **kw)
+
+    monkeypatch.setattr(store.CampaignCheckpoint, "save", full_on_second)
+    out = tmp_path / "r"
+    assert main(["run", "--strategy", "random", "--evaluations", "80", "--batch", "20",
+                 "--checkpoint-every", "1", "--out", str(out), "--quiet",
+                 "--no-figures"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "No space left on device" in err[0]
+    status = json.loads((out / "status.json").read_text())
+    assert status["state"] == "failed" and "No space left" in status["error"]

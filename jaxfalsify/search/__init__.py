@@ -76,17 +76,16 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
     return static, params
 
 
-register("reinforce/default", Reinforce, batch=50, chains=0, advantage="normalised",
+register("reinforce/default", AutoregressiveReinforce, batch=32, learners=1, queue=32,
+         resample=4, anchored=True, advantage="rank", signal="shaped", lr=0.02,
+         lr_found=0.05, sigma_min=0.001, repeat_found=0.8, anchor_decay=0.9,
+         doc="the autoregressive LSTM controller + REINFORCE (ours): draws around the best "
+         "scenarios found so far (a learnt local move) and afresh, no repeats until a "
+         "collision, rank baseline of the STL-robustness-shaped signal, 32 per update")
+register("reinforce/factorised", Reinforce, batch=50, chains=0, advantage="normalised",
          signal="shaped", entropy=0.1,
-         doc="the LSTM controller + REINFORCE: 50 per update (80 updates in 4000), "
-         "normalised advantages of the STL-robustness-shaped signal, entropy bonus 0.1 (ours)")
-register("reinforce/factorised", Reinforce, batch=250, chains=0, advantage="normalised",
-         doc="the LSTM controller + REINFORCE, normalised advantages, 250 per update "
-         "(the former default)")
-register("reinforce/ar", AutoregressiveReinforce, batch=32, learners=4,
-         doc="autoregressive LSTM controller + REINFORCE: 4 learners x 8 scenarios per "
-         "update, rank baseline, STL-robustness-shaped signal, entropy until a collision "
-         "(experimental)")
+         doc="the paper's factorised LSTM controller + REINFORCE, 50 per update, normalised "
+         "advantages of the shaped signal, entropy bonus 0.1 (the former default)")
 register("reinforce/paper", Reinforce, batch=25, chains=1, advantage="reward", lr=0.01,
          alpha=1e-4, entropy=0.0, eps_start=1.0, eps_decay=0.995, eps_every=4.0,
          eps_floor=0.01, eps_off_after=2000.0, doc="the LSTM controller + REINFORCE as the "

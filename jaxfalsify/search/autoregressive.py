@@ -43,47 +43,116 @@ def value_ranks(shape: tuple[int, ...]) -> jax.Array:
     return jnp.arange(max(shape), dtype=jnp.float32)[None, :] / span[:, None]
 
 
-def init(key, shape: tuple[int, ...], hidden: int = 32) -> dict:
+def init(key, shape: tuple[int, ...], hidden: int = 32, anchored: bool = False) -> dict:
+    """Controller weights; ``anchored`` adds the inputs and heads of an anchor (see
+    :func:`head_logits`)."""
     P, width = len(shape), max(shape)
-    w, u = _glorot(key, [(2 * P, 4 * hidden), (hidden, 4 * hidden)])
+    n_in = 4 * P + 1 if anchored else 2 * P
+    w, u = _glorot(key, [(n_in, 4 * hidden), (hidden, 4 * hidden)])
     b = jnp.zeros(4 * hidden, jnp.float32).at[hidden:2 * hidden].set(1.0)
     z = lambda *s: jnp.zeros(s, jnp.float32)  # noqa: E731
-    return {"lstm": {"w": w, "u": u, "b": b},
-            "head": {"w": z(P, hidden, width), "b": z(P, width)},
-            "mu": {"w": z(P, hidden), "b": z(P)},
-            "sigma": {"w": z(P, hidden), "b": z(P)}}
+    out = {"lstm": {"w": w, "u": u, "b": b},
+           "head": {"w": z(P, hidden, width), "b": z(P, width)},
+           "mu": {"w": z(P, hidden), "b": z(P)},
+           "sigma": {"w": z(P, hidden), "b": z(P)}}
+    if anchored:
+        out["delta"] = {"w": z(P, hidden), "b": z(P)}
+        out["local"] = {"b": jnp.asarray(_local_log_sigma(shape), jnp.float32)}
+        out["stay"] = {"w": z(P, hidden), "b": jnp.asarray(_stay_bias(shape), jnp.float32)}
+    return out
 
 
-def step_input(p: jax.Array, chosen: jax.Array, n_params: int) -> jax.Array:
-    """``x_p (2P,)`` from the step ``p`` and the ranks ``chosen (P,)`` of the values so far
-    (entries ``q >= p`` are ignored)."""
+LOCAL_STEPS = 1.5  # initial width of an anchored bump, in value steps
+MOVES = 1.0  # initial expected number of parameters an anchored draw changes
+
+
+def _local_log_sigma(shape) -> np.ndarray:
+    return np.log(LOCAL_STEPS / np.maximum(np.asarray(shape, np.float64) - 1, 1.0))
+
+
+def _stay_bias(shape) -> np.ndarray:
+    """The stay logit that gives each parameter with two or more values the probability
+    ``1 - MOVES / (their number)`` of keeping the anchor's value under the initial bump."""
+    n = np.asarray(shape)
+    movable = max(int(np.sum(n > 1)), 1)
+    p_stay = 1.0 - min(MOVES / movable, 0.5)
+    out = np.zeros(len(shape))
+    for p, k in enumerate(n):
+        if k > 1:  # mass of the initial bump off the anchor (anchor in the middle), relative
+            d = np.arange(1, k)
+            z = 2.0 * np.sum(np.exp(-0.5 * (d / LOCAL_STEPS) ** 2))
+            out[p] = np.log(p_stay / (1.0 - p_stay) * z)
+    return out
+
+
+def step_input(p: jax.Array, chosen: jax.Array, n_params: int, anchor=None) -> jax.Array:
+    """``x_p`` from the step ``p`` and the ranks ``chosen (P,)`` of the values so far
+    (entries ``q >= p`` are ignored): ``(2P,)``; with ``anchor = (ranks (P,), present)``
+    also the anchor's ranks (zeros if absent), which earlier parameters left the anchor's
+    value, and the presence flag: ``(4P + 1,)``."""
     q = jnp.arange(n_params)
-    return jnp.concatenate([(q == p).astype(jnp.float32),
-                            jnp.where(q < p, 2.0 * chosen - 1.0, 0.0)])
+    x = [(q == p).astype(jnp.float32), jnp.where(q < p, 2.0 * chosen - 1.0, 0.0)]
+    if anchor is not None:
+        ranks, present = anchor
+        moved = present & (q < p) & (jnp.abs(chosen - ranks) > 1e-6)
+        x += [jnp.where(present, 2.0 * ranks - 1.0, 0.0), moved.astype(jnp.float32),
+              jnp.atleast_1d(present.astype(jnp.float32))]
+    return jnp.concatenate(x)
 
 
-def head_logits(w: dict, p: jax.Array, h: jax.Array, shape: tuple[int, ...]) -> jax.Array:
-    """Masked logits ``(max_n,)`` of parameter ``p`` from the LSTM output ``h (H,)``."""
+def head_logits(w: dict, p: jax.Array, h: jax.Array, shape: tuple[int, ...],
+                log_sigma_min=LOG_SIGMA_MIN, anchor=None) -> jax.Array:
+    """Masked logits ``(max_n,)`` of parameter ``p`` from the LSTM output ``h (H,)``; the
+    bump is at least ``exp(log_sigma_min)`` of the range wide. With an anchor present the bump
+    is centred on the anchor's rank plus a learnt offset, ``a_p + 0.5 tanh(h . e_p + f_p)``,
+    its log-width gains a learnt bias (starting at ``LOCAL_STEPS`` value steps), and the
+    anchor's own value a learnt *stay* logit (starting where about ``MOVES`` parameters change
+    per draw): a learnt local move around a good scenario, one or two parameters at a time
+    (the paper's controller, too, reads the previous action)."""
     free = h @ w["head"]["w"][p] + w["head"]["b"][p]
     mu = jax.nn.sigmoid(h @ w["mu"]["w"][p] + w["mu"]["b"][p])
-    sigma = jnp.exp(jnp.clip(h @ w["sigma"]["w"][p] + w["sigma"]["b"][p], LOG_SIGMA_MIN, 1.0))
+    log_sigma = h @ w["sigma"]["w"][p] + w["sigma"]["b"][p]
+    stay = 0.0
+    if anchor is not None:
+        ranks, present = anchor
+        local = ranks[p] + 0.5 * jnp.tanh(h @ w["delta"]["w"][p] + w["delta"]["b"][p])
+        mu = jnp.where(present, local, mu)
+        log_sigma = jnp.where(present, log_sigma + w["local"]["b"][p], log_sigma)
+        at = jnp.abs(value_ranks(shape)[p] - ranks[p]) < 1e-6  # the anchor's own value
+        stay = jnp.where(present & at, h @ w["stay"]["w"][p] + w["stay"]["b"][p], 0.0)
+    # never narrower than half a value step (a one-value parameter: any width)
+    floor = jnp.maximum(log_sigma_min, jnp.log(0.5 / jnp.maximum(
+        jnp.asarray(shape, jnp.float32)[p] - 1, 1.0)))
+    sigma = jnp.exp(jnp.clip(log_sigma, floor, 1.0))
     r = value_ranks(shape)[p]
     bump = -0.5 * jnp.square((r - mu) / sigma)
-    return jnp.where(value_mask(shape)[p], free + bump, MASKED)
+    return jnp.where(value_mask(shape)[p], free + bump + stay, MASKED)
 
 
-def _scan(w: dict, shape: tuple[int, ...], step_fn, xs):
+def _anchor_ranks(anchor, shape):
+    """``(indices (P,), present)`` -> ``(ranks (P,) in [0, 1], present)``, or None."""
+    if anchor is None:
+        return None
+    idx, present = anchor
+    span = jnp.maximum(jnp.asarray(shape, jnp.float32) - 1, 1.0)
+    return idx.astype(jnp.float32) / span, jnp.asarray(present)
+
+
+def _scan(w: dict, shape: tuple[int, ...], step_fn, xs, log_sigma_min=LOG_SIGMA_MIN,
+          anchor=None):
     """Run the controller over the P parameters for one scenario; ``step_fn(p, logits, x)``
-    returns ``(value index, output)`` where ``x`` is that step's per-scenario input."""
+    returns ``(value index, output)`` where ``x`` is that step's per-scenario input.
+    ``anchor``: ``(indices (P,), present)`` for an anchored controller."""
     P = len(shape)
     hidden = w["lstm"]["u"].shape[0]
     ranks = value_ranks(shape)
+    anc = _anchor_ranks(anchor, shape)
 
     def one(carry, inp):
         h, c, chosen = carry
         p, x = inp
-        h, c = lstm_step(w["lstm"], (h, c), step_input(p, chosen, P), activation=jnp.tanh)
-        logits = head_logits(w, p, h, shape)
+        h, c = lstm_step(w["lstm"], (h, c), step_input(p, chosen, P, anc), activation=jnp.tanh)
+        logits = head_logits(w, p, h, shape, log_sigma_min, anc)
         a, out = step_fn(p, logits, x)
         chosen = chosen.at[p].set(ranks[p, a])
         return (h, c, chosen), out
@@ -92,17 +161,19 @@ def _scan(w: dict, shape: tuple[int, ...], step_fn, xs):
     return jax.lax.scan(one, init_c, (jnp.arange(P), xs))[1]
 
 
-def sample(w: dict, u: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+def sample(w: dict, u: jax.Array, shape: tuple[int, ...],
+           log_sigma_min=LOG_SIGMA_MIN, anchor=None) -> jax.Array:
     """One scenario ``(P,)`` int32 from uniforms ``u (P,)`` in [0, 1) (inverse CDF, step by
     step: each value is drawn given the ones before it)."""
     def step_fn(p, logits, up):
         a = categorical_from_uniform(up, jax.nn.softmax(logits))
         return a, a
 
-    return _scan(w, shape, step_fn, u)
+    return _scan(w, shape, step_fn, u, log_sigma_min, anchor)
 
 
-def log_prob_and_entropy(w: dict, action: jax.Array, shape: tuple[int, ...]):
+def log_prob_and_entropy(w: dict, action: jax.Array, shape: tuple[int, ...],
+                         log_sigma_min=LOG_SIGMA_MIN, anchor=None):
     """``(log pi(action), sum_p H(pi_p( . | action_<p)))`` of one scenario ``action (P,)``: the
     log-probability sums each step's log-softmax at the chosen value given the values before
     it; the entropy is that of each step's conditional at the same prefix [nats]."""
@@ -110,14 +181,15 @@ def log_prob_and_entropy(w: dict, action: jax.Array, shape: tuple[int, ...]):
         lp = jax.nn.log_softmax(logits)
         return a, (lp[a], -jnp.sum(jnp.exp(lp) * lp))
 
-    lp, ent = _scan(w, shape, step_fn, action)
+    lp, ent = _scan(w, shape, step_fn, action, log_sigma_min, anchor)
     return jnp.sum(lp), jnp.sum(ent)
 
 
-def conditionals(w: dict, action: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+def conditionals(w: dict, action: jax.Array, shape: tuple[int, ...],
+                 log_sigma_min=LOG_SIGMA_MIN, anchor=None) -> jax.Array:
     """``(P, max_n)`` the probabilities of every parameter's values given ``action``'s values
     before it (row 0 is the first parameter's marginal)."""
     def step_fn(p, logits, a):
         return a, jax.nn.softmax(logits)
 
-    return _scan(w, shape, step_fn, action)
+    return _scan(w, shape, step_fn, action, log_sigma_min, anchor)

@@ -145,7 +145,10 @@ def categorical_from_uniform(u: jax.Array, probs: jax.Array) -> jax.Array:
     slots are never chosen). Lets one uniform draw serve several samplers."""
     cdf = jnp.cumsum(probs, axis=-1)
     idx = jnp.sum(cdf <= u[..., None] * cdf[..., -1:], axis=-1)
-    last = jnp.sum(probs > 0, axis=-1) - 1  # the last real value (guards rounding at u -> 1)
+    # the last value with a non-zero probability (guards rounding at u -> 1; a narrow
+    # distribution can have exact zeros anywhere, not only in the padded slots)
+    n = probs.shape[-1]
+    last = n - 1 - jnp.argmax(jnp.flip(probs > 0, axis=-1), axis=-1)
     return jnp.minimum(idx, last).astype(jnp.int32)
 
 

@@ -74,7 +74,8 @@ class CMAES(Strategy):
         """Candidates ``x (..., P)`` -> value indices ``(..., P)`` int32."""
         span = self._span
         z = (x - mean) * A + mean
-        return jnp.clip(jnp.floor(z * span + 0.5), 0, span).astype(jnp.int32)
+        last = jnp.asarray(self.shape, jnp.float32) - 1  # a one-value parameter: always 0
+        return jnp.clip(jnp.floor(z * span + 0.5), 0, last).astype(jnp.int32)
 
     def init(self, key, params):
         es = self._es()

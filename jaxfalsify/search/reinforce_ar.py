@@ -1,27 +1,40 @@
 """REINFORCE on an autoregressive LSTM controller: ``reinforce/default``.
 
-The paper's method (a recurrent controller trained by the policy gradient, Eq. 2-3, with Adam),
-made strong where the original struggles (a factorised policy, few updates, a reward that is
-flat until the first collision):
+The paper's method (a recurrent controller trained by the policy gradient, Eq. 2-3, with
+Adam), made strong where the original struggles: a factorised policy, a handful of updates,
+a reward that is flat until the first collision, failures that are rare.
 
-* **autoregressive controller** (:mod:`jaxfalsify.search.autoregressive`): one LSTM step per
-  parameter, conditioned on the values already chosen, heads = free logits + a Gaussian bump
-  over the value ranks;
-* **many small updates**: ``learners`` independent controllers (own weights, own Adam moments)
-  share every batch, ``batch / learners`` scenarios each, so a 4000-evaluation budget at
-  batch 32 over 4 learners makes 125 updates of each;
-* **baseline**: centred ranks of the learning signal within each learner's share of the batch
-  (``advantage="rank"``, scale-free and robust to the jump a collision makes) or the signal
-  standardised (``"normalised"``);
-* **dense signal**: with ``signal="shaped"`` (default) a learner ranks its scenarios by
-  :func:`jaxfalsify.search.base.shaped_signal`: STL robustness (min distance - epsilon) while
-  there is no collision, the paper's reward among collisions (collisions always rank first);
-* **entropy**: a bonus ``entropy`` on the per-step entropies keeps a learner exploring until
-  it has seen a collision; then ``entropy_found`` (default 0) lets it concentrate;
-* optionally ``uniform_mix``: that share of the scenarios drawn uniformly at random (they do
-  not enter the gradient).
+* **Autoregressive controller** (:mod:`jaxfalsify.search.autoregressive`): one LSTM step per
+  parameter, conditioned on the values already chosen (the NAS controller the paper's
+  controller descends from); each head is free logits plus a Gaussian bump over the value
+  ranks, so what is learnt about one value carries to its neighbours.
+* **Anchored draws** (``anchored``): like the paper's controller, which reads the previous
+  action, most draws are conditioned on an *anchor*, one of the best scenarios found so far
+  (``queue`` of them, distinct, best first; the k-th best picked with weight
+  ``anchor_decay^k``). An anchored head keeps the anchor's value with a learnt *stay*
+  probability and otherwise moves by a learnt offset and width (starting at about one
+  parameter moved per draw, 1.5 value steps wide): a learnt local move. ``global_share`` of
+  the draws have no anchor (the controller's own distribution over the whole space).
+  REINFORCE trains both: which parameters to move, how far and where to, and where the good
+  scenarios lie.
+* **No repeats until a collision** (``resample``): a deterministic SUT gives the same outcome
+  twice, so a repeated scenario wastes an evaluation. The controller draws ``resample``
+  candidates per scenario it asks and takes the first ones not evaluated before (a ``memory``
+  of 32-bit hashes of the evaluated scenarios) and not repeated within the batch, then uniform
+  draws if too few are new. Once a learner has found a collision, a share ``repeat_found`` of
+  its draws may repeat, so it can converge on the best scenario (the paper's learning curve).
+* **Baseline**: centred ranks of the learning signal within the batch (``advantage="rank"``:
+  scale-free, robust to the jump a collision makes) or the signal standardised
+  (``"normalised"``).
+* **Dense signal**: with ``signal="shaped"`` (default) the learner ranks scenarios by
+  :func:`jaxfalsify.search.base.shaped_signal`: STL robustness (min distance - epsilon) until
+  a collision, the paper's reward among collisions (collisions always rank first).
+* **Entropy** bonus ``entropy`` on the per-step entropies while the learner has seen no
+  collision, ``entropy_found`` after; learning rate ``lr``, then ``lr_found``.
+* ``learners`` independent controllers (own weights, Adam moments, queue) may share the batch.
 
-Evaluations marked -inf (NaN rollouts, beyond the budget) get zero weight.
+Without ``anchored``/``resample`` this is a plain autoregressive REINFORCE learner. Evaluations
+marked -inf (NaN rollouts, beyond the budget) get zero weight.
 """
 
 from __future__ import annotations
@@ -34,80 +47,193 @@ import optax
 
 from jaxfalsify import pytree
 from jaxfalsify.search import autoregressive as ar
-from jaxfalsify.search.base import (Strategy, centred_ranks, check_signal, shaped_signal,
-                                    uniform, uniform_indices)
+from jaxfalsify.search.base import (Strategy, categorical_from_uniform, centred_ranks,
+                                    check_signal, shaped_signal, uniform, uniform_indices)
+
+ADVANTAGES = ("rank", "normalised")
 
 
 @pytree.dataclass
 class ARParams:
     lr: float = 0.05  # Adam learning rate
+    lr_found: float = -1.0  # learning rate once the learner has a collision (< 0: lr)
     entropy: float = 0.02  # entropy bonus while the learner has seen no collision
     entropy_found: float = 0.0  # entropy bonus once it has
-    uniform_mix: float = 0.0  # share of uniformly random scenarios (not learnt from)
+    sigma_min: float = 0.05  # narrowest bump, as a fraction of a parameter's range (never
+    # narrower than half a value step)
+    global_share: float = 0.25  # anchored: share of draws without an anchor
+    anchor_decay: float = 0.95  # anchored: the k-th best of the queue is picked ~ decay^k
+    repeat_found: float = 0.0  # once the learner has a collision: share of its draws that
+    # may repeat an evaluated scenario
+    uniform_mix: float = 0.0  # share of uniformly random draws (not learnt from)
 
 
 @pytree.dataclass
 class ARState:
-    weights: dict  # controller weights, leading axis = learners
+    weights: dict  # controller weights, leading axis = learners (L)
     opt: object  # Adam's moments, per learner
     seen: jax.Array  # (L,) bool, the learner has had a collision
     explored: jax.Array  # (B,) bool, which scenarios of the last ask were uniform draws
+    anchors: jax.Array  # (B, P) int32, the anchor each scenario of the last ask was drawn at
+    anchored: jax.Array  # (B,) bool, whether it had one
+    queue: jax.Array  # (L, K, P) int32, each learner's best distinct scenarios, best first
+    queue_signal: jax.Array  # (L, K) float32, their signals (-inf: empty slot)
+    memory: jax.Array  # (M,) uint32, hashes of the evaluated scenarios (a ring buffer)
+    memory_at: jax.Array  # () int32, hashes written so far (slot = memory_at % M)
     told: jax.Array  # () int32, updates so far
+
+
+def scenario_hash(indices: jax.Array) -> jax.Array:
+    """A 32-bit hash ``(...)`` uint32 of index vectors ``(..., P)`` (FNV-1a over the indices;
+    two distinct scenarios share a hash with probability ~2^-32, which at worst makes a new
+    scenario look evaluated)."""
+    h = jnp.full(indices.shape[:-1], 2166136261, jnp.uint32)
+    for p in range(indices.shape[-1]):
+        h = (h ^ indices[..., p].astype(jnp.uint32)) * jnp.uint32(16777619)
+    return h
+
+
+def top_distinct(indices: jax.Array, signal: jax.Array, k: int):
+    """The ``k`` best distinct rows of ``indices (N, P)`` by ``signal (N,)`` (best first; a
+    row seen twice counts once; ``-inf`` rows last): ``(indices (k, P), signal (k,))``."""
+    order = jnp.argsort(-signal, stable=True)
+    idx, sig = indices[order], signal[order]
+    same = jnp.all(idx[:, None, :] == idx[None, :, :], axis=-1)
+    earlier = jnp.tril(same, k=-1)  # an equal row earlier in the order (better or equal)
+    sig = jnp.where(jnp.any(earlier, axis=-1), -jnp.inf, sig)
+    order = jnp.argsort(-sig, stable=True)[:k]
+    return idx[order], sig[order]
 
 
 @dataclasses.dataclass(frozen=True)
 class AutoregressiveReinforce(Strategy):
     """Static: ``hidden`` LSTM units, ``learners`` (divides ``batch``), ``advantage``
-    (``rank`` or ``normalised``), ``signal`` (``shaped`` or ``reward``)."""
+    (``rank`` or ``normalised``), ``signal`` (``shaped`` or ``reward``), ``queue`` (best
+    scenarios kept per learner), ``anchored`` (draw around them; needs ``queue``),
+    ``resample`` (candidates per asked scenario; 1: repeats allowed), ``memory`` (evaluated
+    scenarios remembered)."""
 
     hidden: int = 32
     learners: int = 4
     advantage: str = "rank"
     signal: str = "shaped"
+    queue: int = 0
+    anchored: bool = False
+    resample: int = 1
+    memory: int = 4096
 
     Params = ARParams
 
     def __post_init__(self):
-        if self.advantage not in ("rank", "normalised"):
-            raise ValueError(f"advantage must be 'rank' or 'normalised' "
+        if self.advantage not in ADVANTAGES:
+            raise ValueError(f"advantage must be one of {', '.join(ADVANTAGES)} "
                              f"(got {self.advantage!r})")
         check_signal(self.signal)
         if self.hidden < 1:
             raise ValueError(f"hidden must be >= 1 (got {self.hidden})")
         if self.learners < 1 or self.batch % self.learners:
             raise ValueError(f"learners={self.learners} must divide batch={self.batch}")
+        if self.queue < 0:
+            raise ValueError(f"queue must be >= 0 (got {self.queue})")
+        if self.anchored and self.queue < 1:
+            raise ValueError("anchored needs queue >= 1")
+        if self.resample < 1 or self.memory < 1:
+            raise ValueError(f"resample and memory must be >= 1 (got {self.resample}, "
+                             f"{self.memory})")
 
     @property
     def per_learner(self) -> int:
         return self.batch // self.learners
 
-    def init(self, key, params):
-        keys = jax.random.split(key, self.learners)
-        weights = jax.vmap(lambda k: ar.init(k, self.shape, self.hidden))(keys)
-        opt = jax.vmap(optax.scale_by_adam().init)(weights)
-        return ARState(weights, opt, jnp.zeros(self.learners, bool),
-                       jnp.zeros(self.batch, bool), jnp.int32(0))
+    def _lsm(self, params):
+        return jnp.log(jnp.clip(params.sigma_min, 1e-4, 1.0))
 
-    def probs(self, state, learner: int = 0) -> jax.Array:
-        """``(P, max_n)``: each parameter's probabilities given the most likely values of the
-        parameters before it, for one learner (row 0 is the first parameter's marginal)."""
+    def _global(self):
+        """The anchor argument of a draw without an anchor."""
+        return (jnp.zeros(self.n_params, jnp.int32), jnp.bool_(False)) if self.anchored \
+            else None
+
+    def init(self, key, params):
+        L, P, K = self.learners, self.n_params, max(self.queue, 1)
+        keys = jax.random.split(key, L)
+        weights = jax.vmap(lambda k: ar.init(k, self.shape, self.hidden, self.anchored))(keys)
+        return ARState(weights, jax.vmap(optax.scale_by_adam().init)(weights),
+                       jnp.zeros(L, bool), jnp.zeros(self.batch, bool),
+                       jnp.zeros((self.batch, P), jnp.int32), jnp.zeros(self.batch, bool),
+                       jnp.zeros((L, K, P), jnp.int32), jnp.full((L, K), -jnp.inf, jnp.float32),
+                       jnp.zeros(self.memory if self.resample > 1 else 1, jnp.uint32),
+                       jnp.int32(0), jnp.int32(0))
+
+    def probs(self, state, learner: int = 0, params=None) -> jax.Array:
+        """``(P, max_n)``: each parameter's probabilities (draws without an anchor) given the
+        most likely values of the parameters before it, for one learner (row 0 is the first
+        parameter's marginal)."""
+        params = params or self.default_params()
         w = jax.tree.map(lambda x: x[learner], state.weights)
 
         def step_fn(p, logits, _):
             return jnp.argmax(logits).astype(jnp.int32), jax.nn.softmax(logits)
 
-        return ar._scan(w, self.shape, step_fn, jnp.zeros(self.n_params))
+        return ar._scan(w, self.shape, step_fn, jnp.zeros(self.n_params), self._lsm(params),
+                        self._global())
 
     def ask(self, key, state, params):
-        L, b, P = self.learners, self.per_learner, self.n_params
-        u = uniform(key, (L, b, 2 * P + 1))  # one draw: policy, uniform values, the coin
-        sampled = jax.vmap(lambda w, ul: jax.vmap(
-            lambda ui: ar.sample(w, ui, self.shape))(ul))(state.weights, u[..., :P])
+        L, b, P, M = self.learners, self.per_learner, self.n_params, self.resample
+        lsm = self._lsm(params)
+        C = b * (M + 1) if M > 1 else b  # candidates per learner: M per slot + b fallbacks
+        # one draw: policy (P), uniform values (P), anchor pick, anchor coin, repeat coin,
+        # uniform-mix coin
+        u = uniform(key, (L, C, 2 * P + 4))
+        if self.anchored:  # an anchor from the learner's queue, the k-th best ~ decay^k
+            filled = jnp.sum(jnp.isfinite(state.queue_signal), axis=-1)  # (L,)
+            K = state.queue.shape[1]
+            wk = jnp.where(jnp.arange(K)[None, :] < filled[:, None],
+                           params.anchor_decay ** jnp.arange(K, dtype=jnp.float32), 0.0)
+            pick = categorical_from_uniform(u[..., 2 * P],
+                                            jnp.broadcast_to(wk[:, None, :], (L, C, K)))
+            anchors = jnp.take_along_axis(state.queue, pick[..., None], axis=1)  # (L, C, P)
+            present = (filled[:, None] > 0) & (u[..., 2 * P + 1] >= params.global_share)
+            sampled = jax.vmap(lambda w, ul, al, pl: jax.vmap(
+                lambda ui, ai, pi: ar.sample(w, ui, self.shape, lsm, (ai, pi)))(ul, al, pl))(
+                state.weights, u[..., :P], anchors, present)
+        else:
+            anchors = jnp.zeros((L, C, P), jnp.int32)
+            present = jnp.zeros((L, C), bool)
+            sampled = jax.vmap(lambda w, ul: jax.vmap(
+                lambda ui: ar.sample(w, ui, self.shape, lsm))(ul))(state.weights, u[..., :P])
         explored = u[..., -1] < params.uniform_mix
+        if M > 1:  # the last b candidates are uniform fallbacks, taken when too few are new
+            explored = explored | (jnp.arange(C) >= b * M)[None, :]
         idx = jnp.where(explored[..., None], uniform_indices(u[..., P:2 * P], self.shape),
-                        sampled)
+                        sampled)  # (L, C, P)
+        if M > 1:  # per learner, the first b candidates that are new (in drawing order)
+            h = scenario_hash(idx).reshape(-1)
+            n = h.shape[0]
+            repeated = jnp.any((h[:, None] == h[None, :])
+                               & jnp.tril(jnp.ones((n, n), bool), -1), axis=-1)
+            fresh = (~self._evaluated(h, state) & ~repeated).reshape(L, C)
+            # a learner with a collision may repeat, for a share repeat_found of its draws
+            free = state.seen[:, None] & (u[..., 2 * P + 2] < params.repeat_found) \
+                & (jnp.arange(C) < b * M)[None, :]
+            order = jnp.argsort(~(fresh | free), axis=-1, stable=True)[:, :b]
+            take = lambda x: jnp.take_along_axis(  # noqa: E731
+                x, order.reshape(order.shape + (1,) * (x.ndim - 2)), axis=1)
+            idx, explored, anchors, present = map(take, (idx, explored, anchors, present))
+            state = self._remember(state, scenario_hash(idx).reshape(-1))
         return idx.reshape(self.batch, P), dataclasses.replace(
-            state, explored=explored.reshape(self.batch))
+            state, explored=explored.reshape(self.batch), anchors=anchors.reshape(self.batch, P),
+            anchored=present.reshape(self.batch))
+
+    def _evaluated(self, h, state):
+        """``h (N,)`` uint32 -> bool: among the remembered hashes."""
+        filled = jnp.arange(self.memory) < state.memory_at
+        return jnp.any((h[:, None] == state.memory[None, :]) & filled[None, :], axis=-1)
+
+    def _remember(self, state, h):
+        """Write hashes ``h (B,)`` into the ring buffer."""
+        slots = (state.memory_at + jnp.arange(h.shape[0])) % self.memory
+        return dataclasses.replace(state, memory=state.memory.at[slots].set(h),
+                                   memory_at=jnp.minimum(state.memory_at + h.shape[0], 2**30))
 
     def tell(self, key, state, indices, rewards, params):
         return self._update(state, indices, rewards, state.seen, params)
@@ -119,7 +245,8 @@ class AutoregressiveReinforce(Strategy):
         return self._update(state, indices, signal, state.seen | hit, params)
 
     def _update(self, state, indices, signal, seen, params):
-        L, b = self.learners, self.per_learner
+        L, b, P = self.learners, self.per_learner, self.n_params
+        lsm = self._lsm(params)
         sig = signal.reshape(L, b)
         ok = jnp.isfinite(sig) & ~state.explored.reshape(L, b)
         if self.advantage == "rank":
@@ -131,15 +258,31 @@ class AutoregressiveReinforce(Strategy):
             std = jnp.sqrt(jnp.sum(jnp.where(ok, (x - mean) ** 2, 0.0), -1, keepdims=True) / n)
             adv = jnp.where(ok, (x - mean) / (std + 1e-8), 0.0)
         beta = jnp.where(seen, params.entropy_found, params.entropy)  # (L,)
-        acts = indices.reshape(L, b, self.n_params)
+        acts = indices.reshape(L, b, P)
+        anc = state.anchors.reshape(L, b, P)
+        pres = state.anchored.reshape(L, b)
 
-        def loss(w, a, adv_l, ok_l, beta_l):
-            lp, ent = jax.vmap(lambda ai: ar.log_prob_and_entropy(w, ai, self.shape))(a)
+        def loss(w, a, adv_l, ok_l, beta_l, anc_l, pres_l):
+            if self.anchored:
+                lp, ent = jax.vmap(lambda ai, ci, pi: ar.log_prob_and_entropy(
+                    w, ai, self.shape, lsm, (ci, pi)))(a, anc_l, pres_l)
+            else:
+                lp, ent = jax.vmap(lambda ai: ar.log_prob_and_entropy(w, ai, self.shape,
+                                                                      lsm))(a)
             n = jnp.maximum(jnp.sum(ok_l), 1)
             return -(jnp.sum(adv_l * lp) + beta_l * jnp.sum(jnp.where(ok_l, ent, 0.0))) / n
 
-        grads = jax.vmap(jax.grad(loss))(state.weights, acts, adv, ok, beta)
+        grads = jax.vmap(jax.grad(loss))(state.weights, acts, adv, ok, beta, anc, pres)
         updates, opt = jax.vmap(optax.scale_by_adam().update)(grads, state.opt, state.weights)
-        weights = jax.tree.map(lambda w, u: w - params.lr * u, state.weights, updates)
-        return dataclasses.replace(state, weights=weights, opt=opt, seen=seen,
-                                   told=state.told + 1)
+        lr = jnp.where(seen & (params.lr_found >= 0), params.lr_found, params.lr)  # (L,)
+        weights = jax.tree.map(lambda w, u: w - lr.reshape((-1,) + (1,) * (u.ndim - 1)) * u,
+                               state.weights, updates)
+        if self.queue:  # merge the batch into each learner's queue of best distinct scenarios
+            q, qs = jax.vmap(lambda qi, qsi, a, s: top_distinct(
+                jnp.concatenate([qi, a]), jnp.concatenate([qsi, s]), self.queue))(
+                state.queue, state.queue_signal, acts, jnp.where(jnp.isfinite(sig), sig,
+                                                                 -jnp.inf))
+        else:
+            q, qs = state.queue, state.queue_signal
+        return dataclasses.replace(state, weights=weights, opt=opt, seen=seen, queue=q,
+                                   queue_signal=qs, told=state.told + 1)

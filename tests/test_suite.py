@@ -1,0 +1,131 @@
+"""The search benchmark suite and what it needs: SUT parameters as dimensions of a logical
+scenario, spaces too large to sweep (searched, with a sampled estimate instead of a ground
+truth), and ``jaxfalsify compare --suite``."""
+
+import json
+
+import numpy as np
+import pytest
+from conftest import TINY_SPACE, run_campaign
+
+import jaxfalsify as jf
+from jaxfalsify import compare, runs
+from jaxfalsify.cli import main
+from jaxfalsify.sweep import sweep_arrays
+
+SUT_SPACE = TINY_SPACE + """[parameters.sut.ttc_full]
+values = [0.5, 0.9, 2.0]
+"""
+
+
+@pytest.fixture(scope="module")
+def sut_space(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sutspace") / "cal.toml"
+    path.write_text(SUT_SPACE)
+    return path
+
+
+def test_sut_parameters_are_dimensions_of_a_space(sut_space):
+    sp = jf.load_space(str(sut_space))
+    assert sp.names[-1] == "sut.ttc_full" and sp.shape == (2, 2, 4, 2, 3)
+    rows = sweep_arrays(sp, "sensor-aeb", fields=("min_distance", "collision"))
+    got = rows["min_distance"].reshape(sp.shape)
+    # oracle: each calibration evaluated on its own, with the SUT parameter set directly
+    base = {n: np.asarray(v) for n, v in zip(sp.names[:4], np.meshgrid(
+        *sp.values[:4], indexing="ij"))}
+    for k, t in enumerate(sp.values[4]):
+        want = jf.evaluate(base, sut="sensor-aeb", sut_params={"ttc_full": float(t)})
+        np.testing.assert_array_equal(got[..., k], want.min_distance)
+        # a scenario may carry its SUT parameter value itself
+        same = jf.evaluate({**base, "sut.ttc_full": float(t)}, sut="sensor-aeb")
+        np.testing.assert_array_equal(same.min_distance, want.min_distance)
+    # the description round-trips through TOML (the run's config.toml)
+    from jaxfalsify import config
+    import tomllib
+
+    doc = tomllib.loads(config.dumps_toml({"space": sp.describe()}))
+    assert jf.space.space_from_dict(doc["space"]).table == sp.table
+    # a SUT without that parameter: one line naming it, before anything runs
+    with pytest.raises(ValueError, match="space parameter sut.ttc_full: the SUT 'carla-tm'"):
+        runs.RunConfig(space=str(sut_space), sut="carla-tm").build()
+    with pytest.raises(ValueError, match="one finite value per call"):
+        jf.evaluate({**base, "sut.ttc_full": np.arange(16.0).reshape(2, 2, 4)},
+                    sut="sensor-aeb")
+
+
+HUGE = """name = "huge"
+[parameters.ego_offset]
+distribution = "uniform"
+low = 5
+high = 40
+samples = 2000
+[parameters.ped_speed]
+distribution = "uniform"
+low = 0.5
+high = 3.0
+samples = 5000
+[parameters.ped_offset]
+distribution = "uniform"
+low = 0.0
+high = 10.0
+samples = 1000
+"""
+
+
+def test_a_space_too_large_to_sweep_is_searched_with_a_sampled_estimate(tmp_path,
+                                                                        monkeypatch):
+    path = tmp_path / "huge.toml"
+    path.write_text(HUGE)
+    sp = jf.load_space(str(path))
+    assert sp.size == 10**10
+    with pytest.raises(ValueError, match="too many to sweep"):
+        sweep_arrays(sp)
+    assert main(["sweep", "--space", str(path), "--out", str(tmp_path / "s"),
+                 "--quiet"]) == 2
+    assert not (tmp_path / "s").exists()
+    res = run_campaign(sp, "reinforce/default", batch=32, evaluations=64, seed=1)
+    assert res.indices.shape == (64, 3) and np.all(res.indices < np.array(sp.shape))
+    # compare: no ground truth; the share is estimated from a uniform sample, whose
+    # Clopper-Pearson interval holds the estimate
+    monkeypatch.setattr(compare, "TRUTH_SAMPLE", 8192)
+    out = compare.execute(compare.CompareConfig(strategies=("random",), seeds=2,
+                                                evaluations=64, space=str(path),
+                                                overhead=False), tmp_path / "c")
+    assert out["n_collisions"] is None and out["sampled"] == 8192
+    lo, hi = out["collision_share_ci95"]
+    assert lo <= out["collision_share"] <= hi and out["global_max_reward"] is None
+    assert out["rows"][0]["seeds_reaching_global_max"] is None
+    assert "estimated from 8,192 uniform scenarios" in (tmp_path / "c" / "compare.md").read_text()
+
+
+def test_compare_suite_end_to_end(tmp_path, capsys):
+    space = tmp_path / "tiny.toml"
+    space.write_text(TINY_SPACE)
+    suite = tmp_path / "suite.toml"
+    suite.write_text('name = "t"\nbudgets = [16, 48]\nseeds = 2\nstrategies = ["random", '
+                     '"cem"]\n[[entry]]\nspace = "tiny.toml"\n[[entry]]\nspace = "tiny.toml"\n'
+                     'sut = "sensor-aeb"\nsut_params = { ttc_full = 1.5 }\nexclude = ["cem"]\n')
+    assert main(["compare", "--suite", str(suite), "--out", str(tmp_path / "o"),
+                 "--quiet"]) == 0
+    doc = json.loads((tmp_path / "o" / "suite.json").read_text())
+    assert [e["sut"] for e in doc["entries"]] == ["carla-tm", "sensor-aeb"]
+    assert [r["strategy"] for r in doc["entries"][1]["rows"]] == ["random"]  # cem excluded
+    first = doc["entries"][0]
+    assert [b["budget"] for b in first["budgets"]] == [16, 48]
+    # the 16-evaluation figures are those of the first 16 evaluations of the same seeds
+    for b16, b48 in zip(first["budgets"][0]["rows"][0]["per_seed"],
+                        first["budgets"][1]["rows"][0]["per_seed"]):
+        f48 = b48["first_collision"]
+        assert b16["first_collision"] == (f48 if f48 is not None and f48 <= 16 else None)
+    md = (tmp_path / "o" / "suite.md").read_text()
+    assert "## tiny x sensor-aeb (ttc_full=1.5)" in md and "uniform random (analytic)" in md
+    # bad suites and flags: one line, exit 2, nothing written
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[[entry]]\nspace = "tiny.toml"\nsuts = "x"\n')
+    capsys.readouterr()
+    assert main(["compare", "--suite", str(bad), "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown key 'suts'" in err[0]
+    assert main(["compare", "--suite", str(suite), "--space", "paper",
+                 "--out", str(tmp_path / "b")]) == 2
+    assert not (tmp_path / "b").exists()
