@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxfalsify.config import plain
+
 
 def ranked_reward(fields: dict) -> np.ndarray:
     """Rewards as float64 with NaN (non-finite rollouts) as -inf: they never rank best."""
@@ -41,6 +43,34 @@ def best_reached(fields: dict) -> int:
     return int(np.argmax(run >= final - 0.01 * abs(final))) + 1
 
 
+def moving_mean(fields: dict, window: int = 100) -> np.ndarray:
+    """The reward's moving mean over the last ``window`` evaluations (fewer at the start;
+    non-finite rewards skipped): ``(N,)``."""
+    r = ranked_reward(fields)
+    ok = np.isfinite(r)
+    c = np.concatenate([[0.0], np.cumsum(np.where(ok, r, 0.0))])
+    n = np.concatenate([[0], np.cumsum(ok)])
+    i = np.arange(1, len(r) + 1)
+    lo = np.maximum(i - window, 0)
+    cnt = n[i] - n[lo]
+    return np.where(cnt > 0, (c[i] - c[lo]) / np.maximum(cnt, 1), np.nan)
+
+
+def learner_converged(fields: dict, window: int = 100, tol: float = 0.05) -> int | None:
+    """The first evaluation from which the learner's moving mean reward (over ``window``
+    evaluations) stays within ``tol`` (5 %) of its final value, relative to the range of the
+    rewards seen (a mean near zero has no meaningful percentage); None before two windows.
+    Unlike :func:`best_reached` (the running best), this is about what the learner
+    *samples*: a converged learner keeps drawing scenarios as good as its final ones."""
+    m = moving_mean(fields, window)
+    if len(m) < 2 * window or not np.isfinite(m[-1]):
+        return None
+    r = ranked_reward(fields)
+    span = np.ptp(r[np.isfinite(r)]) if np.any(np.isfinite(r)) else 0.0
+    far = np.nonzero(~(np.abs(m - m[-1]) <= tol * max(span, 1e-9)))[0]
+    return int(far[-1]) + 2 if far.size else 1
+
+
 def typical_non_critical(fields: dict) -> int | None:
     """Row of the non-colliding evaluation with the median reward (paper Table II's
     'non-challenging'); None if every evaluation collided or was non-finite."""
@@ -66,7 +96,7 @@ def distinct_critical(indices: np.ndarray, fields: dict) -> list[dict]:
     order = np.lexsort((first_rows, -reward))
     return [{"indices": tuple(int(v) for v in keys[j]), "row": int(first_rows[j]),
              "first_evaluation": int(first_rows[j]) + 1, "times_evaluated": int(counts[j]),
-             **{f: np.asarray(v)[first_rows[j]].item() for f, v in fields.items()}}
+             **{f: plain(np.asarray(v)[first_rows[j]]) for f, v in fields.items()}}
             for j in order]
 
 
@@ -94,7 +124,7 @@ def table_ii(space, indices: np.ndarray, fields: dict) -> tuple[list[str], list[
         cells = [n]
         for r in (b, t):
             cells.append("-" if r is None else
-                         f"{space.table[p][int(indices[r][p])]:.3f}{unit}")
+                         format_value(space, p, space.table[p][int(indices[r][p])]) + unit)
         rows.append(cells)
     for f, fmt in OUTCOME_ROWS:
         cells = [f]
@@ -102,6 +132,14 @@ def table_ii(space, indices: np.ndarray, fields: dict) -> tuple[list[str], list[
             cells.append("-" if r is None else format(np.asarray(fields[f])[r].item(), fmt))
         rows.append(cells)
     return header, rows
+
+
+def format_value(space, p: int, v: float) -> str:
+    """A parameter value with the decimals its space declares (integers without any)."""
+    par = space.parameters[p]
+    if par.distribution == "integers" or float(v).is_integer() and par.distribution == "values":
+        return f"{v:.0f}" if float(v).is_integer() else f"{v:g}"
+    return f"{v:.{par.decimals}f}"
 
 
 def text_table(header: list[str], rows: list[list[str]]) -> str:

@@ -402,11 +402,19 @@ def cmd_simulate(args, stop, startup) -> int:
         except ValueError:
             raise UsageError(f"{name}={value!r} is not a number") from None
     full = check_scenario_values(scenario)
-    out = jf.evaluate(full, sut=args.sut or "carla-tm",
-                      sut_params=_assignments(args.sut_param, "--sut-param"), key=args.seed)
-    print(json.dumps(jsonable({"scenario": full, "sut": args.sut or "carla-tm",
-                               "outcome": {k: np.asarray(v).item()
-                                           for k, v in vars(out).items()}}), indent=2))
+    from jaxfalsify import sut as sut_lib
+    from jaxfalsify.config import plain
+
+    s, params = sut_lib.make(args.sut or "carla-tm",
+                             **_assignments(args.sut_param, "--sut-param"))
+    out = jf.evaluate(full, sut=s, sut_params=params, key=args.seed)
+    # the resolved scenario (defaults filled in, with units) and SUT beside the outcome
+    print(json.dumps(jsonable({
+        "scenario": full,
+        "units": {k: KNOWN_PARAMETERS[k]["unit"] for k in full},
+        "defaults_used": sorted(set(full) - set(scenario)),
+        "sut": args.sut or "carla-tm", "sut_params": sut_lib.params_dict(params),
+        "outcome": {k: plain(np.asarray(v)[()]) for k, v in vars(out).items()}}), indent=2))
     return 0
 
 
@@ -416,7 +424,7 @@ def _run_folder_lock(run_dir: Path, what: str):
     from jaxfalsify import store
 
     if not (Path(run_dir) / "config.toml").is_file():
-        raise UsageError(f"{run_dir}: not a run folder (no config.toml)")
+        raise UsageError(f"{run_dir} is not a finished run folder (no config.toml)")
     lk = store.lock(Path(run_dir), "run")
     lk.claim(what)
     return lk

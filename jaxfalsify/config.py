@@ -9,6 +9,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 
 def versions() -> dict[str, str]:
     """Versions of the packages a result depends on."""
@@ -21,13 +23,22 @@ def versions() -> dict[str, str]:
     return out
 
 
+def plain(x: Any) -> Any:
+    """A NumPy scalar as a Python value; a float32 as the shortest decimal that is it."""
+    if isinstance(x, np.float32):
+        return float(str(x))
+    return x.item() if hasattr(x, "item") and not isinstance(x, (str, bytes)) else x
+
+
 def jsonable(x: Any) -> Any:
     """Recursively convert to JSON-safe values: NaN/inf -> None, numpy scalars -> Python."""
     if isinstance(x, dict):
         return {str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
         return [jsonable(v) for v in x]
-    if hasattr(x, "item") and not isinstance(x, (str, bytes)):
+    if isinstance(x, np.float32):  # the shortest decimal that is this float32: 0.2582, not
+        x = float(str(x))  # 0.2581999897956848
+    elif hasattr(x, "item") and not isinstance(x, (str, bytes)):
         x = x.item()
     if isinstance(x, float) and not math.isfinite(x):
         return None

@@ -10,7 +10,11 @@ Host-side only (matplotlib, Agg backend); the jitted core never imports this mod
 * ``distance_14_scenarios.png`` — distance over time of 14 evaluated scenarios, collisions
   red, the rest green (paper Fig. 10);
 * ``critical_regions.png`` — beyond the paper: the collision share of the exhaustive sweep over
-  every pair of parameters, with the run's evaluated scenarios on top.
+  every pair of parameters (a perceptual colour scale fitted to the data), with a subsample of
+  the run's evaluated scenarios on top; axes in the parameters' units, ticks at their values;
+* ``search_distribution.png`` — beyond the paper: where the search went, per parameter the
+  share of each value among the evaluations of each stretch of the run (the learner's
+  sampling distribution over time).
 """
 
 from __future__ import annotations
@@ -130,7 +134,7 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
         written.append(path)
 
     # Fig. 7: reward per episode
-    fig, ax = plt.subplots(figsize=FIGSIZE, layout="constrained")
+    fig, ax = plt.subplots(figsize=(8, 5), layout="constrained")
     e, r = ep["evaluation"], ep["reward"]
     ax.plot(e, r, ".", ms=2, color="tab:blue", alpha=0.4, label="reward per evaluation")
     w = max(1, min(100, len(r) // 10))
@@ -139,7 +143,7 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
     ax.set_xlabel("evaluation (episode)")
     ax.set_ylabel("reward")
     ax.set_title(f"{rc.strategy} on {sp.name}, {rc.sut}, seed {rc.seed}")
-    ax.legend(loc="lower right")
+    fig.legend(loc="outside lower center", ncol=2, frameon=False)
     save(fig, "reward_per_episode.png")
 
     # every scenario shown below, simulated in one call
@@ -152,12 +156,13 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
                        sut_params=dict(rc.sut_params), world=world)
 
     # Fig. 8/9: the best critical scenario vs a typical non-critical one
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), sharey=True, layout="constrained")
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5), layout="constrained")
     best_label = "challenging (best)" if analysis.collided(ep)[rows["best"]] else \
         "best (no collision)"
     _distance_panel(axes[0], traj, 0, best_label)
     _distance_panel(axes[1], traj, 1, "non-challenging (typical)")
-    axes[0].legend(loc="upper right")
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=3, frameon=False)
     save(fig, "distance_challenging.png")
 
     fig, ax = plt.subplots(figsize=(5, 4.5), layout="constrained")
@@ -171,52 +176,132 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
     save(fig, "high_risk_second_half.png")
 
     # Fig. 10: 14 scenarios, collisions red
-    fig, ax = plt.subplots(figsize=FIGSIZE, layout="constrained")
-    ax.axhspan(0, 1.0, color="0.85")
-    for k, row in enumerate(chosen):
+    fig, ax = plt.subplots(figsize=(8, 5), layout="constrained")
+    ax.axhspan(0, 1.0, color="0.85", label="collision zone (< 1 m)")
+    labelled = set()
+    # the others first, collisions on top (drawn last, higher zorder)
+    for k, row in sorted(enumerate(chosen), key=lambda kr: bool(ep["collision"][kr[1]])):
         v = np.asarray(traj.valid[2 + k])
+        hit = bool(ep["collision"][row])
+        label = "collision" if hit else "no collision"
         ax.plot(np.asarray(traj.t[2 + k])[v], np.asarray(traj.distance[2 + k])[v],
-                color="tab:red" if ep["collision"][row] else "tab:green", lw=1.2)
+                color="tab:red" if hit else "tab:green", lw=1.6 if hit else 1.0,
+                zorder=3 if hit else 2, label=None if label in labelled else label)
+        labelled.add(label)
     ax.set_xlabel("time [s]")
     ax.set_ylabel("Euclidean distance [m]")
-    ax.set_title(f"{len(chosen)} evaluated scenarios: collisions red, others green")
+    ax.set_title(f"{len(chosen)} evaluated scenarios")
     ax.set_ylim(bottom=0)
+    fig.legend(loc="outside lower center", ncol=3, frameon=False)
     save(fig, "distance_14_scenarios.png")
 
     # Critical-region maps from the exhaustive sweep
-    if sp.size <= TRUTH_LIMIT:
+    if sp.size <= TRUTH_LIMIT and sum(n > 1 for n in sp.shape) >= 2:
         truth = ground_truth(sp, rc.sut, dict(rc.sut_params), world)
         save(critical_region_figure(plt, sp, truth, ep), "critical_regions.png")
+    save(search_figure(plt, sp, ep, rc.strategy), "search_distribution.png")
     return written
 
 
-def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None):
-    """Collision share over every pair of parameters (marginalising the others); ``sweep``
-    holds ``collision`` ``(N,)`` in scenario order."""
-    P = len(sp.names)
-    pairs = list(itertools.combinations(range(P), 2))
+def axis_label(sp, p: int) -> str:
+    """``name [unit]`` (or just the name for a unitless parameter)."""
+    u = sp.units[p]
+    return f"{sp.names[p]} [{u}]" if u else sp.names[p]
+
+
+def value_ticks(sp, p: int, most: int = 6) -> tuple[np.ndarray, list[str]]:
+    """At most ``most`` tick positions (value indices) and their labels: the parameter's own
+    values, with the decimals the space declares."""
+    n = sp.shape[p]
+    pos = np.unique(np.round(np.linspace(0, n - 1, min(n, most))).astype(int))
+    return pos, [analysis.format_value(sp, p, sp.table[p][i]) for i in pos]
+
+
+def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None, points: int = 400):
+    """Collision share over every pair of parameters with two or more values (marginalising
+    the others), on a perceptual colour scale fitted to the largest share; ``sweep`` holds
+    ``collision`` ``(N,)`` in scenario order; ``ep``: a subsample of ``points`` of the run's
+    evaluated scenarios drawn on top (collisions as crosses). Axes in the parameters' units,
+    ticks at their values; 2-8 parameters lay out on a grid of at most 4 columns."""
+    from matplotlib.colors import Normalize
+
+    multi = [p for p in range(len(sp.names)) if sp.shape[p] > 1]
+    pairs = list(itertools.combinations(multi, 2))
     cols = min(4, len(pairs))
     rows = -(-len(pairs) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.2 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.9 * cols + 1.2, 3.5 * rows + 0.8),
+                             squeeze=False, layout="constrained")
     idx = np.asarray(sp.unravel(np.arange(sp.size)))
     col = sweep["collision"].astype(np.float64)
-    for ax, (a, b) in zip(axes.ravel(), pairs):
-        na, nb = sp.shape[a], sp.shape[b]
-        hits = np.zeros((na, nb))
-        count = np.zeros((na, nb))
+    shares = []
+    for a, b in pairs:
+        hits = np.zeros((sp.shape[a], sp.shape[b]))
+        count = np.zeros((sp.shape[a], sp.shape[b]))
         np.add.at(hits, (idx[:, a], idx[:, b]), col)
         np.add.at(count, (idx[:, a], idx[:, b]), 1.0)
-        im = ax.imshow((hits / np.maximum(count, 1)).T, origin="lower", aspect="auto",
-                       cmap="Reds", vmin=0, vmax=1)
-        if ep is not None:
-            ax.plot(ep[f"{sp.names[a]}_idx"] + np.random.default_rng(0).uniform(
-                -0.3, 0.3, len(ep["reward"])), ep[f"{sp.names[b]}_idx"]
-                + np.random.default_rng(1).uniform(-0.3, 0.3, len(ep["reward"])),
-                ".", ms=1, color="tab:blue", alpha=0.3)
-        ax.set_xlabel(f"{sp.names[a]} (index)")
-        ax.set_ylabel(f"{sp.names[b]} (index)")
+        shares.append(hits / np.maximum(count, 1))
+    top = max(float(max(np.max(x) for x in shares)), 1e-9)
+    norm = Normalize(0.0, top)
+    sub = None
+    if ep is not None and len(ep["reward"]):
+        rng = np.random.default_rng(0)
+        sub = np.sort(rng.choice(len(ep["reward"]), min(points, len(ep["reward"])),
+                                 replace=False))
+    for ax, (a, b), share in zip(axes.ravel(), pairs, shares):
+        im = ax.imshow(share.T, origin="lower", aspect="auto", cmap="viridis", norm=norm,
+                       interpolation="nearest")
+        if sub is not None:
+            hit = np.asarray(ep["collision"])[sub].astype(bool)
+            xa = ep[f"{sp.names[a]}_idx"][sub]
+            yb = ep[f"{sp.names[b]}_idx"][sub]
+            ax.scatter(xa[~hit], yb[~hit], s=5, facecolors="none", edgecolors="white",
+                       linewidths=0.5, alpha=0.7, label="evaluated (subsample)")
+            ax.scatter(xa[hit], yb[hit], s=14, marker="x", color="tab:red", linewidths=0.8,
+                       label="evaluated, collision")
+        for setter, p in ((ax.set_xticks, a), (ax.set_yticks, b)):
+            pos, labels = value_ticks(sp, p)
+            setter(pos, labels)
+        ax.tick_params(axis="x", labelrotation=45, labelsize=7)
+        ax.tick_params(axis="y", labelsize=7)
+        ax.set_xlabel(axis_label(sp, a), fontsize=8)
+        ax.set_ylabel(axis_label(sp, b), fontsize=8)
     for ax in axes.ravel()[len(pairs):]:
         ax.axis("off")
-    fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.6, label="collision share")
-    fig.suptitle("Critical regions (exhaustive sweep); dots: the run's evaluated scenarios")
+    fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.8,
+                 label=f"collision share (0 .. {top:.2g}, the largest)")
+    if sub is not None:
+        handles, labels = axes.ravel()[0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="outside lower center", ncol=2, frameon=False)
+    fig.suptitle("Critical regions (exhaustive sweep)")
+    return fig
+
+
+def search_figure(plt, sp, ep: dict, strategy: str = "", stretches: int = 20):
+    """Where the search went: per parameter with two or more values, the share of each of its
+    values among the evaluations of each of ``stretches`` equal stretches of the run (an
+    estimate of the learner's sampling distribution over time; uniform search is flat)."""
+    multi = [p for p in range(len(sp.names)) if sp.shape[p] > 1]
+    n = len(ep["reward"])
+    k = max(1, min(stretches, n))
+    edges = np.linspace(0, n, k + 1).astype(int)
+    fig, axes = plt.subplots(1, len(multi), figsize=(3.2 * len(multi) + 1.2, 4.2),
+                             squeeze=False, layout="constrained")
+    for ax, p in zip(axes[0], multi):
+        vals = ep[f"{sp.names[p]}_idx"]
+        freq = np.zeros((sp.shape[p], k))
+        for j in range(k):
+            seg = vals[edges[j]:edges[j + 1]]
+            if seg.size:
+                freq[:, j] = np.bincount(seg, minlength=sp.shape[p]) / seg.size
+        im = ax.imshow(freq, origin="lower", aspect="auto", cmap="magma",
+                       extent=(0, n, -0.5, sp.shape[p] - 0.5), vmin=0,
+                       vmax=max(float(freq.max()), 1e-9), interpolation="nearest")
+        pos, labels = value_ticks(sp, p)
+        ax.set_yticks(pos, labels)
+        ax.tick_params(labelsize=7)
+        ax.set_xlabel("evaluation")
+        ax.set_ylabel(axis_label(sp, p))
+        fig.colorbar(im, ax=ax, shrink=0.8, label="share of the stretch")
+    fig.suptitle(f"Where the search went ({strategy}): share of each value per stretch of "
+                 f"{max(1, n // k)} evaluations")
     return fig

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxfalsify import analysis
+from jaxfalsify.config import plain
 from jaxfalsify.figures import indices_of, load_run
 
 RED, GREEN, BLUE, GREY = (220, 40, 40), (40, 160, 60), (40, 90, 220), (150, 150, 150)
@@ -136,12 +137,11 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
             "| parameter | value |", "|---|---|"]
     text += [f"| {n} | {ep[n][row]:g} {u} |" for n, u in zip(sp.names, sp.units)]
     text += ["", "| outcome | value |", "|---|---|"]
-    text += [f"| {f} | {ep[f][row]} |" for f in ("reward", "collision", "min_distance",
-                                                  "final_distance",
-                                                  "high_risk_share_second_half")]
+    text += [f"| {f} | {format(plain(ep[f][row]), fmt)} |" for f, fmt in analysis.OUTCOME_ROWS]
     text += ["", f"SUT `{rc.sut}`, strategy `{rc.strategy}`, seed {rc.seed}"]
     rec.log("info", rr.TextDocument("\n".join(text), media_type="text/markdown"), static=True)
 
+    rec.reset_time()  # each entity on its own timeline only: no sim_time on the training curve
     for e, r in zip(ep["evaluation"], ep["reward"]):
         rec.set_time("evaluation", sequence=int(e))
         rec.log("training/reward", rr.Scalars(float(r)))
@@ -151,6 +151,7 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
         rows = rng.choice(len(ep["reward"]), min(overlay, len(ep["reward"])), replace=False)
         ov = jf.simulate(sp.scenario(indices_of(ep, sp, rows)), sut=rc.sut,
                          sut_params=dict(rc.sut_params))
+        rec.reset_time()  # and no evaluation number on the overlaid distances
         for j, r in enumerate(rows):
             color = RED if ep["collision"][r] else GREEN
             rec.log(f"overlay/{j}/distance", rr.SeriesLines(colors=[color],

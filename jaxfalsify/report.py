@@ -17,8 +17,10 @@ FIGURES = [("reward_per_episode.png", "Reward per evaluation (paper Fig. 7)"),
             "non-critical; red = high-risk (paper Fig. 8)"),
            ("high_risk_second_half.png", "High-risk share in the second half (paper Fig. 9)"),
            ("distance_14_scenarios.png", "14 evaluated scenarios, collisions red (paper Fig. 10)"),
-           ("critical_regions.png", "Critical regions from the exhaustive sweep, with the "
-            "evaluated scenarios")]
+           ("critical_regions.png", "Critical regions from the exhaustive sweep, with a "
+            "subsample of the evaluated scenarios (collisions as red crosses)"),
+           ("search_distribution.png", "Where the search went: each parameter's values among "
+            "the evaluations of each stretch of the run")]
 
 
 def write_report(run_dir: Path) -> Path:
@@ -41,10 +43,17 @@ def write_report(run_dir: Path) -> Path:
              f"| evaluations | {s['evaluations']} (batch {s['batch']}) |",
              f"| collisions | {s['n_collisions']} ({s['n_distinct_critical']} distinct) |",
              f"| first collision at evaluation | {fc if fc is not None else 'none found'} |",
-             f"| best reward | {s['best']['reward']:.4f}, first reached at evaluation "
+             f"| best reward | {s['best']['reward']:.4f}, first evaluated at "
              f"{s['best']['evaluation']} |",
+             f"| running best within 1 % of it from evaluation | "
+             f"{s['best_reached_evaluation']} |",
+             f"| learner converged at evaluation | "
+             f"{s.get('learner_converged_evaluation') or '-'} (moving mean reward within 5 % "
+             "of its final value) |",
              f"| wall time | {wall} |",
-             "", "## Best scenario beside a typical non-critical one (paper Table II layout)",
+             "", ("## Best critical scenario beside a typical non-critical one (paper Table II "
+                  "layout)" if fc is not None else
+                  "## No collision found: the best scenario beside a typical one"),
              "", analysis.markdown_table(*analysis.table_ii(sp, idx, fields))]
     figs = [(f, cap) for f, cap in FIGURES if (run_dir / "figures" / f).exists()]
     if figs:

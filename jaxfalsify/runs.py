@@ -190,7 +190,7 @@ def episodes_table(res: campaign.Result) -> dict[str, np.ndarray]:
     for p, name in enumerate(res.space.names):
         cols[f"{name}_idx"] = res.indices[:, p]
     for p, name in enumerate(res.space.names):
-        cols[name] = res.space.values[p][res.indices[:, p]]
+        cols[name] = res.space.exact_values[p][res.indices[:, p]]
     cols.update(res.fields)
     return cols
 
@@ -201,7 +201,7 @@ def summary_dict(res: campaign.Result, rc: RunConfig) -> dict:
     crit = analysis.distinct_critical(res.indices, res.fields)
     best = {"params": res.space.values_at(res.indices[b]),
             "indices": [int(i) for i in res.indices[b]], "evaluation": b + 1,
-            **{k: res.fields[k][b].item() for k in
+            **{k: cfg.plain(res.fields[k][b]) for k in
                ("reward", "collision", "min_distance", "final_distance",
                 "high_risk_share_second_half")}}
     return {"strategy": rc.strategy, "space": res.space.name, "space_seed": rc.space_seed,
@@ -211,6 +211,7 @@ def summary_dict(res: campaign.Result, rc: RunConfig) -> dict:
             "n_distinct_critical": len(crit),
             "n_nonfinite": int(np.sum(res.fields["nonfinite"])),
             "best": best, "best_reached_evaluation": analysis.best_reached(res.fields),
+            "learner_converged_evaluation": analysis.learner_converged(res.fields),
             "versions": cfg.versions()}
 
 
@@ -469,15 +470,25 @@ def closing_report(o: RunOutcome) -> str:
     run's numbers."""
     res, s = o.result, o.summary
     head, rows = analysis.table_ii(res.space, res.indices, res.fields)
+    return "\n".join([analysis.text_table(head, rows), "", *run_lines(s),
+                      f"wall time {timing_line(o.timing)} (from process start to exit)"])
+
+
+def run_lines(s: dict) -> list[str]:
+    """What a run found, in words (the closing report and report.md)."""
     fc = s["first_collision_evaluation"]
     found = (f"{s['n_collisions']} collisions, {s['n_distinct_critical']} distinct critical "
              f"scenarios, the first at evaluation {fc}" if fc is not None else
-             "no collision found")
-    return "\n".join([analysis.text_table(head, rows), "",
-                      f"{s['evaluations']} evaluations: {found}; best reward "
-                      f"{s['best']['reward']:.4f} first reached at evaluation "
-                      f"{s['best']['evaluation']}",
-                      f"wall time {timing_line(o.timing)}"])
+             "no collision found (the best scenario below is not critical)")
+    conv = s.get("learner_converged_evaluation")
+    return [f"{s['evaluations']} evaluations: {found}.",
+            f"Best reward {s['best']['reward']:.4f}, first evaluated at "
+            f"{s['best']['evaluation']}; the running best was within 1 % of it from evaluation "
+            f"{s['best_reached_evaluation']}.",
+            "Learner converged at evaluation " + (
+                f"{conv} (from there its moving mean reward over 100 evaluations stays within "
+                "5 % of the reward range of its final value)." if conv is not None else
+                "- (too few evaluations to tell).")]
 
 
 def default_run_dir(strategy: str) -> Path:

@@ -273,8 +273,15 @@ class Space:
 
     @property
     def values(self) -> list[np.ndarray]:
-        """Per-parameter concrete values, float32 arrays ``(n_p,)``."""
+        """Per-parameter concrete values, float32 arrays ``(n_p,)`` (what the simulator sees)."""
         return [np.asarray(v, dtype=np.float32) for v in self.table]
+
+    @property
+    def exact_values(self) -> list[np.ndarray]:
+        """Per-parameter concrete values as drawn and rounded to their declared decimals,
+        float64 ``(n_p,)``: what every output file shows (``0.036``, not float32's
+        ``0.035999998``)."""
+        return [np.asarray(v, dtype=np.float64) for v in self.table]
 
     @property
     def shape(self) -> tuple[int, ...]:

@@ -126,7 +126,7 @@ def chunk_table(space: Space, begin: int, idx: np.ndarray, out, calib: "Calibrat
     for p, name in enumerate(space.names):
         cols[f"{name}_idx"] = np.tile(idx[:, p].astype(np.int32), C)
     for p, name in enumerate(space.names):
-        cols[name] = np.tile(space.values[p][idx[:, p]], C)
+        cols[name] = np.tile(space.exact_values[p][idx[:, p]], C)
     for f in OUTCOME_FIELDS:
         cols[f] = out[f][:, :n].reshape(-1)
     return cols
@@ -238,7 +238,7 @@ class Reducer:
         i = int(np.argmax(r))
         if r[i] > self.best_reward:
             self.best_reward = float(r[i])
-            self.best_row = {k: v[i].item() for k, v in cols.items()}
+            self.best_row = {k: cfg.plain(v[i]) for k, v in cols.items()}
             self.best_ties = int(np.sum(r == r[i]))
         elif r[i] == self.best_reward:
             self.best_ties += int(np.sum(r == r[i]))

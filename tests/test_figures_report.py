@@ -8,8 +8,8 @@ import pytest
 
 from jaxfalsify.cli import main
 
-SIZES = {"reward_per_episode.png": (450, 800), "distance_challenging.png": (450, 1200),
-         "high_risk_second_half.png": (450, 500), "distance_14_scenarios.png": (450, 800)}
+SIZES = {"reward_per_episode.png": (500, 800), "distance_challenging.png": (500, 1200),
+         "high_risk_second_half.png": (450, 500), "distance_14_scenarios.png": (500, 800)}
 
 
 @pytest.fixture(scope="module")
@@ -29,9 +29,48 @@ def test_figures_are_nontrivial_images_of_the_right_size(run_with_figures):
         assert img.shape[:2] == (h, w), name
         rgb = img[..., :3].reshape(-1, 3)
         assert len(np.unique(rgb, axis=0)) > 20, f"{name} looks blank"
-    img = mpimg.imread(figs / "critical_regions.png")
-    assert img.shape[0] > 300 and img.shape[1] > 800
-    assert len(np.unique(img[..., :3].reshape(-1, 3), axis=0)) > 50
+    for name in ("critical_regions.png", "search_distribution.png"):
+        img = mpimg.imread(figs / name)
+        assert img.shape[0] > 300 and img.shape[1] > 800, name
+        assert len(np.unique(img[..., :3].reshape(-1, 3), axis=0)) > 50, name
+
+
+def test_figure_content_units_values_and_drawing_order(run_with_figures):
+    """What a safety engineer reads: axes carry units, ticks are the space's values (with its
+    decimals), the colour scale is fitted to the data, collisions are drawn on top."""
+    from jaxfalsify import analysis
+    from jaxfalsify.figures import _plt, critical_region_figure, load_run, search_figure
+    from jaxfalsify.sweep import ground_truth
+
+    plt = _plt()
+    sp, rc, _, ep = load_run(run_with_figures)
+    truth = ground_truth(sp, rc.sut, dict(rc.sut_params))
+    fig = critical_region_figure(plt, sp, truth, ep)
+    axes = [ax for ax in fig.axes if ax.get_xlabel() and ax.images]
+    assert len(axes) == 10  # every pair of the 5 parameters
+    labels = {f"{n} [{u}]" for n, u in zip(sp.names, sp.units)}
+    allowed = {n: {analysis.format_value(sp, p, v) for v in sp.table[p]}
+               for p, n in enumerate(sp.names)}
+    for ax in axes:
+        assert ax.get_xlabel() in labels and ax.get_ylabel() in labels
+        for tick_labels, axis_label in ((ax.get_xticklabels(), ax.get_xlabel()),
+                                        (ax.get_yticklabels(), ax.get_ylabel())):
+            name = axis_label.split(" [")[0]
+            texts = [t.get_text() for t in tick_labels]
+            assert texts and set(texts) <= allowed[name], (name, texts)
+    # the colour scale ends at the largest pair share, not at 1
+    im = axes[0].images[0]
+    top = max(float(a.images[0].get_array().max()) for a in axes)
+    assert im.norm.vmax == pytest.approx(top, rel=1e-6) and top < 1
+    assert "ego_offset [m]" in labels and "ped_speed [m/s]" in labels
+    plt.close(fig)
+    fig = search_figure(plt, sp, ep, rc.strategy)
+    ylabels = [ax.get_ylabel() for ax in fig.axes if ax.images]
+    assert ylabels == [f"{n} [{u}]" for n, u in zip(sp.names, sp.units)]
+    # each stretch's shares sum to 1 over a parameter's values
+    freq = np.asarray([ax for ax in fig.axes if ax.images][0].images[0].get_array())
+    np.testing.assert_allclose(freq.sum(0), 1.0, atol=1e-9)
+    plt.close(fig)
 
 
 def test_report_links_resolve_and_table_matches_summary(run_with_figures):
@@ -39,7 +78,7 @@ def test_report_links_resolve_and_table_matches_summary(run_with_figures):
 
     text = (run_with_figures / "report.md").read_text()
     links = re.findall(r"\]\(([^)]+)\)", text)
-    assert len(links) == 5
+    assert len(links) == 6
     for link in links:
         assert (run_with_figures / link).is_file(), link
     s = json.loads((run_with_figures / "summary.json").read_text())
@@ -112,8 +151,18 @@ def test_replay_recording_reads_back_with_simulated_values(run_with_figures, tmp
     rewards = np.concatenate([np.ravel(x) for x in _column(cols["/training/reward"],
                                                             "Scalars:scalars")])
     np.testing.assert_allclose(rewards, r, atol=1e-6)
+    # each entity on its own timeline only
+    for ent, own, other in (("/training/reward", "evaluation", "sim_time"),
+                            ("/overlay/0/distance", "sim_time", "evaluation"),
+                            ("/metrics/distance", "sim_time", "evaluation")):
+        names = {n for rb in cols[ent] for n in rb.schema.names}
+        assert own in names and other not in names, (ent, names)
     text = " ".join(str(x) for x in _column(cols["/info"], "TextDocument:text"))
     assert "ego_offset" in text and "reward" in text
+    # values as declared: no float32 noise such as 0.25999999046325684
+    import re
+
+    assert not re.search(r"\d\.\d{9,}", text), text
 
 
 def test_replay_bad_scenario_spec(run_with_figures, capsys):

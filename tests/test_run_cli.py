@@ -133,4 +133,5 @@ def test_closing_report_and_report_md_agree(tmp_path, capsys):
     from jaxfalsify import analysis
     ep = {k: np.asarray(v) for k, v in pq.read_table(out / "episodes.parquet").to_pydict().items()}
     typ = analysis.typical_non_critical(ep)
-    assert md_rows[0][2] == f"{ep['ego_offset'][typ]:.3f} m"
+    assert md_rows[0][2] == f"{ep['ego_offset'][typ]:.0f} m"  # integers: no decimals
+    assert md_rows[1][2] == f"{ep['ped_accel'][typ]:.3f}"  # declared: 3 decimals

@@ -252,3 +252,22 @@ def test_analysis_by_hand():
     assert [c["indices"][0] for c in crit] == [2]  # same scenario twice -> one entry
     assert crit[0]["times_evaluated"] == 2 and crit[0]["first_evaluation"] == 3
     assert crit[0]["reward"] == pytest.approx(0.263)  # the first evaluation's outcome
+
+
+def test_learner_convergence_and_running_best_by_hand():
+    """The learner's convergence (moving mean within 5 % of the reward range of its final
+    value, window 100) is not the running best's: a learner can find its best early and
+    still be sampling elsewhere."""
+    r = np.concatenate([np.full(150, -0.05), [0.26], np.full(149, -0.05),
+                        np.linspace(-0.05, 0.25, 100), np.full(300, 0.25)]).astype(np.float32)
+    f = {"reward": r, "collision": r > 0.2, "nonfinite": np.zeros(len(r), bool)}
+    assert analysis.best_reached(f) == 151  # the 0.26 at evaluation 151
+    m = analysis.moving_mean(f, 100)
+    assert m[99] == pytest.approx(-0.05) and m[-1] == pytest.approx(0.25)
+    conv = analysis.learner_converged(f, 100)
+    span = 0.26 + 0.05
+    # first evaluation from which |m - 0.25| <= 0.05 * span for good (by brute force)
+    ok = np.abs(m - 0.25) <= 0.05 * span
+    want = next(i for i in range(len(m)) if ok[i:].all()) + 1
+    assert conv == want and 400 < conv < 600  # during the climb, after 0.26 was found
+    assert analysis.learner_converged({**f, "reward": r[:150]}, 100) is None
