@@ -176,6 +176,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--spawn", action="store_true", help="open a rerun viewer instead")
     pl.add_argument("--scenarios", type=_int("--scenarios", 1), default=0,
                     help="also overlay the distance of K evaluated scenarios (paper Fig. 10)")
+    pl.add_argument("--campaign", action="store_true",
+                    help="record the whole search instead (default RUN_DIR/campaign.rrd): every "
+                    "evaluation's outcome and values, the sampling distribution per update")
+    pl.add_argument("--window", type=_int("--window", 1), default=200,
+                    help="with --campaign: evaluations behind each sampling-distribution chart")
 
     x = sub.add_parser("export", help="OpenSCENARIO (.xosc) + OpenDRIVE (.xodr) of a run's "
                        "scenarios")
@@ -431,16 +436,18 @@ def _run_folder_lock(run_dir: Path, what: str):
 
 
 def cmd_replay(args, stop, startup) -> int:
-    from jaxfalsify.replay import record
+    from jaxfalsify.replay import record, record_campaign
 
     inside = args.save is None and not args.spawn  # the default recording is in the run folder
-    lk = _run_folder_lock(args.run_dir, "replay") if inside else None
-    try:
+    guard = (lambda: _run_folder_lock(args.run_dir, "replay")) if inside else None
+    if args.campaign:
+        if args.scenario != "best" or args.scenarios:
+            raise UsageError("--campaign records every evaluation: no --scenario/--scenarios")
+        path = record_campaign(args.run_dir, save=args.save, spawn=args.spawn,
+                               window=args.window, guard=guard)
+    else:
         path = record(args.run_dir, args.scenario, save=args.save, spawn=args.spawn,
-                      overlay=args.scenarios)
-    finally:
-        if lk is not None:
-            lk.release()
+                      overlay=args.scenarios, guard=guard)
     print(f"wrote {path}" if path else "sent to the rerun viewer")
     return 0
 

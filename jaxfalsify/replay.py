@@ -11,14 +11,26 @@ Entities of a recording:
   Manager's polygons (``carla-tm`` only: the car's geodesic boundary, its width, reaching one
   car length plus the speed-dependent extension ahead; the walker's box grown by 1.5 s x its
   speed on every side); ``world/collision``: a marker at the collision;
-* ``metrics/distance``, ``metrics/rss_distance``, ``metrics/high_risk`` (1 red / 0 green),
-  ``metrics/ego_speed``, ``metrics/ped_speed``: scalar series on ``sim_time``;
+* ``metrics/distance`` (box gap, m), ``metrics/rss_distance`` (RSS safe distance, m),
+  ``metrics/epsilon`` (the requirement's clash distance, 1 m), ``metrics/high_risk`` (1 red /
+  0 green), ``metrics/ego_speed``, ``metrics/ped_speed`` (m/s): scalar series on ``sim_time``;
 * ``info``: the scenario's parameters and outcome as a markdown document;
 * ``training/reward``: the run's reward per evaluation, on the ``evaluation`` timeline;
 * ``overlay/<k>/distance``: with several scenarios, each one's distance (collisions red), as in
   the paper's Fig. 10.
 
-A blueprint puts the top view beside the time series.
+A blueprint puts the top view and the scenario's text beside three plots: the distance with
+the RSS safe distance and the epsilon line, the speeds and the high-risk flag, the training
+curve (or the overlay).
+
+:func:`record_campaign` records the whole search instead, on the ``evaluation`` timeline:
+
+* ``campaign/reward``, ``campaign/min_distance`` (m): one point per evaluated scenario;
+  ``campaign/collision``: 1 for a collision, 0 otherwise; ``campaign/best``: the running best;
+* ``campaign/params/<name>``: the value each evaluation chose, in the parameter's unit;
+* ``campaign/probabilities/<name>``: per update, a bar chart over the parameter's values of
+  the share of each value among the last ``window`` evaluations (the strategy's sampling
+  distribution as its draws show it: exact for every strategy, whatever its internals).
 """
 
 from __future__ import annotations
@@ -58,8 +70,13 @@ def resolve_scenario(spec: str, ep: dict, space) -> int:
 
 
 def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
-           spawn: bool = False, overlay: int = 0):
-    """Write (or spawn a viewer with) a recording of one scenario of a run; returns the path."""
+           spawn: bool = False, overlay: int = 0, guard=None):
+    """Write (or spawn a viewer with) a recording of one scenario of a run; returns the path.
+
+    ``guard``: optional callable returning a context manager held while the file is written
+    (the CLI passes the run folder's lock), entered only once every input was checked."""
+    import contextlib
+
     import rerun as rr
 
     sp, rc, summary, ep = load_run(run_dir)
@@ -73,7 +90,8 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
     check_save_path(path)
     from jaxfalsify import store
 
-    with store.atomic_path(path) as tmp:  # complete under its final name, or not at all
+    with (guard() if guard else contextlib.nullcontext()), \
+            store.atomic_path(path) as tmp:  # complete under its final name, or not at all
         rec.save(tmp)
         _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row)
         rec.disconnect()  # closes the file sink
@@ -128,6 +146,7 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
                                                    labels=["collision"]))
         rec.log("metrics/distance", rr.Scalars(float(tr["distance"][k])))
         rec.log("metrics/rss_distance", rr.Scalars(float(tr["rss_distance"][k])))
+        rec.log("metrics/epsilon", rr.Scalars(float(w.epsilon)))
         rec.log("metrics/high_risk", rr.Scalars(float(tr["high_risk"][k])),
                 rr.SeriesPoints(colors=[RED if tr["high_risk"][k] else GREEN]))
         rec.log("metrics/ego_speed", rr.Scalars(float(tr["ego_speed"][k])))
@@ -161,12 +180,94 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
                 rec.set_time("sim_time", duration=float(ov.t[j, k]))
                 rec.log(f"overlay/{j}/distance", rr.Scalars(float(ov.distance[j, k])))
 
+    for name, color in (("distance", BLUE), ("rss_distance", (230, 130, 0)), ("epsilon", RED)):
+        rec.log(f"metrics/{name}", rr.SeriesLines(colors=[color], names=[name]), static=True)
     rec.send_blueprint(rrb.Blueprint(rrb.Horizontal(
         rrb.Vertical(rrb.Spatial2DView(origin="world", name="top view"),
                      rrb.TextDocumentView(origin="info", name="scenario")),
-        rrb.Vertical(rrb.TimeSeriesView(origin="metrics", name="metrics"),
-                     rrb.TimeSeriesView(origin="overlay" if overlay else "training",
-                                        name="overlay" if overlay else "training")))))
+        rrb.Vertical(
+            rrb.TimeSeriesView(origin="metrics", name="distance vs RSS safe distance and epsilon (m)",
+                               contents=["metrics/distance", "metrics/rss_distance",
+                                         "metrics/epsilon"]),
+            rrb.TimeSeriesView(origin="metrics", name="speeds (m/s) and high risk",
+                               contents=["metrics/ego_speed", "metrics/ped_speed",
+                                         "metrics/high_risk"]),
+            rrb.TimeSeriesView(origin="overlay" if overlay else "training",
+                               name="overlay: distance (m)" if overlay else
+                               "training: reward per evaluation")))))
+    rec.flush()
+
+
+def record_campaign(run_dir: Path, save: Path | None = None, spawn: bool = False,
+                    window: int = 200, guard=None):
+    """Write (or spawn a viewer with) a recording of a run's whole search, every evaluation on
+    the ``evaluation`` timeline (entities: see the module docstring); returns the path.
+
+    ``window``: evaluations behind each bar chart of the sampling distribution."""
+    import contextlib
+
+    import rerun as rr
+
+    if isinstance(window, bool) or not isinstance(window, int) or window < 1:
+        raise ValueError(f"window must be a positive integer (got {window!r})")
+    sp, rc, summary, ep = load_run(run_dir)
+    rec = rr.RecordingStream("jaxfalsify", recording_id=f"{Path(run_dir).name}-campaign")
+    if spawn:
+        rec.spawn()
+        _log_campaign(rec, sp, ep, window)
+        return None
+    path = Path(save) if save else Path(run_dir) / "campaign.rrd"
+    check_save_path(path)
+    from jaxfalsify import store
+
+    with (guard() if guard else contextlib.nullcontext()), store.atomic_path(path) as tmp:
+        rec.save(tmp)
+        _log_campaign(rec, sp, ep, window)
+        rec.disconnect()
+    return path
+
+
+def sampling_shares(idx: np.ndarray, n: int) -> np.ndarray:
+    """Share of each of ``n`` values among the indices ``idx`` ``(k,)``: ``(n,)`` summing to 1."""
+    return np.bincount(np.asarray(idx, np.int64), minlength=n)[:n] / max(len(idx), 1)
+
+
+def _log_campaign(rec, sp, ep, window: int) -> None:
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    evals = np.asarray(ep["evaluation"], np.int64)
+    reward = np.asarray(ep["reward"], np.float64)
+    best = np.maximum.accumulate(np.where(np.isfinite(reward), reward, -np.inf))
+    for j, e in enumerate(evals):
+        rec.set_time("evaluation", sequence=int(e))
+        rec.log("campaign/reward", rr.Scalars(float(reward[j])))
+        rec.log("campaign/best", rr.Scalars(float(best[j])))
+        rec.log("campaign/min_distance", rr.Scalars(float(ep["min_distance"][j])))
+        rec.log("campaign/collision", rr.Scalars(float(bool(ep["collision"][j]))),
+                rr.SeriesPoints(colors=[RED if ep["collision"][j] else GREEN]))
+        for n in sp.names:
+            rec.log(f"campaign/params/{n}", rr.Scalars(float(ep[n][j])))
+    # the sampling distribution, at the last evaluation of every update
+    updates = np.asarray(ep["update"], np.int64)
+    ends = np.nonzero(np.r_[updates[1:] != updates[:-1], True])[0]
+    for j in ends:
+        rec.set_time("evaluation", sequence=int(evals[j]))
+        lo = max(0, j + 1 - window)
+        for p, n in enumerate(sp.names):
+            values = np.asarray(sp.table[p], np.float64)
+            rec.log(f"campaign/probabilities/{n}", rr.BarChart(
+                sampling_shares(ep[f"{n}_idx"][lo:j + 1], len(values)), abscissa=values))
+    rec.send_blueprint(rrb.Blueprint(rrb.Horizontal(
+        rrb.Vertical(rrb.TimeSeriesView(origin="campaign", name="reward, running best",
+                                        contents=["campaign/reward", "campaign/best"]),
+                     rrb.TimeSeriesView(origin="campaign", name="min distance (m), collision",
+                                        contents=["campaign/min_distance",
+                                                  "campaign/collision"]),
+                     rrb.TimeSeriesView(origin="campaign/params", name="parameter values")),
+        rrb.Grid(*[rrb.BarChartView(origin=f"campaign/probabilities/{n}",
+                                    name=f"{n} ({u}): share of the last {window} draws")
+                   for n, u in zip(sp.names, sp.units)]))))
     rec.flush()
 
 

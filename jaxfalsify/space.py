@@ -47,7 +47,7 @@ KNOWN_PARAMETERS: dict[str, dict[str, Any]] = {
 }
 
 DISTRIBUTIONS = ("uniform", "normal", "integers", "values")
-MAX_SAMPLES = 1_000_000  # concrete values per parameter
+MAX_SAMPLES = 100_000  # concrete values per parameter (search heads cost O(values))
 MAX_SIZE = 2**31 - 1  # concrete scenarios a sweep enumerates (int32 scenario numbers)
 MAX_SEARCH_SIZE = 10**18  # concrete scenarios a space may have (searched, never enumerated)
 SUT_PREFIX = "sut."  # a space parameter named sut.NAME sets the SUT's parameter NAME

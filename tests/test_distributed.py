@@ -33,6 +33,7 @@ def _free_port():
         return s.getsockname()[1]
 
 
+@pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_two_process_sweep_union_equals_single_process(tmp_path):
     space = tmp_path / "space.toml"
     space.write_text(SPACE)

@@ -129,7 +129,7 @@ def test_replay_recording_reads_back_with_simulated_values(run_with_figures, tmp
     cols = _read_rrd(f)
     for ent in ("/world/road", "/world/crosswalk", "/world/ego", "/world/pedestrian",
                 "/world/hazard_corridor", "/world/walker_grown_box", "/metrics/distance",
-                "/metrics/rss_distance",
+                "/metrics/rss_distance", "/metrics/epsilon",
                 "/metrics/high_risk", "/metrics/ego_speed", "/info", "/training/reward",
                 "/overlay/0/distance"):
         assert ent in cols, ent
@@ -163,6 +163,49 @@ def test_replay_recording_reads_back_with_simulated_values(run_with_figures, tmp
     import re
 
     assert not re.search(r"\d\.\d{9,}", text), text
+
+
+def test_campaign_recording_holds_every_evaluation_and_the_sampling_distribution(
+        run_with_figures, tmp_path, capsys):
+    import pyarrow.parquet as pq
+
+    import jaxfalsify as jf
+
+    f = tmp_path / "campaign.rrd"
+    assert main(["replay", str(run_with_figures), "--campaign", "--window", "50",
+                 "--save", str(f)]) == 0
+    cols = _read_rrd(f)
+    ep = pq.read_table(run_with_figures / "episodes.parquet").to_pydict()
+    sp = jf.load_space("paper")
+    rewards = np.concatenate([np.ravel(x) for x in _column(cols["/campaign/reward"],
+                                                            "Scalars:scalars")])
+    np.testing.assert_allclose(rewards, ep["reward"], atol=1e-6)
+    assert _column(cols["/campaign/reward"], "evaluation") == ep["evaluation"]
+    best = np.concatenate([np.ravel(x) for x in _column(cols["/campaign/best"],
+                                                         "Scalars:scalars")])
+    np.testing.assert_allclose(best, np.maximum.accumulate(ep["reward"]), atol=1e-6)
+    for n in sp.names:
+        vals = np.concatenate([np.ravel(x) for x in _column(cols[f"/campaign/params/{n}"],
+                                                             "Scalars:scalars")])
+        np.testing.assert_allclose(vals, ep[n], atol=1e-6)
+    # the last bar chart of each parameter: the shares of its values among the last 50 draws,
+    # counted here by a Python loop
+    for p, n in enumerate(sp.names):
+        bars = _column(cols[f"/campaign/probabilities/{n}"], "BarChart:values")
+        last = bars[-1]  # one chart per row: a list of one {shape, names, buffer} tensor
+        last = np.asarray(last[0]["buffer"] if isinstance(last, list) else last["buffer"],
+                          np.float64)
+        counts = [0] * len(sp.table[p])
+        for i in ep[f"{n}_idx"][-50:]:
+            counts[i] += 1
+        np.testing.assert_allclose(last, np.asarray(counts) / 50, atol=1e-12)
+        assert len(bars) == len(set(ep["update"]))  # one chart per update
+    for ent, batches in cols.items():
+        if ent.startswith("/campaign/"):
+            names = {nm for rb in batches for nm in rb.schema.names}
+            assert "sim_time" not in names, ent
+    assert main(["replay", str(run_with_figures), "--campaign", "--scenario", "eval:1"]) == 2
+    assert "no --scenario" in capsys.readouterr().err
 
 
 def test_replay_bad_scenario_spec(run_with_figures, capsys):

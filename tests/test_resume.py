@@ -22,7 +22,11 @@ from jaxfalsify.store import CampaignCheckpoint
 from conftest import TINY_SPACE, run_campaign  # noqa: F401
 
 
-@pytest.mark.parametrize("strategy", list(search.REGISTRY))
+FAST_RESUME = ("random", "reinforce/default", "cmaes")  # the rest in the slow pass
+
+
+@pytest.mark.parametrize("strategy", [
+    s if s in FAST_RESUME else pytest.param(s, marks=pytest.mark.slow) for s in search.REGISTRY])
 def test_every_strategy_resumes_bit_identically(strategy, tmp_path):
     """Stop after 2 of 4 chunks, restore the carry (strategy + optimiser state, PRNG keys,
     update count) from disk, continue: every recorded field equals the uninterrupted run's."""
@@ -110,6 +114,7 @@ def _same_run(a: Path, b: Path):
     assert (a / "config.toml").read_text() == (b / "config.toml").read_text()
 
 
+@pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_sigkilled_run_resumes_to_identical_results(tmp_path, capsys):
     reference, out = tmp_path / "reference", tmp_path / "killed"
     uninterrupted = _cli([*RUN_ARGS, "--out", str(reference)])  # side by side
@@ -152,6 +157,7 @@ def test_sigint_or_sigterm_leaves_a_resumable_run(tmp_path, sig, code):
 SWEEP_ARGS = ["sweep", "--space", "paper", "--chunk", "1024", "--quiet"]
 
 
+@pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_sigkilled_sweep_resumes_to_identical_results(tmp_path, capsys):
     ref = tmp_path / "reference"
     assert main([*SWEEP_ARGS, "--out", str(ref)]) == 0
@@ -179,6 +185,7 @@ def test_sweep_summary_does_not_depend_on_chunk_size(tmp_path):
     _same_table(a / "sweep.parquet", b / "sweep.parquet")
 
 
+@pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_library_run_interrupt_resume_equals_cli(tmp_path):
     """``runs.execute`` stopped between chunks and resumed gives exactly the files the CLI
     writes for the same configuration in one go."""

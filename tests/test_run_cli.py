@@ -66,6 +66,7 @@ def test_run_directory_schema(random_run):
     assert not (out / "checkpoint").exists()
 
 
+@pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_config_round_trip_repeats_the_run(random_run, tmp_path):
     again = tmp_path / "again"
     assert main(["run", "--config", str(random_run / "config.toml"), "--out", str(again),
@@ -94,6 +95,7 @@ def test_reinforce_paper_entry_run_and_report(tmp_path, capsys):
     assert cfg["lr"] == pytest.approx(0.02) and cfg["alpha"] == pytest.approx(1e-4)
 
 
+@pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_compare_against_sweep_ground_truth(tmp_path, capsys):
     space = tmp_path / "tiny.toml"
     space.write_text(TINY_SPACE)

@@ -72,6 +72,7 @@ samples = 1000
 """
 
 
+@pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_a_space_too_large_to_sweep_is_searched_with_a_sampled_estimate(tmp_path,
                                                                         monkeypatch):
     path = tmp_path / "huge.toml"
@@ -98,6 +99,7 @@ def test_a_space_too_large_to_sweep_is_searched_with_a_sampled_estimate(tmp_path
     assert "estimated from 8,192 uniform scenarios" in (tmp_path / "c" / "compare.md").read_text()
 
 
+@pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_compare_suite_end_to_end(tmp_path, capsys):
     space = tmp_path / "tiny.toml"
     space.write_text(TINY_SPACE)

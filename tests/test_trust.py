@@ -329,6 +329,7 @@ def _wait_for(path: Path, proc, timeout=300):
         time.sleep(0.02)
 
 
+@pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_a_second_writer_is_refused_with_the_holders_pid(tmp_path):
     out = tmp_path / "sw"
     env = dict(os.environ, JAX_PLATFORMS="cpu")

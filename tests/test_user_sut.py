@@ -73,6 +73,7 @@ def test_noise_uses_the_key(tiny):
     assert not np.array_equal(np.asarray(a.min_distance), np.asarray(c.min_distance))
 
 
+@pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_sweep_and_compare_by_import_path(tiny, tmp_path):
     out = tmp_path / "sw"
     assert main(["sweep", "--space", str(tiny), "--sut", SPEC, "--sut-param", "noise=0",

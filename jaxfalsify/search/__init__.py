@@ -78,7 +78,8 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
 
 register("reinforce/default", AutoregressiveReinforce, batch=32, learners=1, queue=32,
          resample=4, anchored=True, advantage="rank", signal="shaped", lr=0.02,
-         lr_found=0.05, sigma_min=0.001, repeat_found=0.8, anchor_decay=0.9,
+         lr_found=0.03, sigma_min=0.001, repeat_found=0.8, anchor_decay=0.9,
+         global_share_found=0.0,
          doc="the autoregressive LSTM controller + REINFORCE (ours): draws around the best "
          "scenarios found so far (a learnt local move) and afresh, no repeats until a "
          "collision, rank baseline of the STL-robustness-shaped signal, 32 per update")

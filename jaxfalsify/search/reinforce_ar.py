@@ -14,7 +14,9 @@ a reward that is flat until the first collision, failures that are rare.
   ``anchor_decay^k``). An anchored head keeps the anchor's value with a learnt *stay*
   probability and otherwise moves by a learnt offset and width (starting at about one
   parameter moved per draw, 1.5 value steps wide): a learnt local move. ``global_share`` of
-  the draws have no anchor (the controller's own distribution over the whole space).
+  the draws have no anchor (the controller's own distribution over the whole space);
+  ``global_share_found`` once the learner has a collision (the default 0: every draw
+  anchored, so the learner converges on the best region).
   REINFORCE trains both: which parameters to move, how far and where to, and where the good
   scenarios lie.
 * **No repeats until a collision** (``resample``): a deterministic SUT gives the same outcome
@@ -62,6 +64,8 @@ class ARParams:
     sigma_min: float = 0.05  # narrowest bump, as a fraction of a parameter's range (never
     # narrower than half a value step)
     global_share: float = 0.25  # anchored: share of draws without an anchor
+    global_share_found: float = -1.0  # the same once the learner has a collision (< 0: as
+    # global_share)
     anchor_decay: float = 0.95  # anchored: the k-th best of the queue is picked ~ decay^k
     repeat_found: float = 0.0  # once the learner has a collision: share of its draws that
     # may repeat an evaluated scenario
@@ -192,7 +196,9 @@ class AutoregressiveReinforce(Strategy):
             pick = categorical_from_uniform(u[..., 2 * P],
                                             jnp.broadcast_to(wk[:, None, :], (L, C, K)))
             anchors = jnp.take_along_axis(state.queue, pick[..., None], axis=1)  # (L, C, P)
-            present = (filled[:, None] > 0) & (u[..., 2 * P + 1] >= params.global_share)
+            share = jnp.where(state.seen & (params.global_share_found >= 0),
+                              params.global_share_found, params.global_share)  # (L,)
+            present = (filled[:, None] > 0) & (u[..., 2 * P + 1] >= share[:, None])
             sampled = jax.vmap(lambda w, ul, al, pl: jax.vmap(
                 lambda ui, ai, pi: ar.sample(w, ui, self.shape, lsm, (ai, pi)))(ul, al, pl))(
                 state.weights, u[..., :P], anchors, present)
