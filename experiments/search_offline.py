@@ -91,7 +91,7 @@ def main(argv=None):
     sut_params = {k: float(v) for k, v in (s.split("=") for s in a.sut_param)}
     table = load_table(sp, a.sut, sut_params, a.table)
     r = np.where(np.isnan(table["reward"]), -np.inf, table["reward"])
-    gmax, gmin = r.max(), r[np.isfinite(r)].min()
+    gmax = r.max()
     n_c = int(table["collision"].sum())
     u = compare.uniform_first_collision(sp.size, n_c, a.evaluations)
     print(f"{sp.name}: {n_c} collisions of {sp.size} (p={u['p']:.2e}), 1/p={u['expected']:.4g},"

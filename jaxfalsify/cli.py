@@ -154,6 +154,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--space", help="built-in name or TOML file (default paper)")
     c.add_argument("--space-seed", type=_int("--space-seed"), dest="space_seed",
                    help="discretisation seed of the space (default 0)")
+    c.add_argument("--strategy-param", action="append", dest="strategy_param",
+                   metavar="STRATEGY:NAME=VALUE",
+                   help="an option of one strategy, e.g. cem:elite_frac=0.2 (repeatable)")
     _add_sut(c)
     c.add_argument("--out", type=Path, help="folder for compare.json/.md "
                    "(default runs/compare-<timestamp>)")
@@ -204,6 +207,18 @@ def _assignments(items, flag, many=False):
     from jaxfalsify.config import parse_assignments
 
     return parse_assignments(items, flag, many)
+
+
+def _per_strategy(items) -> dict:
+    """``["cem:elite_frac=0.2", ...]`` -> ``{"cem": {"elite_frac": 0.2}}``."""
+    out: dict = {}
+    for item in items or ():
+        name, sep, assignment = item.partition(":")
+        if not sep or not name.strip():
+            raise UsageError(f"--strategy-param {item!r}: expected STRATEGY:NAME=VALUE, "
+                             "e.g. cem:elite_frac=0.2")
+        out.setdefault(name.strip(), {}).update(_assignments([assignment], "--strategy-param"))
+    return out
 
 
 def _no_flags_with_resume(args, names):
@@ -334,6 +349,7 @@ def cmd_compare(args, stop, startup) -> int:
                                    evaluations=args.evaluations, space=args.space or "paper",
                                    space_seed=args.space_seed or 0, sut=args.sut or "carla-tm",
                                    sut_params=_assignments(args.sut_param, "--sut-param"),
+                                   strategy_params=_per_strategy(args.strategy_param),
                                    budgets=budgets)
     config.check()
     out = args.out or Path("runs") / f"compare-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -372,6 +388,7 @@ def _compare_suite(args, names, stop, startup) -> int:
     for flag, given in (("--space", args.space), ("--space-seed", args.space_seed is not None),
                         ("--sut", args.sut),
                         ("--sut-param", args.sut_param), ("--budgets", args.budgets),
+                        ("--strategy-param", args.strategy_param),
                         ("--distributed", args.distributed),
                         ("--evaluations", args.evaluations != 4000)):
         if given:

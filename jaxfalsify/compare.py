@@ -52,10 +52,13 @@ class CompareConfig:
     sut_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
     overhead: bool = True  # time each strategy's ask/tell alone (search overhead)
     budgets: tuple[int, ...] = ()  # also report at these smaller budgets (first evaluations)
+    # options per strategy, e.g. {"cem": {"elite_frac": 0.2}} (the registry's defaults otherwise)
+    strategy_params: Mapping[str, Mapping[str, Any]] = dataclasses.field(default_factory=dict)
 
     def run_config(self, strategy: str) -> RunConfig:
         return RunConfig(space=self.space, space_seed=self.space_seed, sut=self.sut,
                          sut_params=self.sut_params, strategy=strategy,
+                         strategy_params=dict(self.strategy_params.get(strategy, {})),
                          evaluations=self.evaluations)
 
     def check(self) -> None:
@@ -68,13 +71,20 @@ class CompareConfig:
             raise ValueError("strategies: none given")
         for s in self.strategies:
             search.canonical(s)
-        self.run_config(self.strategies[0]).build()
+        for s in self.strategy_params:
+            if s not in self.strategies:
+                raise ValueError(f"strategy_params: {s!r} is not among the strategies "
+                                 f"({', '.join(self.strategies)})")
+        for s in (self.strategies[0], *self.strategy_params):
+            self.run_config(s).build()  # checks the space, the SUT and the options
 
     def to_toml(self) -> str:
         return cfg.dumps_toml({"kind": "compare", "strategies": list(self.strategies),
                                "seeds": self.seeds, "evaluations": self.evaluations,
                                "space_seed": self.space_seed, "sut": self.sut,
                                "sut_params": dict(self.sut_params),
+                               "strategy_params": {k: dict(v) for k, v
+                                                   in self.strategy_params.items()},
                                "space": self.space if isinstance(self.space, Mapping)
                                else self.space})
 

@@ -121,3 +121,25 @@ def test_no_ground_truth_rows():
     assert st["best_normalised"] is None and st["reached_global_max"] is None
     row = compare.strategy_row("x", [st], truth, wall=1.0)
     assert row["seeds_reaching_global_max"] is None and row["all_critical"] is None
+
+
+def test_per_strategy_options_reach_that_strategy_only():
+    """``compare --strategy-param cem:elite_frac=0.5``: cem is built with elite_frac 0.5, the
+    other strategies with their registry defaults; options of a strategy not compared, or
+    unknown options, are refused with one line."""
+    import pytest
+
+    from jaxfalsify.compare import CompareConfig
+    from jaxfalsify.search.cem import CEMParams
+
+    cfg = CompareConfig(strategies=("random", "cem"), seeds=2, evaluations=64,
+                        strategy_params={"cem": {"elite_frac": 0.5}})
+    cfg.check()
+    assert float(cfg.run_config("cem").build().strategy_params.elite_frac) == 0.5
+    assert cfg.run_config("random").strategy_params == {}
+    assert CEMParams().elite_frac != 0.5  # the option changed something
+    assert 'elite_frac = 0.5' in cfg.to_toml()
+    with pytest.raises(ValueError, match="'anneal' is not among the strategies"):
+        CompareConfig(strategies=("cem",), strategy_params={"anneal": {"t0": 1.0}}).check()
+    with pytest.raises(ValueError, match="no option 'nope'"):
+        CompareConfig(strategies=("cem",), strategy_params={"cem": {"nope": 1.0}}).check()
