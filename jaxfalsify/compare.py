@@ -577,10 +577,7 @@ def load_suite(path: Path | str, seeds: int | None = None,
     path = Path(path)
     doc = cfg.read_toml(path, "--suite")
     where = str(path)
-    unknown = set(doc) - _SUITE_KEYS
-    if unknown:
-        raise ValueError(f"{where}: unknown key '{sorted(unknown)[0]}' "
-                         f"(allowed: {', '.join(sorted(_SUITE_KEYS))})")
+    cfg.check_keys(doc, _SUITE_KEYS, where)
     entries = doc.get("entry")
     if not isinstance(entries, list) or not entries:
         raise ValueError(f"{where}: needs at least one [[entry]] table")
@@ -589,10 +586,7 @@ def load_suite(path: Path | str, seeds: int | None = None,
         key = f"{where}: entry[{k}]"
         if not isinstance(e, dict):
             raise ValueError(f"{key} must be a table")
-        bad = set(e) - _ENTRY_KEYS
-        if bad:
-            raise ValueError(f"{key}: unknown key '{sorted(bad)[0]}' "
-                             f"(allowed: {', '.join(sorted(_ENTRY_KEYS))})")
+        cfg.check_keys(e, _ENTRY_KEYS, key)
         if not isinstance(e.get("space"), str):
             raise ValueError(f"{key}.space must be a space name or a .toml path")
         sp = e["space"]

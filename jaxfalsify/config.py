@@ -130,6 +130,14 @@ def read_toml(path: Path, what: str = "") -> dict[str, Any]:
         raise ValueError(f"{path}: malformed TOML: nested too deeply") from None
 
 
+def check_keys(doc, allowed, where: str) -> None:
+    """One-line ValueError naming the first key of ``doc`` not in ``allowed``."""
+    unknown = set(doc) - set(allowed)
+    if unknown:
+        raise ValueError(f"{where}: unknown key '{sorted(unknown)[0]}' "
+                         f"(allowed: {', '.join(sorted(allowed))})")
+
+
 def parse_assignments(items: list[str] | None, flag: str, many: bool = False
                       ) -> dict[str, Any]:
     """``["NAME=VALUE", ...]`` -> ``{name: value}``: numbers where they parse (a list of them

@@ -157,10 +157,7 @@ class RunConfig:
 
     @classmethod
     def from_dict(cls, doc: Mapping, where: str = "config") -> "RunConfig":
-        unknown = set(doc) - CONFIG_KEYS
-        if unknown:
-            raise ValueError(f"{where}: unknown key '{sorted(unknown)[0]}' "
-                             f"(allowed: {', '.join(sorted(CONFIG_KEYS))})")
+        cfg.check_keys(doc, CONFIG_KEYS, where)
         for key in ("sut", "strategy"):
             if key in doc and not isinstance(doc[key], str):
                 raise ValueError(f"{where}: {key} must be a string (got {doc[key]!r})")

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxfalsify import weather
+from jaxfalsify.config import check_keys
 
 # Scenario parameters the simulator understands: unit, default, allowed domain, integer-valued.
 # A space need not declare all of them; undeclared ones take the default.
@@ -422,10 +423,7 @@ def parse_parameter(name: str, spec: Any, where: str) -> Parameter:
     """Validate one TOML parameter table into a :class:`Parameter`."""
     if not isinstance(spec, dict):
         raise ValueError(f"{where}: expected a table, got {type(spec).__name__}")
-    unknown = set(spec) - _PARAM_KEYS
-    if unknown:
-        raise ValueError(f"{where}: unknown key '{sorted(unknown)[0]}' "
-                         f"(allowed: {', '.join(sorted(_PARAM_KEYS))})")
+    check_keys(spec, _PARAM_KEYS, where)
     check_name_known(name, where)
     unit = spec.get("unit", parameter_spec(name)["unit"])
     if unit != parameter_spec(name)["unit"]:
