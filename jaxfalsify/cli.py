@@ -186,9 +186,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="with --campaign: evaluations behind each sampling-distribution chart")
 
     x = sub.add_parser("export", help="OpenSCENARIO (.xosc) + OpenDRIVE (.xodr) of a run's "
-                       "scenarios")
+                       "scenarios and its logical scenario (parameter distributions)")
     x.add_argument("run_dir", type=Path, metavar="RUN_DIR")
     x.add_argument("--scenario", default="best", help="best or critical (all distinct ones)")
+    x.add_argument("--ego", default="controller",
+                   help="controller (default: the ego gets its start, route and cruise "
+                   "request; your controller drives it) or replay (it follows its simulated "
+                   "trajectory)")
     x.add_argument("--out", type=Path, required=True, help="output folder")
     x.add_argument("--force", action="store_true", help="overwrite existing files in --out")
 
@@ -475,9 +479,15 @@ def cmd_export(args, stop, startup) -> int:
 
     if args.scenario not in ("best", "critical"):
         raise UsageError(f"--scenario {args.scenario!r}: expected best or critical")
+    if args.ego not in ("controller", "replay"):
+        raise UsageError(f"--ego {args.ego!r}: expected controller or replay")
     check_out_plain(args.out, "crossing.xodr", args.force)
-    files = export(args.run_dir, args.out, args.scenario)
-    print(f"wrote {len(files) - 1} .xosc and crossing.xodr to {args.out}/")
+    files = export(args.run_dir, args.out, args.scenario, ego=args.ego)
+    scenarios = [f for f in files if f.suffix == ".xosc" and not f.name.startswith("logical")
+                 and f.name != "template.xosc"]
+    extra = ", template.xosc" if any(f.name == "template.xosc" for f in files) else ""
+    print(f"wrote {len(scenarios)} scenario .xosc (ego: {args.ego}){extra}, logical.xosc, "
+          f"logical_stochastic.xosc and crossing.xodr to {args.out}/")
     return 0
 
 

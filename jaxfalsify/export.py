@@ -1,37 +1,82 @@
-"""OpenSCENARIO 1.x export of a run's concrete scenarios (``scenariogeneration``, host side).
+"""OpenSCENARIO 1.x export of a run's concrete scenarios and its logical scenario
+(``scenariogeneration``, host side).
 
-Writes, per scenario, ``<name>.xosc`` (OpenSCENARIO 1.3) and one shared ``crossing.xodr``
-(OpenDRIVE: the straight 4-lane road with a crosswalk object), so a found scenario replays in
-esmini or CARLA ScenarioRunner:
+Writes, to one folder:
 
-* entities: the ego car (4.6 x 2.1 m box) and an adult pedestrian (0.5 x 0.6 m);
-* init: both teleported to their start positions; the weather of the CARLA preset as an
-  ``EnvironmentAction`` (cloudiness -> oktas, precipitation -> rain of up to 10 mm/h,
-  sun altitude -> sun elevation, water deposits -> road wetness; friction unchanged as in CARLA);
-* story: each actor follows its *simulated* trajectory (a timed polyline of every 0.1 s step,
-  ``FollowTrajectoryAction`` with absolute timing), which carries the ego's start, its
-  autopilot's speed profile and braking, and the pedestrian's speed profile;
-* stop: the episode's end time (collision, distance travelled, or the 30 s horizon).
+* per scenario, ``<name>.xosc`` (OpenSCENARIO 1.3; ``best.xosc`` or ``critical_NNN.xosc``);
+* ``crossing.xodr`` (OpenDRIVE: the straight 4-lane road with a crosswalk object), shared;
+* ``logical.xosc``: the run's logical scenario as a ``ParameterValueDistribution`` over the
+  exported scenario file (the template): one deterministic ``DistributionSet`` per space
+  parameter holding its discretised values, so a tool enumerating it re-runs the sweep;
+* ``logical_stochastic.xosc``: the same parameters as the space declares them (normal, uniform,
+  integer or explicit value sets) as a stochastic distribution (OpenSCENARIO allows one kind
+  per file).
+
+Every scenario file declares the space's parameters (``ParameterDeclarations``: names as in the
+space, type double, the concrete value with the space's decimals) and the known scenario
+parameters the file uses that the space does not declare (with their defaults).
+
+Two ways to export the ego (``ego``):
+
+* ``controller`` (default): the ego gets only its start (``TeleportAction`` to a lane position
+  ``ego_offset`` behind its base, at rest: ``AbsoluteTargetSpeed`` 0), its route along its
+  lane (``AssignRouteAction``) and, at t = 0, a request to reach the run's SUT cruise speed
+  (``ego_target_speed`` at ``ego_launch_accel``); whatever controls it in the tool (esmini's
+  default controller, a user's stack under CARLA ScenarioRunner) drives it. The pedestrian is
+  fully specified by parameter expressions (``${...}``): its path across the road (a
+  trajectory without timing) and the simulator's speed profile (:func:`jaxfalsify.sim.
+  ped_speed_profile`) as speed events started by the ego's start (t = 0, as in the
+  simulation). Stop: collision, the ego's 30 m + ``ego_offset`` travelled, or the 30 s horizon.
+* ``replay``: both actors follow their *simulated* trajectories (a timed polyline of every
+  0.1 s step, ``FollowTrajectoryAction`` with absolute timing); stop at the episode's end.
+
+The CARLA weather preset becomes an ``EnvironmentAction`` (cloudiness -> oktas, precipitation ->
+rain of up to 10 mm/h, sun altitude -> sun elevation, water deposits -> road wetness; friction
+unchanged as in CARLA); in controller mode a space with several weather values also switches
+the environment on ``$weather`` (one ``ParameterCondition``-triggered event per value).
+
+The pedestrian's profile in events. The simulator's speed during step k (of ``dt``) is
+``max(s_k, 0)`` with ``s = ped_speed - 5 * ped_accel`` for steps 0..5, then ``s`` grows by
+``ped_accel`` per step for ``n = floor(0.25 / ped_accel + 5.0001) + 1`` steps (to the target
+``s + n * ped_accel``), i.e. at ``ped_accel / dt`` m/s^2. A linear ramp at that rate starting
+at ``5.5 * dt`` (half a step early: the midpoint of each step's speed) passes every step's
+speed at the step's middle, so the walked distance equals the simulator's at the end of the
+ramp and differs by ``ped_accel * dt / 8`` (<= 1.3 mm in the paper's space) during it. In the
+extended space, the six-step window from step ``T = ped_change_step`` walks at the last
+step's speed + ``ped_speed_change`` and pauses the growth: a step to that speed at ``T * dt``,
+a step back to the ramp's value at ``(T + 6) * dt``, then the ramp again. A negative profile
+speed (a slow walker with a large increment) walks at 0; a ramp from a negative value starts,
+from 0, when the raw line crosses zero (then exact up to that one step).
 
 Road frame: our x + ``X_OFFSET`` along the road (OpenDRIVE's road starts at x = 0), y as ours
-(left positive, the centre line at y = 0).
+(left positive, the centre line at y = 0); the ego drives in lane -1.
 """
 
 from __future__ import annotations
 
+import ast
 import math
+import operator
+import re
 from pathlib import Path
 
 import numpy as np
 
-from jaxfalsify import weather as weather_lib
 from jaxfalsify import analysis
+from jaxfalsify import weather as weather_lib
 from jaxfalsify.figures import indices_of, load_run
+from jaxfalsify.sim import STILL, WINDOW
+from jaxfalsify.space import KNOWN_PARAMETERS
 
-X_OFFSET = 30.0  # m: our x = -30 is the road's start
-ROAD_LENGTH = 80.0  # m
+X_OFFSET = 60.0  # m: our x = -60 is the road's start (ego_offset <= 50 m starts on it)
+ROAD_LENGTH = 130.0  # m
+EGO_LANE = -1  # OpenDRIVE lane of the ego (the innermost right lane)
+EGO_MODES = ("controller", "replay")
+SCENARIO_CHOICES = ("best", "critical")
+PED_PATH_BEYOND = 5.0  # m: the pedestrian's path ends this far past the far kerb
 OKTAS = ("zeroOktas", "oneOktas", "twoOktas", "threeOktas", "fourOktas", "fiveOktas",
          "sixOktas", "sevenOktas", "eightOktas")
+_EPS = "0.000000000001"  # keeps ped_accel = 0 finite in divisions (its products are then 0)
 
 
 def schema_path(kind: str = "xosc") -> Path:
@@ -75,9 +120,173 @@ def environment(weather_index: int):
                             xosc.RoadCondition(1.0, wetness=wet))
 
 
+# ---------------------------------------------------------------- parameter expressions
+def _num(v: float) -> str:
+    return f"{float(v):.12g}"
+
+
+def _abs(x: str) -> str:  # OpenSCENARIO expressions have no abs/min/max: |x| = sqrt(x * x)
+    return f"sqrt(({x}) * ({x}))"
+
+
+def _pos(x: str) -> str:  # max(x, 0)
+    return f"(({x}) + {_abs(x)}) / 2"
+
+
+def _neg(x: str) -> str:  # max(-x, 0)
+    return f"({_abs(x)} - ({x})) / 2"
+
+
+def _clip(x: str, lo: str, hi: str) -> str:  # min(max(x, lo), hi) for lo <= hi
+    m = f"(({x}) + ({lo}) + {_abs(f'({x}) - ({lo})')}) / 2"
+    return f"(({m}) + ({hi}) - {_abs(f'({m}) - ({hi})')}) / 2"
+
+
+def _expr(body: str) -> str:
+    return "${" + body + "}"
+
+
+def ped_expressions(world, window: bool) -> dict[str, str]:
+    """The pedestrian's start and speed profile as OpenSCENARIO expressions of the parameters
+    (``${...}``); ``window``: with the extended space's speed-change window."""
+    dt = float(world.dt)
+    s = f"$ped_speed - {STILL - 1} * $ped_accel"
+    a_safe = f"($ped_accel + {_EPS})"
+    n = f"(floor(0.25 / {a_safe} + 5.0001) + 1)"
+    out = {
+        "ped_y0": _expr(f"{_num(world.road_right + world.walker_base - 1.0)} - $ped_offset"),
+        "start_speed": _expr(_pos(s)),
+        "ramp_at": _expr(f"{_num((STILL - 0.5) * dt)} + {_neg(s)} / {a_safe} * {_num(dt)}"),
+        "rate": _expr(f"$ped_accel / {_num(dt)}"),
+        "target": _expr(f"{s} + {n} * $ped_accel"),
+    }
+    if window:
+        t = "$ped_change_step"
+        held = f"{s} + {_clip(f'{t} - {STILL}', '0', n)} * $ped_accel + $ped_speed_change"
+        back = f"{s} + {_clip(f'{t} - {STILL - 0.5}', '0.5', n)} * $ped_accel"
+        out.update({
+            "window_at": _expr(f"{t} * {_num(dt)}"),
+            "window_speed": _expr(_pos(held)),
+            "restore_at": _expr(f"({t} + {WINDOW}) * {_num(dt)}"),
+            "restore_speed": _expr(_pos(back)),
+            "ramp_again_delay": _expr(f"{_neg(back)} / {a_safe} * {_num(dt)}"),
+        })
+    return out
+
+
+_OPS = {ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul,
+        ast.Div: operator.truediv, ast.Mod: math.fmod, ast.USub: operator.neg,
+        ast.UAdd: operator.pos}
+_FUNCS = {"floor": math.floor, "ceil": math.ceil, "sqrt": math.sqrt, "pow": math.pow,
+          "round": lambda x: math.floor(x + 0.5) if x >= 0 else -math.floor(-x + 0.5)}
+
+
+def value_of(text: str, params: dict[str, float]) -> float:
+    """The number an OpenSCENARIO attribute stands for: a literal, a ``$name`` reference or a
+    ``${...}`` expression (arithmetic, floor, ceil, round, sqrt, pow) over ``params``."""
+    text = text.strip()
+    if text.startswith("${") and text.endswith("}"):
+        body = re.sub(r"\$([A-Za-z_]\w*)", lambda m: f"({float(params[m.group(1)])!r})",
+                      text[2:-1])
+
+        def ev(node):
+            if isinstance(node, ast.Constant) and isinstance(node.value, (int, float)):
+                return float(node.value)
+            if isinstance(node, ast.BinOp) and type(node.op) in _OPS:
+                return _OPS[type(node.op)](ev(node.left), ev(node.right))
+            if isinstance(node, ast.UnaryOp) and type(node.op) in _OPS:
+                return _OPS[type(node.op)](ev(node.operand))
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) \
+                    and node.func.id in _FUNCS and not node.keywords:
+                return float(_FUNCS[node.func.id](*(ev(x) for x in node.args)))
+            raise ValueError(f"unsupported expression element in {text!r}")
+
+        return float(ev(ast.parse(body, mode="eval").body))
+    if text.startswith("$"):
+        return float(params[text[1:]])
+    return float(text)
+
+
+# ---------------------------------------------------------------- declarations
+def _used_parameters(space) -> tuple[str, ...]:
+    """Known scenario parameters a controller-mode file references."""
+    base = ("ego_offset", "ped_speed", "ped_accel", "ped_offset", "weather")
+    extra = ("ped_speed_change", "ped_change_step") if "ped_speed_change" in space.names else ()
+    return base + extra
+
+
+def parameter_values(space, indices) -> dict[str, str]:
+    """``{name: value text}``: the space's parameters at ``indices`` (with the space's
+    decimals), then the other known parameters a scenario file uses (their defaults)."""
+    out = {n: analysis.format_value(space, p, space.table[p][int(indices[p])])
+           for p, n in enumerate(space.names)}
+    for n in _used_parameters(space):
+        out.setdefault(n, f"{KNOWN_PARAMETERS[n]['default']:g}")
+    return out
+
+
+def _declarations(values: dict[str, str], extra: dict[str, float] | None = None):
+    from scenariogeneration import xosc
+
+    decl = xosc.ParameterDeclarations()
+    for n, v in values.items():
+        decl.add_parameter(xosc.Parameter(n, xosc.ParameterType.double, v))
+    for n, v in (extra or {}).items():
+        decl.add_parameter(xosc.Parameter(n, xosc.ParameterType.double, _num(v)))
+    return decl
+
+
+def ego_request(sut, sut_params, world, traj=None) -> dict[str, float]:
+    """The ego's launch request in controller mode: ``ego_target_speed`` [m/s] (the SUT's
+    cruise target: the autopilot's ``speed_limit * (1 - below_limit / 100)``) and
+    ``ego_launch_accel`` [m/s^2] (its saturated launch, ``max_throttle * throttle_accel``,
+    within the vehicle's limit). A SUT without those parameters: the top speed and the largest
+    acceleration of its simulated trajectory ``traj`` (fields of one scenario)."""
+    from jaxfalsify import sut as sut_lib
+
+    s = sut_lib.resolve(sut)
+    p = sut_lib.params_dict(sut_lib.with_params(s, dict(sut_params or {})))
+    if {"speed_limit", "below_limit"} <= set(p):
+        target = p["speed_limit"] / 3.6 * (1.0 - p["below_limit"] / 100.0)
+        accel = p.get("max_throttle", 1.0) * p.get("throttle_accel", float(world.max_accel))
+    elif traj is not None:
+        v = np.asarray(traj["valid"], bool)
+        target = float(np.max(np.asarray(traj["ego_speed"])[v], initial=0.0))
+        accel = float(np.max(np.asarray(traj["ego_accel"])[v], initial=0.0))
+    else:
+        raise ValueError(f"SUT '{s.name}' has no speed_limit/below_limit: pass its trajectory")
+    accel = min(accel, float(world.max_accel))
+    return {"ego_target_speed": round(float(target), 6),
+            "ego_launch_accel": round(float(max(accel, 1e-3)), 6)}
+
+
+# ---------------------------------------------------------------- scenario files
+def _entities(world):
+    from scenariogeneration import xosc
+
+    entities = xosc.Entities()
+    car_box = xosc.BoundingBox(world.ego_width, world.ego_length, 1.6, 0.0, 0.0, 0.8)
+    axle_f = xosc.Axle(0.5, 0.65, 1.6, 1.4, 0.33)
+    axle_r = xosc.Axle(0.0, 0.65, 1.6, -1.4, 0.33)
+    car = xosc.Vehicle("ego", xosc.VehicleCategory.car, car_box, axle_f, axle_r, 50.0,
+                       float(world.max_accel), float(world.max_brake))
+    car.add_property("type", "ego_vehicle")  # ScenarioRunner's mark of an ego vehicle
+    entities.add_scenario_object("Ego", car)
+    ped_box = xosc.BoundingBox(world.ped_length, world.ped_width, 1.8, 0.0, 0.0, 0.9)
+    entities.add_scenario_object("Pedestrian", xosc.Pedestrian(
+        "adult", 80.0, xosc.PedestrianCategory.pedestrian, ped_box, model="adult"))
+    return entities
+
+
+def _describe(name: str, params: dict) -> str:
+    return f"jaxfalsify {name}: " + ", ".join(f"{k}={float(v):g}" for k, v in params.items())
+
+
 def write_scenario(path: Path, road_file: str, traj: dict, params: dict, world,
-                   name: str) -> Path:
-    """One ``.xosc`` for a simulated trajectory (fields ``(T,)`` of one scenario)."""
+                   name: str, declarations: dict[str, str] | None = None) -> Path:
+    """Replay mode: one ``.xosc`` in which both actors follow a simulated trajectory (fields
+    ``(T,)`` of one scenario); ``declarations`` ``{name: value text}`` are declared (not
+    referenced: the trajectories carry the values)."""
     from scenariogeneration import xosc
 
     v = traj["valid"]
@@ -86,16 +295,6 @@ def write_scenario(path: Path, road_file: str, traj: dict, params: dict, world,
                for x, y in zip(traj["ego_x"][v], traj["ego_y"][v])]
     ped_pos = [xosc.WorldPosition(float(x) + X_OFFSET, float(y), 0.0, math.pi / 2)
                for x, y in zip(traj["ped_x"][v], traj["ped_y"][v])]
-
-    entities = xosc.Entities()
-    car_box = xosc.BoundingBox(world.ego_width, world.ego_length, 1.6, 0.0, 0.0, 0.8)
-    axle_f = xosc.Axle(0.5, 0.65, 1.6, 1.4, 0.33)
-    axle_r = xosc.Axle(0.0, 0.65, 1.6, -1.4, 0.33)
-    entities.add_scenario_object("Ego", xosc.Vehicle("ego", xosc.VehicleCategory.car, car_box,
-                                                     axle_f, axle_r, 50.0, 4.0, 9.0))
-    ped_box = xosc.BoundingBox(world.ped_length, world.ped_width, 1.8, 0.0, 0.0, 0.9)
-    entities.add_scenario_object("Pedestrian", xosc.Pedestrian(
-        "adult", 80.0, xosc.PedestrianCategory.pedestrian, ped_box, model="adult"))
 
     init = xosc.Init()
     init.add_init_action("Ego", xosc.TeleportAction(ego_pos[0]))
@@ -119,20 +318,265 @@ def write_scenario(path: Path, road_file: str, traj: dict, params: dict, world,
         man = xosc.Maneuver(f"{actor.lower()}_maneuver")
         man.add_event(ev)
         sb.add_maneuver(man, actor)
-    desc = ", ".join(f"{k}={v:g}" for k, v in params.items())
-    sce = xosc.Scenario(f"jaxfalsify {name}: {desc}", "jaxfalsify", xosc.ParameterDeclarations(),
-                        entities, sb, xosc.RoadNetwork(roadfile=road_file), xosc.Catalog())
+    sce = xosc.Scenario(_describe(name, params), "jaxfalsify",
+                        _declarations(declarations or {}), _entities(world), sb,
+                        xosc.RoadNetwork(roadfile=road_file), xosc.Catalog())
     sce.write_xml(str(path))
     return path
 
 
-def export(run_dir: Path, out: Path, which: str = "best") -> list[Path]:
+def _step():
+    from scenariogeneration import xosc
+
+    return xosc.TransitionDynamics(xosc.DynamicsShapes.step, xosc.DynamicsDimension.time, 0.0)
+
+
+def _at(name: str, time: str, rule=None):
+    """A condition: simulation time reached ``time`` (a number or expression)."""
+    from scenariogeneration import xosc
+
+    return xosc.ValueTrigger(name, 0.0, xosc.ConditionEdge.none, xosc.SimulationTimeCondition(
+        time, rule or xosc.Rule.greaterOrEqual))
+
+
+def _param_is(name: str, parameter: str, value: str, rule):
+    from scenariogeneration import xosc
+
+    return xosc.ValueTrigger(name, 0.0, xosc.ConditionEdge.none,
+                             xosc.ParameterCondition(parameter, value, rule))
+
+
+def _any_of(*groups):
+    """A start trigger: OR over ``groups``, each an AND of conditions."""
+    from scenariogeneration import xosc
+
+    trig = xosc.Trigger("start")
+    for conds in groups:
+        g = xosc.ConditionGroup("start")
+        for c in conds:
+            g.add_condition(c)
+        trig.add_conditiongroup(g)
+    return trig
+
+
+def _speed_event(name: str, target: str, dynamics, trigger):
+    from scenariogeneration import xosc
+
+    ev = xosc.Event(name, xosc.Priority.override)
+    ev.add_action(name, xosc.AbsoluteSpeedAction(target, dynamics))
+    ev.add_trigger(trigger)
+    return ev
+
+
+def write_controller_scenario(path: Path, road_file: str, space, values: dict[str, str],
+                              request: dict[str, float], world, name: str) -> Path:
+    """Controller mode: one ``.xosc`` for the concrete scenario ``values`` (``{name: value
+    text}``, :func:`parameter_values`) in which the ego gets its start, route and launch
+    request (``request``, :func:`ego_request`) and the pedestrian's path and speed profile
+    are expressions of the declared parameters; see the module's docstring."""
+    from scenariogeneration import xosc
+
+    dt = float(world.dt)
+    window = "ped_speed_change" in values
+    ex = ped_expressions(world, window)
+    ego_s = _expr(f"{_num(X_OFFSET)} - $ego_offset")
+    ped_x = world.crosswalk_x + X_OFFSET
+
+    init = xosc.Init()
+    init.add_init_action("Ego", xosc.TeleportAction(
+        xosc.LanePosition(ego_s, 0.0, EGO_LANE, "0")))
+    init.add_init_action("Ego", xosc.AbsoluteSpeedAction(0.0, _step()))
+    route = xosc.Route("ego_lane")
+    route.add_waypoint(xosc.LanePosition(ego_s, 0.0, EGO_LANE, "0"), xosc.RouteStrategy.shortest)
+    route.add_waypoint(xosc.LanePosition(ROAD_LENGTH - 1.0, 0.0, EGO_LANE, "0"),
+                       xosc.RouteStrategy.shortest)
+    init.add_init_action("Ego", xosc.AssignRouteAction(route))
+    ped_start = xosc.WorldPosition(ped_x, ex["ped_y0"], 0.0, math.pi / 2)
+    init.add_init_action("Pedestrian", xosc.TeleportAction(ped_start))
+    init.add_init_action("Pedestrian", xosc.AbsoluteSpeedAction(0.0, _step()))
+    init.add_global_action(xosc.EnvironmentAction(environment(float(values["weather"]))))
+
+    # the episode's end: collision, 30 m + ego_offset travelled, or the horizon
+    stop = xosc.Trigger("stop")
+    for cond in (
+            xosc.EntityTrigger("collision", 0.0, xosc.ConditionEdge.rising,
+                               xosc.CollisionCondition("Pedestrian"), "Ego",
+                               triggeringpoint="stop"),
+            xosc.EntityTrigger("travelled", 0.0, xosc.ConditionEdge.rising,
+                               xosc.TraveledDistanceCondition(
+                                   _expr(f"{_num(world.end_x)} + $ego_offset")), "Ego",
+                               triggeringpoint="stop"),
+            xosc.ValueTrigger("horizon", 0.0, xosc.ConditionEdge.rising,
+                              xosc.SimulationTimeCondition(world.horizon * dt,
+                                                           xosc.Rule.greaterThan), "stop")):
+        g = xosc.ConditionGroup("stop")
+        g.add_condition(cond)
+        stop.add_conditiongroup(g)
+    sb = xosc.StoryBoard(init, stop)
+
+    ego_start = lambda: _at("ego_start", 0.0)  # noqa: E731  (a fresh element per use)
+    act = xosc.Act("crossing", _any_of([ego_start()]))
+
+    # the ego: a launch request to the SUT's cruise speed (a user's controller may ignore it)
+    ego_man = xosc.Maneuver("ego_launch")
+    ego_man.add_event(_speed_event(
+        "ego_cruise_request", "$ego_target_speed",
+        xosc.TransitionDynamics(xosc.DynamicsShapes.linear, xosc.DynamicsDimension.rate,
+                                "$ego_launch_accel"), _any_of([ego_start()])))
+    mg = xosc.ManeuverGroup("ego")
+    mg.add_actor("Ego")
+    mg.add_maneuver(ego_man)
+    act.add_maneuver_group(mg)
+
+    # the pedestrian: its path (no timing: it walks at the speed the events set) ...
+    ped_path = xosc.Trajectory("ped_path", False)
+    ped_path.add_shape(xosc.Polyline([], [
+        xosc.WorldPosition(ped_x, ex["ped_y0"], 0.0, math.pi / 2),
+        xosc.WorldPosition(ped_x, float(world.road_left) + PED_PATH_BEYOND, 0.0,
+                           math.pi / 2)]))
+    walk = xosc.Event("ped_walks", xosc.Priority.parallel)
+    walk.add_action("ped_follows_path", xosc.FollowTrajectoryAction(
+        ped_path, xosc.FollowingMode.position))
+    walk.add_trigger(_any_of([ego_start()]))
+    path_man = xosc.Maneuver("ped_path")
+    path_man.add_event(walk)
+
+    # ... and its speed profile, started by the ego's start
+    linear = xosc.TransitionDynamics(xosc.DynamicsShapes.linear, xosc.DynamicsDimension.rate,
+                                     ex["rate"])
+    speed_man = xosc.Maneuver("ped_speed_profile")
+    E, R = xosc.StoryboardElementType, xosc.Rule
+    if window:
+        # at T = 0 the window itself is the start speed: the two must not start together
+        change_off = lambda: _param_is("no_speed_change", "ped_speed_change", "0",  # noqa: E731
+                                       R.equalTo)
+        start = _any_of([ego_start(), change_off()],
+                        [ego_start(), _param_is("window_later", "ped_change_step", "0",
+                                                R.greaterThan)])
+        window_waiting = lambda: xosc.ValueTrigger(  # noqa: E731
+            "window_not_started", 0.0, xosc.ConditionEdge.none,
+            xosc.StoryboardElementStateCondition(E.event, "ped_speed_change",
+                                                 xosc.StoryboardElementState.standbyState))
+        ramp = _any_of([_at("growth_starts", ex["ramp_at"]), window_waiting()])
+    else:
+        start = _any_of([ego_start()])
+        ramp = _any_of([_at("growth_starts", ex["ramp_at"])])
+    speed_man.add_event(_speed_event("ped_start_speed", ex["start_speed"], _step(), start))
+    speed_man.add_event(_speed_event("ped_accelerates", ex["target"], linear, ramp))
+    if window:
+        changed = lambda: _param_is("speed_change", "ped_speed_change", "0",  # noqa: E731
+                                    R.notEqualTo)
+        speed_man.add_event(_speed_event(
+            "ped_speed_change", ex["window_speed"], _step(),
+            _any_of([_at("window_starts", ex["window_at"]), changed()])))
+        speed_man.add_event(_speed_event(
+            "ped_speed_restore", ex["restore_speed"], _step(),
+            _any_of([_at("window_ends", ex["restore_at"]), changed()])))
+        again = xosc.ValueTrigger(
+            "restored", ex["ramp_again_delay"], xosc.ConditionEdge.none,
+            xosc.StoryboardElementStateCondition(E.event, "ped_speed_restore",
+                                                 xosc.StoryboardElementState.endTransition))
+        speed_man.add_event(_speed_event("ped_accelerates_again", ex["target"], linear,
+                                         _any_of([again])))
+    mg = xosc.ManeuverGroup("pedestrian")
+    mg.add_actor("Pedestrian")
+    mg.add_maneuver(path_man)
+    mg.add_maneuver(speed_man)
+    act.add_maneuver_group(mg)
+
+    # the weather on $weather, for a template whose distribution varies it
+    w_idx = space.names.index("weather") if "weather" in space.names else None
+    if w_idx is not None and len(space.table[w_idx]) > 1:
+        w_man = xosc.Maneuver("weather")
+        for v in space.table[w_idx]:
+            ev = xosc.Event(f"weather_{int(v)}", xosc.Priority.parallel)
+            ev.add_action(f"weather_{int(v)}", xosc.EnvironmentAction(environment(int(v))))
+            ev.add_trigger(_any_of([ego_start(), _param_is(f"weather_is_{int(v)}", "weather",
+                                                           f"{int(v)}", R.equalTo)]))
+            w_man.add_event(ev)
+        mg = xosc.ManeuverGroup("environment")
+        mg.add_maneuver(w_man)
+        act.add_maneuver_group(mg)
+
+    story = xosc.Story("crossing")
+    story.add_act(act)
+    sb.add_story(story)
+    sce = xosc.Scenario(_describe(name, {k: float(v) for k, v in values.items()}), "jaxfalsify",
+                        _declarations(values, request), _entities(world), sb,
+                        xosc.RoadNetwork(roadfile=road_file), xosc.Catalog())
+    sce.write_xml(str(path))
+    return path
+
+
+# ---------------------------------------------------------------- the logical scenario
+def write_distribution(path: Path, space, scenario_file: str, kind: str = "deterministic",
+                       test_runs: int | None = None) -> Path:
+    """The logical scenario as an OpenSCENARIO ``ParameterValueDistribution`` over the
+    template ``scenario_file`` (a path relative to ``path``'s folder).
+
+    ``deterministic``: per space parameter a ``DistributionSet`` of its discretised values (with
+    the space's decimals): the Cartesian product is the space, a tool enumerating it re-runs
+    the sweep. ``stochastic``: each parameter as the space declares it (``normal`` ->
+    ``NormalDistribution`` with variance sd^2 truncated to the parameter's domain, ``uniform``
+    -> ``UniformDistribution``, ``integers`` and ``values`` -> equally weighted
+    ``ProbabilityDistributionSet``; integer ranges over 10,000 values -> ``UniformDistribution``),
+    ``test_runs`` draws (default: the space's size, at most 2**32 - 1), seeded with the space's
+    seed. Not expressible there: the rounding to the declared decimals and the draw of one
+    fixed value set per run.
+    """
+    from scenariogeneration import xosc
+
+    if kind == "deterministic":
+        dist = xosc.Deterministic()
+        for p, n in enumerate(space.names):
+            ds = xosc.DistributionSet()
+            for v in space.table[p]:
+                ds.add_value(analysis.format_value(space, p, v))
+            dist.add_single_distribution(n, ds)
+    elif kind == "stochastic":
+        runs = min(int(test_runs or space.size), 2**32 - 1)
+        dist = xosc.Stochastic(runs, float(space.seed))
+        for par in space.parameters:
+            a = par.args
+            lo, hi = KNOWN_PARAMETERS.get(par.name, {"domain": (-math.inf, math.inf)})["domain"]
+            if par.distribution == "normal":
+                rng = xosc.Range(lo, hi) if math.isfinite(lo) and math.isfinite(hi) else None
+                d = xosc.NormalDistribution(a[0], float(f"{a[1] ** 2:.12g}"), rng)
+            elif par.distribution == "uniform":
+                d = xosc.UniformDistribution(xosc.Range(a[0], a[1]))
+            elif par.distribution == "integers" and a[1] - a[0] + 1 > 10_000:
+                d = xosc.UniformDistribution(xosc.Range(a[0], a[1]))
+            else:
+                vals = (range(int(a[0]), int(a[1]) + 1) if par.distribution == "integers"
+                        else a)
+                d = xosc.ProbabilityDistributionSet()
+                for v in vals:
+                    d.add_set(f"{float(v):g}" if float(v).is_integer() else repr(float(v)),
+                              1.0)
+            dist.add_distribution(par.name, d)
+    else:
+        raise ValueError(f"kind {kind!r}: expected deterministic or stochastic")
+    pvd = xosc.ParameterValueDistribution(
+        f"jaxfalsify logical scenario '{space.name}' (seed {space.seed}, {space.size} "
+        f"concrete scenarios), {kind}", "jaxfalsify", scenario_file, dist)
+    pvd.write_xml(str(path))
+    return path
+
+
+# ---------------------------------------------------------------- the export command
+def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller") -> list[Path]:
     """Export the run's best scenario (``best``) or all its distinct critical ones
-    (``critical``) to ``out``; returns the files written."""
+    (``critical``) to ``out``, the ego under the user's controller (``controller``) or
+    replaying its simulated trajectory (``replay``), with ``crossing.xodr`` and the logical
+    scenario (``logical.xosc``, ``logical_stochastic.xosc``); returns the files written:
+    the road, the scenarios, (replay: ``template.xosc``, the controller-mode file the
+    distributions vary), the two distributions."""
     import jaxfalsify as jf
 
-    if which not in ("best", "critical"):
+    if which not in SCENARIO_CHOICES:
         raise ValueError(f"--scenario {which!r}: expected best or critical")
+    if ego not in EGO_MODES:
+        raise ValueError(f"--ego {ego!r}: expected controller or replay")
     sp, rc, summary, ep = load_run(run_dir)
     if which == "best":
         rows = [analysis.best(ep)]
@@ -142,15 +586,43 @@ def export(run_dir: Path, out: Path, which: str = "best") -> list[Path]:
             raise ValueError(f"{run_dir}: the run found no critical scenario to export")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    road = write_road(out / "crossing.xodr", jf.WORLD)
-    full = sp.scenario(indices_of(ep, sp, rows))
-    traj = jf.simulate(full, sut=rc.sut, sut_params=dict(rc.sut_params))
+    world = jf.WORLD
+    road = write_road(out / "crossing.xodr", world)
+    idx = indices_of(ep, sp, rows)
+    full = sp.scenario(idx)
+    sut_params = dict(rc.sut_params)
+    traj = None
+    try:
+        request = ego_request(rc.sut, sut_params, world)
+    except ValueError:
+        request = None
+    if ego == "replay" or request is None:  # (a SUT without a cruise target: its trajectory)
+        traj = jf.simulate(full, sut=rc.sut, sut_params=sut_params)
+    fields = ("t", "ego_x", "ego_y", "ego_speed", "ego_accel", "ped_x", "ped_y", "valid")
     files = [road]
+    template = None
     for k, row in enumerate(rows):
-        tr = {f: np.asarray(getattr(traj, f))[k] for f in ("t", "ego_x", "ego_y", "ped_x",
-                                                           "ped_y", "valid")}
-        params = {n: float(np.asarray(full[n])[k]) for n in full}
+        tr = None if traj is None else {f: np.asarray(getattr(traj, f))[k] for f in fields}
+        values = parameter_values(sp, idx[k])
         label = "best" if which == "best" else f"critical_{k + 1:03d}"
-        files.append(write_scenario(out / f"{label}.xosc", road.name, tr, params, jf.WORLD,
-                                    f"{label} (evaluation {row + 1})"))
+        title = f"{label} (evaluation {row + 1})"
+        over = {n[4:]: float(values[n]) for n in sp.names if n.startswith("sut.")}
+        req = ego_request(rc.sut, {**sut_params, **over}, world, tr) if (
+            request is None or over) else request
+        if ego == "replay":
+            params = {n: float(np.asarray(full[n])[k]) for n in full}
+            files.append(write_scenario(out / f"{label}.xosc", road.name, tr, params, world,
+                                        title, values))
+            if template is None:
+                template = write_controller_scenario(out / "template.xosc", road.name, sp,
+                                                     values, req, world, f"template ({title})")
+        else:
+            files.append(write_controller_scenario(out / f"{label}.xosc", road.name, sp, values,
+                                                   req, world, title))
+    if template is not None:
+        files.append(template)
+    scenario_file = (template or files[1]).name
+    files.append(write_distribution(out / "logical.xosc", sp, scenario_file))
+    files.append(write_distribution(out / "logical_stochastic.xosc", sp, scenario_file,
+                                    "stochastic", len(np.asarray(ep["reward"]))))
     return files

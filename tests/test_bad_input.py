@@ -157,6 +157,7 @@ CASES = [
     (["simulate", "speed=1"], "unknown parameter 'speed'"),
     (["replay", "done", "--scenario", "worst"], "worst"),
     (["export", "done", "--scenario", "worst", "--out", "x"], "--scenario 'worst'"),
+    (["export", "done", "--ego", "wheel", "--out", "x"], "--ego 'wheel'"),
     # unwritable or impossible output folders
     (["run", "--out", "/proc/jaxfalsify-out"], "cannot write in /proc"),
     (["sweep", "--out", "/proc/jaxfalsify-out"], "cannot write in /proc"),

@@ -220,23 +220,27 @@ def test_export_validates_against_the_xsd_and_matches_the_trajectory(run_with_fi
     import xml.etree.ElementTree as ET
 
     import pyarrow.parquet as pq
-    import xmlschema
+    from test_export import schema
 
     import jaxfalsify as jf
-    from jaxfalsify.export import X_OFFSET, schema_path
+    from jaxfalsify.export import X_OFFSET
 
     out = tmp_path / "osc"
-    assert main(["export", str(run_with_figures), "--scenario", "critical",
+    assert main(["export", str(run_with_figures), "--scenario", "critical", "--ego", "replay",
                  "--out", str(out)]) == 0
-    xosc_files = sorted(out.glob("*.xosc"))
+    xosc_files = sorted(out.glob("critical_*.xosc"))
     ep = pq.read_table(run_with_figures / "episodes.parquet").to_pydict()
     sp = jf.load_space("paper")
     idx = np.stack([ep[f"{n}_idx"] for n in sp.names], -1)[np.asarray(ep["collision"])]
     assert len(xosc_files) == len({tuple(i) for i in idx}) > 0
-    xsd = xmlschema.XMLSchema(str(schema_path("xosc")))
-    for f in xosc_files:
+    xsd = schema("xosc")
+    for f in xosc_files + [out / "template.xosc", out / "logical.xosc",
+                           out / "logical_stochastic.xosc"]:
         xsd.validate(str(f))  # raises if invalid
-    xmlschema.XMLSchema(str(schema_path("xodr"))).validate(str(out / "crossing.xodr"))
+    # the distributions vary the controller-mode template, not the trajectories
+    assert ET.parse(out / "logical.xosc").getroot().find(
+        ".//ScenarioFile").attrib["filepath"] == "template.xosc"
+    schema("xodr").validate(str(out / "crossing.xodr"))
     # the exported ego waypoints are the simulated trajectory of critical scenario 1
     root = ET.parse(xosc_files[0]).getroot()
     desc = root.find("FileHeader").attrib["description"]
@@ -254,6 +258,137 @@ def test_export_validates_against_the_xsd_and_matches_the_trajectory(run_with_fi
     np.testing.assert_allclose(ped_y, np.asarray(tr.ped_y)[v], atol=1e-4)
     # weather preset -> environment
     assert root.find(".//Environment") is not None
+
+
+def _xosc_rows(out):
+    """``[(file, row)]`` of the exported critical scenarios (row: evaluation - 1)."""
+    import xml.etree.ElementTree as ET
+
+    files = sorted(out.glob("critical_*.xosc"))
+    return [(f, int(re.search(r"\(evaluation (\d+)\)",
+                               ET.parse(f).getroot().find("FileHeader").attrib["description"])
+                     .group(1)) - 1) for f in files]
+
+
+def test_export_controller_parameters_reproduce_the_run(run_with_figures, tmp_path):
+    """Controller mode: every critical scenario's file validates; its ParameterDeclarations
+    are the space's values (with its decimals) and the actions' values map back to them; the
+    declared values, simulated, give the outcome the run recorded for that row; the
+    pedestrian's start speed, acceleration, target speed and start follow the closed form."""
+    import xml.etree.ElementTree as ET
+
+    import pyarrow.parquet as pq
+    from test_export import declarations, oracle_profile, schema, speed_events
+
+    import jaxfalsify as jf
+    from jaxfalsify import analysis
+    from jaxfalsify.export import X_OFFSET, value_of
+    from jaxfalsify.figures import load_run
+
+    out = tmp_path / "osc"
+    assert main(["export", str(run_with_figures), "--scenario", "critical",
+                 "--out", str(out)]) == 0
+    assert not (out / "template.xosc").exists()
+    sp, rc, _, _ = load_run(run_with_figures)
+    ep = pq.read_table(run_with_figures / "episodes.parquet").to_pydict()
+    rows = _xosc_rows(out)
+    assert len(rows) == len(analysis.distinct_critical(*analysis.from_episodes(
+        {k: np.asarray(v) for k, v in ep.items()}, sp))) > 0
+    xsd = schema("xosc")
+    w = jf.WORLD
+    scen = {n: [] for n in sp.names}
+    for f, row in rows:
+        xsd.validate(str(f))
+        root = ET.parse(f).getroot()
+        assert root.find(".//FollowTrajectoryAction/TimeReference/None") is not None
+        assert len(root.findall(".//Polyline")) == 1  # the pedestrian's path only
+        decl = declarations(root)
+        texts = {p.attrib["name"]: p.attrib["value"] for p in root.iter("ParameterDeclaration")}
+        for p, n in enumerate(sp.names):  # the run's row, with the space's decimals
+            v = sp.table[p][ep[f"{n}_idx"][row]]
+            assert texts[n] == analysis.format_value(sp, p, v) and decl[n] == v
+            scen[n].append(decl[n])
+        # the actions carry the declared values
+        ego_s = value_of(root.find(".//Private[@entityRef='Ego']//LanePosition").attrib["s"],
+                         decl)
+        assert ego_s - X_OFFSET == pytest.approx(-decl["ego_offset"], abs=1e-12)
+        ped_y = value_of(root.find(".//Private[@entityRef='Pedestrian']//WorldPosition")
+                         .attrib["y"], decl)
+        assert ped_y == pytest.approx(w.road_right + w.walker_base - decl["ped_offset"] - 1.0)
+        ev = {e[0]: e for e in speed_events(root, decl)}
+        ref, start, final = oracle_profile(decl["ped_speed"], decl["ped_accel"])
+        accel = ev["ped_accelerates"][4] * w.dt
+        assert accel == pytest.approx(decl["ped_accel"], abs=1e-12)
+        if start > 0:
+            assert ev["ped_start_speed"][3] + 5 * accel == pytest.approx(decl["ped_speed"])
+            assert ev["ped_accelerates"][1] == pytest.approx(0.55)
+        assert ev["ped_start_speed"][1] == 0.0 and ev["ped_start_speed"][3] == \
+            pytest.approx(max(start, 0.0))
+        assert ev["ped_accelerates"][3] == pytest.approx(final, abs=1e-9)
+        assert ev["ped_accelerates"][3] == pytest.approx(max(ref), abs=1e-9)
+        assert value_of(root.find(".//TraveledDistanceCondition").attrib["value"], decl) == \
+            pytest.approx(w.end_x + decl["ego_offset"])
+    # the declared values reproduce the run's outcomes
+    o = jf.evaluate({n: np.asarray(v) for n, v in scen.items()}, sut=rc.sut,
+                    sut_params=dict(rc.sut_params))
+    r = [row for _, row in rows]
+    np.testing.assert_array_equal(np.asarray(o.collision), np.asarray(ep["collision"])[r])
+    np.testing.assert_allclose(np.asarray(o.min_distance), np.asarray(ep["min_distance"])[r],
+                               atol=1e-6)
+    assert np.all(np.asarray(o.collision))
+
+
+def test_export_distribution_lists_the_space(run_with_figures, tmp_path):
+    """logical.xosc: one deterministic DistributionSet per space parameter holding exactly its
+    values, over the exported template; logical_stochastic.xosc: the declared distributions."""
+    import xml.etree.ElementTree as ET
+
+    from test_export import schema
+
+    from jaxfalsify.export import write_distribution
+    from jaxfalsify.figures import load_run
+
+    out = tmp_path / "osc"
+    assert main(["export", str(run_with_figures), "--out", str(out)]) == 0
+    sp, _, _, ep = load_run(run_with_figures)
+    xsd = schema("xosc")
+    xsd.validate(str(out / "logical.xosc"))
+    xsd.validate(str(out / "logical_stochastic.xosc"))
+    root = ET.parse(out / "logical.xosc").getroot()
+    assert root.find(".//ScenarioFile").attrib["filepath"] == "best.xosc"
+    assert (out / "best.xosc").exists()
+    sets = {d.attrib["parameterName"]: [float(e.attrib["value"]) for e in d.iter("Element")]
+            for d in root.iter("DeterministicSingleParameterDistribution")}
+    assert list(sets) == list(sp.names)
+    for n, vals in zip(sp.names, sp.exact_values):
+        assert sets[n] == list(vals)
+    # the template declares every parameter the distribution sets
+    names = {p.attrib["name"] for p in ET.parse(out / "best.xosc").getroot()
+             .iter("ParameterDeclaration")}
+    assert set(sp.names) <= names
+    st = ET.parse(out / "logical_stochastic.xosc").getroot().find(".//Stochastic")
+    assert int(st.attrib["numberOfTestRuns"]) == len(ep["reward"])
+    kinds = {d.attrib["parameterName"]: d[0] for d in st.iter("StochasticDistribution")}
+    by_name = {p.name: p for p in sp.parameters}
+    for n, el in kinds.items():
+        par = by_name[n]
+        if par.distribution == "normal":
+            assert el.tag == "NormalDistribution"
+            assert float(el.attrib["expectedValue"]) == par.args[0]
+            assert float(el.attrib["variance"]) == pytest.approx(par.args[1] ** 2)
+        elif par.distribution == "uniform":
+            assert el.tag == "UniformDistribution"
+            rng = el.find("Range").attrib
+            assert (float(rng["lowerLimit"]), float(rng["upperLimit"])) == par.args
+        else:
+            assert el.tag == "ProbabilityDistributionSet"
+            vals = [float(e.attrib["value"]) for e in el.iter("Element")]
+            want = (list(range(int(par.args[0]), int(par.args[1]) + 1))
+                    if par.distribution == "integers" else list(par.args))
+            assert vals == want
+    assert list(kinds) == list(sp.names)
+    with pytest.raises(ValueError, match="deterministic or stochastic"):
+        write_distribution(tmp_path / "x.xosc", sp, "best.xosc", "fuzzy")
 
 
 def test_export_refuses_existing_output(run_with_figures, tmp_path, capsys):
