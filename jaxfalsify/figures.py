@@ -42,6 +42,81 @@ def _plt():
     return plt
 
 
+# ----------------------------------------------------------------------------- fixed layout
+# Every figure is placed by hand, with margins measured from its own texts (FreeType metrics,
+# nothing drawn), instead of matplotlib's constrained layout, which draws each figure once
+# more to measure it and took more than half of the drawing time.
+PT = 1 / 72  # inch
+EDGE = 0.1  # inch: margin at the figure's edges
+TICK = 7 * PT  # tick length + label pad (rc defaults 3.5 + 3.5 pt)
+LABELPAD = 4 * PT
+LEGEND = 0.34  # inch: a one-row figure legend at the bottom
+TITLE = 6 * PT + 1.2 * 12 * PT  # inch: an axes title (pad + one line at 12 pt)
+
+
+def _line(size: float = 10.0) -> float:
+    """Height in inches of one line of text at ``size`` points (ascent + descent)."""
+    return 1.2 * size * PT
+
+
+class _Metrics:
+    """Text widths in inches at the figure's dpi (FreeType layout, no drawing)."""
+
+    def __init__(self, fig):
+        self.renderer = fig.canvas.get_renderer()
+        self.dpi = fig.dpi
+
+    def width(self, texts, size: float = 10.0) -> float:
+        from matplotlib.font_manager import FontProperties
+
+        prop = FontProperties(size=size)
+        return max((self.renderer.get_text_width_height_descent(str(t), prop, ismath=False)[0]
+                    for t in texts if str(t)), default=0.0) / self.dpi
+
+
+def _tick_texts(axis) -> list[str]:
+    """The tick labels an axis with automatic ticks will draw (its locator and formatter)."""
+    lo, hi = sorted(axis.get_view_interval())
+    eps = 1e-10 * max(1.0, abs(hi - lo))
+    locs = [x for x in axis.get_major_locator()() if lo - eps <= x <= hi + eps]
+    return axis.get_major_formatter().format_ticks(locs)
+
+
+def _left_margin(m: _Metrics, ax, size: float = 10.0) -> float:
+    """Inches left of an axes for its y tick labels and y label."""
+    return (TICK + m.width(_tick_texts(ax.yaxis), size) + LABELPAD
+            + (_line(size) if ax.get_ylabel() else 0.0))
+
+
+def _place(fig, ax, left: float, bottom: float, width: float, height: float) -> None:
+    """Put ``ax`` at a rectangle given in inches from the figure's lower-left corner."""
+    w, h = fig.get_size_inches()
+    ax.set_position([left / w, bottom / h, width / w, height / h])
+
+
+def _single(plt, figsize, *, top: float = 0.1, legend=False, xlabel=True):
+    """A figure with one axes, placed once its texts are known: returns ``(fig, ax, place)``;
+    call ``place()`` after drawing into ``ax``. ``top``: inches kept above the axes."""
+    fig = plt.figure(figsize=figsize)
+    ax = fig.add_axes([0.1, 0.1, 0.8, 0.8])
+
+    def place():
+        m = _Metrics(fig)
+        left = EDGE + _left_margin(m, ax)
+        bottom = EDGE + (LEGEND if legend else 0.0) + TICK + _line() + (
+            LABELPAD + _line() if xlabel else 0.0)
+        w, h = figsize
+        _place(fig, ax, left, bottom, w - left - 0.25, h - bottom - EDGE - top)
+
+    return fig, ax, place
+
+
+def _bottom_legend(fig, handles=None, labels=None, ncol=2):
+    args = () if handles is None else (handles, labels)
+    fig.legend(*args, loc="lower center", bbox_to_anchor=(0.5, EDGE / fig.get_figheight()),
+               ncol=ncol, frameon=False, borderaxespad=0.0)
+
+
 def load_run(run_dir: Path):
     """(space, resolved config, summary, episodes columns) of a finished run folder."""
     import pyarrow.parquet as pq
@@ -134,7 +209,7 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
         written.append(path)
 
     # Fig. 7: reward per episode
-    fig, ax = plt.subplots(figsize=(8, 5), layout="constrained")
+    fig, ax, place = _single(plt, (8, 5), top=TITLE, legend=True)
     e, r = ep["evaluation"], ep["reward"]
     ax.plot(e, r, ".", ms=2, color="tab:blue", alpha=0.4, label="reward per evaluation")
     w = max(1, min(100, len(r) // 10))
@@ -143,7 +218,8 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
     ax.set_xlabel("evaluation (episode)")
     ax.set_ylabel("reward")
     ax.set_title(f"{rc.strategy} on {sp.name}, {rc.sut}, seed {rc.seed}")
-    fig.legend(loc="outside lower center", ncol=2, frameon=False)
+    _bottom_legend(fig, ncol=2)
+    place()
     save(fig, "reward_per_episode.png")
 
     # every scenario shown below, simulated in one call
@@ -156,16 +232,24 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
                        sut_params=dict(rc.sut_params), world=world)
 
     # Fig. 8/9: the best critical scenario vs a typical non-critical one
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5), layout="constrained")
+    fig = plt.figure(figsize=(12, 5))
+    axes = [fig.add_axes([0.1, 0.1, 0.35, 0.8]), fig.add_axes([0.55, 0.1, 0.35, 0.8])]
     best_label = "challenging (best)" if analysis.collided(ep)[rows["best"]] else \
         "best (no collision)"
     _distance_panel(axes[0], traj, 0, best_label)
     _distance_panel(axes[1], traj, 1, "non-challenging (typical)")
     handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=3, frameon=False)
+    _bottom_legend(fig, handles, labels, ncol=3)
+    m = _Metrics(fig)
+    lefts = [_left_margin(m, ax) for ax in axes]
+    bottom = EDGE + LEGEND + TICK + _line() + LABELPAD + _line()
+    height = 5 - bottom - EDGE - TITLE
+    width = (12 - 2 * EDGE - sum(lefts) - 0.3 - 0.25) / 2
+    _place(fig, axes[0], EDGE + lefts[0], bottom, width, height)
+    _place(fig, axes[1], EDGE + lefts[0] + width + 0.3 + lefts[1], bottom, width, height)
     save(fig, "distance_challenging.png")
 
-    fig, ax = plt.subplots(figsize=(5, 4.5), layout="constrained")
+    fig, ax, place = _single(plt, (5, 4.5), top=_line() + 0.05, xlabel=False)
     shares = [100 * ep["high_risk_share_second_half"][r] for r in (rows["best"], typical)]
     ax.bar([best_label.split(" (")[0], "non-challenging"], shares,
            color=["tab:red", "tab:green"])
@@ -173,10 +257,11 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
     ax.set_ylim(0, 100)
     for i, s in enumerate(shares):
         ax.text(i, s + 2, f"{s:.0f} %", ha="center")
+    place()
     save(fig, "high_risk_second_half.png")
 
     # Fig. 10: 14 scenarios, collisions red
-    fig, ax = plt.subplots(figsize=(8, 5), layout="constrained")
+    fig, ax, place = _single(plt, (8, 5), top=TITLE, legend=True)
     ax.axhspan(0, 1.0, color="0.85", label="collision zone (< 1 m)")
     labelled = set()
     # the others first, collisions on top (drawn last, higher zorder)
@@ -192,7 +277,8 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
     ax.set_ylabel("Euclidean distance [m]")
     ax.set_title(f"{len(chosen)} evaluated scenarios")
     ax.set_ylim(bottom=0)
-    fig.legend(loc="outside lower center", ncol=3, frameon=False)
+    _bottom_legend(fig, ncol=3)
+    place()
     save(fig, "distance_14_scenarios.png")
 
     # Critical-region maps from the exhaustive sweep
@@ -217,6 +303,23 @@ def value_ticks(sp, p: int, most: int = 6) -> tuple[np.ndarray, list[str]]:
     return pos, [analysis.format_value(sp, p, sp.table[p][i]) for i in pos]
 
 
+def pair_shares(sp, collision: np.ndarray, pairs) -> list[np.ndarray]:
+    """Collision share ``(n_a, n_b)`` of each pair of parameters ``(a, b)``, marginalising the
+    others (``collision`` ``(N,)`` in scenario order: the full grid)."""
+    grid = np.asarray(collision, np.float64).reshape(sp.shape)
+    out = []
+    for a, b in pairs:
+        others = tuple(p for p in range(grid.ndim) if p not in (a, b))
+        hits = grid.sum(axis=others)  # (n_a, n_b): a < b keeps that order
+        out.append(hits / max(sp.size // (sp.shape[a] * sp.shape[b]), 1))
+    return out
+
+
+def _colorbar_width(m: _Metrics, cb, size: float = 10.0) -> float:
+    """Inches right of a vertical colorbar for its tick labels and label."""
+    return TICK + m.width(_tick_texts(cb.ax.yaxis), size) + LABELPAD + _line(size)
+
+
 def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None, points: int = 400):
     """Collision share over every pair of parameters with two or more values (marginalising
     the others), on a perceptual colour scale fitted to the largest share; ``sweep`` holds
@@ -229,17 +332,9 @@ def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None, points:
     pairs = list(itertools.combinations(multi, 2))
     cols = min(4, len(pairs))
     rows = -(-len(pairs) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.9 * cols + 1.2, 3.5 * rows + 0.8),
-                             squeeze=False, layout="constrained")
-    idx = np.asarray(sp.unravel(np.arange(sp.size)))
-    col = sweep["collision"].astype(np.float64)
-    shares = []
-    for a, b in pairs:
-        hits = np.zeros((sp.shape[a], sp.shape[b]))
-        count = np.zeros((sp.shape[a], sp.shape[b]))
-        np.add.at(hits, (idx[:, a], idx[:, b]), col)
-        np.add.at(count, (idx[:, a], idx[:, b]), 1.0)
-        shares.append(hits / np.maximum(count, 1))
+    W, H = 3.9 * cols + 1.2, 3.5 * rows + 0.8
+    fig = plt.figure(figsize=(W, H))
+    shares = pair_shares(sp, sweep["collision"], pairs)
     top = max(float(max(np.max(x) for x in shares)), 1e-9)
     norm = Normalize(0.0, top)
     sub = None
@@ -247,7 +342,11 @@ def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None, points:
         rng = np.random.default_rng(0)
         sub = np.sort(rng.choice(len(ep["reward"]), min(points, len(ep["reward"])),
                                  replace=False))
-    for ax, (a, b), share in zip(axes.ravel(), pairs, shares):
+    ticks = {p: value_ticks(sp, p) for p in multi}
+    axes = []
+    for (a, b), share in zip(pairs, shares):
+        ax = fig.add_axes([0.1, 0.1, 0.1, 0.1])
+        axes.append(ax)
         im = ax.imshow(share.T, origin="lower", aspect="auto", cmap="viridis", norm=norm,
                        interpolation="nearest")
         if sub is not None:
@@ -258,21 +357,37 @@ def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None, points:
                        linewidths=0.5, alpha=0.7, label="evaluated (subsample)")
             ax.scatter(xa[hit], yb[hit], s=14, marker="x", color="tab:red", linewidths=0.8,
                        label="evaluated, collision")
-        for setter, p in ((ax.set_xticks, a), (ax.set_yticks, b)):
-            pos, labels = value_ticks(sp, p)
-            setter(pos, labels)
+        ax.set_xticks(*ticks[a])
+        ax.set_yticks(*ticks[b])
         ax.tick_params(axis="x", labelrotation=45, labelsize=7)
         ax.tick_params(axis="y", labelsize=7)
         ax.set_xlabel(axis_label(sp, a), fontsize=8)
         ax.set_ylabel(axis_label(sp, b), fontsize=8)
-    for ax in axes.ravel()[len(pairs):]:
-        ax.axis("off")
-    fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.8,
-                 label=f"collision share (0 .. {top:.2g}, the largest)")
+    # the layout, in inches: every cell alike, sized for the widest tick labels
+    m = _Metrics(fig)
+    rot = np.sqrt(0.5) * (max(m.width(ticks[p][1], 7) for p in multi) + _line(7))
+    left = TICK + max(m.width(ticks[p][1], 7) for p in multi) + LABELPAD + _line(8)
+    below = TICK + rot + LABELPAD + _line(8)
+    gap_x, gap_y = max(0.2, rot / 2 + 0.05), 0.25
+    grid_bottom = EDGE + (LEGEND if sub is not None else 0.0)
+    grid_top = H - EDGE - _line(12) - 0.15  # below the suptitle
+    cell_h = (grid_top - grid_bottom) / rows
+    cb_h = 0.8 * (grid_top - grid_bottom - below - gap_y)
+    cax = fig.add_axes([0.9, 0.1, 0.02, cb_h / H])
+    cb = fig.colorbar(im, cax=cax, label=f"collision share (0 .. {top:.2g}, the largest)")
+    cb_w = cb_h / 20
+    right = 0.3 + cb_w + _colorbar_width(m, cb) + EDGE
+    cell_w = (W - EDGE - right) / cols
+    for k, ax in enumerate(axes):
+        r, c = divmod(k, cols)
+        _place(fig, ax, EDGE + c * cell_w + left, grid_top - (r + 1) * cell_h + below,
+               cell_w - left - gap_x, cell_h - below - gap_y)
+    _place(fig, cax, W - right + 0.3, grid_bottom + below + (grid_top - grid_bottom - below
+                                                             - gap_y - cb_h) / 2, cb_w, cb_h)
     if sub is not None:
-        handles, labels = axes.ravel()[0].get_legend_handles_labels()
-        fig.legend(handles, labels, loc="outside lower center", ncol=2, frameon=False)
-    fig.suptitle("Critical regions (exhaustive sweep)")
+        handles, labels = axes[0].get_legend_handles_labels()
+        _bottom_legend(fig, handles, labels, ncol=2)
+    fig.suptitle("Critical regions (exhaustive sweep)", y=1 - EDGE / H, va="top")
     return fig
 
 
@@ -284,9 +399,15 @@ def search_figure(plt, sp, ep: dict, strategy: str = "", stretches: int = 20):
     n = len(ep["reward"])
     k = max(1, min(stretches, n))
     edges = np.linspace(0, n, k + 1).astype(int)
-    fig, axes = plt.subplots(1, len(multi), figsize=(3.2 * len(multi) + 1.2, 4.2),
-                             squeeze=False, layout="constrained")
-    for ax, p in zip(axes[0], multi):
+    W, H = 3.2 * len(multi) + 1.2, 4.2
+    fig = plt.figure(figsize=(W, H))
+    bottom = EDGE + TICK + _line(7) + LABELPAD + _line()
+    height = H - bottom - EDGE - _line(12) - 0.15
+    cb_h = 0.8 * height
+    m = _Metrics(fig)
+    panels = []
+    for p in multi:
+        ax = fig.add_axes([0.1, 0.1, 0.1, 0.1])
         vals = ep[f"{sp.names[p]}_idx"]
         freq = np.zeros((sp.shape[p], k))
         for j in range(k):
@@ -301,7 +422,16 @@ def search_figure(plt, sp, ep: dict, strategy: str = "", stretches: int = 20):
         ax.tick_params(labelsize=7)
         ax.set_xlabel("evaluation")
         ax.set_ylabel(axis_label(sp, p))
-        fig.colorbar(im, ax=ax, shrink=0.8, label="share of the stretch")
+        cax = fig.add_axes([0.9, 0.1, 0.02, cb_h / H])
+        cb = fig.colorbar(im, cax=cax, label="share of the stretch")
+        panels.append((ax, cax, TICK + m.width(labels, 7) + LABELPAD + _line(),
+                       0.15 + cb_h / 20 + _colorbar_width(m, cb) + 0.1))
+    width = (W - 2 * EDGE - sum(lw + rw for _, _, lw, rw in panels)) / max(len(panels), 1)
+    x = EDGE
+    for ax, cax, lw, rw in panels:
+        _place(fig, ax, x + lw, bottom, width, height)
+        _place(fig, cax, x + lw + width + 0.15, bottom + (height - cb_h) / 2, cb_h / 20, cb_h)
+        x += lw + width + rw
     fig.suptitle(f"Where the search went ({strategy}): share of each value per stretch of "
-                 f"{max(1, n // k)} evaluations")
+                 f"{max(1, n // k)} evaluations", y=1 - EDGE / H, va="top")
     return fig
