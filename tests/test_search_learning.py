@@ -34,13 +34,14 @@ def _random_weights(shape, hidden=8, seed=0, anchored=False):
     return jax.tree.map(lambda x: jnp.asarray(rng.normal(0, 0.7, x.shape), jnp.float32), w)
 
 
-def _np_log_prob(w, action, shape, anchor=None, sigma_min=0.05):
+def _np_log_prob(w, action, shape, anchor=None, sigma_min=0.05, zoom=None):
     """log pi(action) and the summed entropies step by step in float64: x_p = [onehot(p),
     earlier ranks * 2 - 1] (plus, for an anchored controller, [anchor ranks * 2 - 1, which
     earlier parameters left the anchor's value, 1]), one tanh LSTM step, logits = free head +
     Gaussian bump over the value ranks (+ the stay logit at the anchor's value). Without an
     anchor the bump is centred at sigmoid(.), with one at the anchor's rank + 0.5 tanh(.); its
-    width exp(clip(., ln max(sigma_min, 0.5 / (n - 1)), 1))."""
+    width exp(clip(., ln max(sigma_min, 0.5 / (n - 1)), 1)), an anchored one's log-width plus
+    the draw's ``zoom[p]``."""
     P, H = len(shape), np.asarray(w["lstm"]["u"]).shape[0]
     W = jax.tree.map(lambda x: np.asarray(x, np.float64), w)
     anchored = "stay" in W
@@ -64,7 +65,7 @@ def _np_log_prob(w, action, shape, anchor=None, sigma_min=0.05):
         log_sigma = h @ W["sigma"]["w"][p] + W["sigma"]["b"][p]
         if anchored and anchor is not None:
             mu = rank(p, anchor[p]) + 0.5 * np.tanh(h @ W["delta"]["w"][p] + W["delta"]["b"][p])
-            log_sigma += W["local"]["b"][p]
+            log_sigma += W["local"]["b"][p] + (0.0 if zoom is None else zoom[p])
         else:
             mu = 1 / (1 + np.exp(-(h @ W["mu"]["w"][p] + W["mu"]["b"][p])))
         floor = max(np.log(sigma_min), np.log(0.5 / max(n - 1, 1)))
@@ -125,6 +126,39 @@ def test_anchored_controller_log_prob_matches_step_by_step_numpy():
         elp, eent = _np_log_prob(w, action, shape, anchor)
         assert float(lp) == pytest.approx(elp, abs=1e-4)
         assert float(ent) == pytest.approx(eent, abs=1e-4)
+    # a multi-scale draw: the anchored bump's log-width plus the draw's zoom
+    zoom = np.array([0.7, 1.9, 0.0, 0.3])
+    for action, anchor in (([0, 0, 0, 0], [3, 5, 0, 8]), ([3, 1, 0, 2], [3, 4, 0, 2])):
+        lp, ent = ar.log_prob_and_entropy(w, jnp.asarray(action), shape, ar.LOG_SIGMA_MIN,
+                                          (jnp.asarray(anchor), jnp.bool_(True),
+                                           jnp.asarray(zoom, jnp.float32)))
+        elp, eent = _np_log_prob(w, action, shape, anchor, zoom=zoom)
+        assert float(lp) == pytest.approx(elp, abs=1e-4)
+        assert float(ent) == pytest.approx(eent, abs=1e-4)
+
+
+def test_zoomed_anchored_draws_are_wider_by_the_zoom():
+    """A zoom z widens the initial anchored bump (1.5 value steps) by e^z: the moved draws'
+    spread around the anchor is the discretised Gaussian's (closed form) at width 1.5 e^z, and
+    reinforce/default's widest zoom is 0.3 of a parameter's range."""
+    shape = (1, 801)
+    w = ar.init(jax.random.key(0), shape, 8, anchored=True)
+    anchor = jnp.array([0, 400])
+    u = jax.random.uniform(jax.random.key(1), (20000, 2))
+    lsm = jnp.log(search.options("reinforce/default")["sigma_min"])
+    for z in (0.0, np.log(10.0)):
+        zz = jnp.asarray([0.0, z], jnp.float32)
+        draws = np.asarray(jax.vmap(lambda ui: ar.sample(w, ui, shape, lsm,
+                                                         (anchor, jnp.bool_(True), zz)))(u))
+        step = (draws[:, 1] - 400)[draws[:, 1] != 400]
+        sigma = ar.LOCAL_STEPS * np.exp(z)
+        d = np.arange(1, 401)
+        pd = np.exp(-0.5 * (d / sigma) ** 2)
+        expected = np.sqrt(np.sum(pd * d ** 2) / np.sum(pd))  # the rms step of a moved draw
+        assert np.sqrt(np.mean(step.astype(float) ** 2)) == pytest.approx(expected, rel=0.05)
+    strat, params = search.make("reinforce/default", (5, 1001))
+    widest = ar.LOCAL_STEPS * np.exp(np.asarray(strat._log_zoom(params)))
+    np.testing.assert_allclose(widest, [1.5, 0.3 * 1000], rtol=1e-5)
 
 
 def test_initial_anchored_draws_move_about_one_parameter_near_the_anchor():

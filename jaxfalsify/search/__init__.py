@@ -79,9 +79,9 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
 register("reinforce/default", AutoregressiveReinforce, batch=32, learners=1, queue=32,
          resample=4, anchored=True, advantage="rank", signal="shaped", lr=0.02,
          lr_found=0.03, sigma_min=0.001, repeat_found=0.8, anchor_decay=0.9,
-         global_share_found=0.0,
+         global_share_found=0.0, zoom=0.3,
          doc="the autoregressive LSTM controller + REINFORCE (ours): draws around the best "
-         "scenarios found so far (a learnt local move) and afresh, no repeats until a "
+         "scenarios found so far (a learnt local move, multi-scale) and afresh, no repeats until a "
          "collision, rank baseline of the STL-robustness-shaped signal, 32 per update")
 register("reinforce/factorised", Reinforce, batch=50, chains=0, advantage="normalised",
          signal="shaped", entropy=0.1,

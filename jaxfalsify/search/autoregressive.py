@@ -114,10 +114,10 @@ def head_logits(w: dict, p: jax.Array, h: jax.Array, shape: tuple[int, ...],
     log_sigma = h @ w["sigma"]["w"][p] + w["sigma"]["b"][p]
     stay = 0.0
     if anchor is not None:
-        ranks, present = anchor
+        ranks, present, zoom = anchor
         local = ranks[p] + 0.5 * jnp.tanh(h @ w["delta"]["w"][p] + w["delta"]["b"][p])
         mu = jnp.where(present, local, mu)
-        log_sigma = jnp.where(present, log_sigma + w["local"]["b"][p], log_sigma)
+        log_sigma = jnp.where(present, log_sigma + w["local"]["b"][p] + zoom[p], log_sigma)
         at = jnp.abs(value_ranks(shape)[p] - ranks[p]) < 1e-6  # the anchor's own value
         stay = jnp.where(present & at, h @ w["stay"]["w"][p] + w["stay"]["b"][p], 0.0)
     # never narrower than half a value step (a one-value parameter: any width)
@@ -130,19 +130,21 @@ def head_logits(w: dict, p: jax.Array, h: jax.Array, shape: tuple[int, ...],
 
 
 def _anchor_ranks(anchor, shape):
-    """``(indices (P,), present)`` -> ``(ranks (P,) in [0, 1], present)``, or None."""
+    """``(indices (P,), present[, zoom (P,)])`` -> ``(ranks (P,) in [0, 1], present,
+    zoom (P,))`` (zoom 0 when not given), or None."""
     if anchor is None:
         return None
-    idx, present = anchor
+    idx, present = anchor[0], anchor[1]
+    zoom = anchor[2] if len(anchor) > 2 else jnp.zeros(len(shape), jnp.float32)
     span = jnp.maximum(jnp.asarray(shape, jnp.float32) - 1, 1.0)
-    return idx.astype(jnp.float32) / span, jnp.asarray(present)
+    return idx.astype(jnp.float32) / span, jnp.asarray(present), zoom
 
 
 def _scan(w: dict, shape: tuple[int, ...], step_fn, xs, log_sigma_min=LOG_SIGMA_MIN,
           anchor=None):
     """Run the controller over the P parameters for one scenario; ``step_fn(p, logits, x)``
     returns ``(value index, output)`` where ``x`` is that step's per-scenario input.
-    ``anchor``: ``(indices (P,), present)`` for an anchored controller."""
+    ``anchor``: ``(indices (P,), present[, zoom (P,)])`` for an anchored controller."""
     P = len(shape)
     hidden = w["lstm"]["u"].shape[0]
     ranks = value_ranks(shape)
@@ -151,7 +153,8 @@ def _scan(w: dict, shape: tuple[int, ...], step_fn, xs, log_sigma_min=LOG_SIGMA_
     def one(carry, inp):
         h, c, chosen = carry
         p, x = inp
-        h, c = lstm_step(w["lstm"], (h, c), step_input(p, chosen, P, anc), activation=jnp.tanh)
+        h, c = lstm_step(w["lstm"], (h, c), step_input(p, chosen, P, None if anc is None else anc[:2]),
+                         activation=jnp.tanh)
         logits = head_logits(w, p, h, shape, log_sigma_min, anc)
         a, out = step_fn(p, logits, x)
         chosen = chosen.at[p].set(ranks[p, a])

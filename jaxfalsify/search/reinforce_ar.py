@@ -19,6 +19,12 @@ a reward that is flat until the first collision, failures that are rare.
   anchored, so the learner converges on the best region).
   REINFORCE trains both: which parameters to move, how far and where to, and where the good
   scenarios lie.
+* **Multi-scale moves** (``zoom``): each anchored draw widens the learnt local move by a
+  factor drawn log-uniformly between 1 and ``zoom`` of the parameter's range over the initial
+  width (a parameter of 1000 values: 1.5 to 300 value steps), so big parameters are crossed
+  in a few moves and small ones searched value by value. The factor is drawn from a known
+  distribution that no weight changes, so the policy gradient conditions on it (kept per draw
+  in ``zooms``) and stays unbiased.
 * **No repeats until a collision** (``resample``): a deterministic SUT gives the same outcome
   twice, so a repeated scenario wastes an evaluation. The controller draws ``resample``
   candidates per scenario it asks and takes the first ones not evaluated before (a ``memory``
@@ -70,6 +76,9 @@ class ARParams:
     repeat_found: float = 0.0  # once the learner has a collision: share of its draws that
     # may repeat an evaluated scenario
     uniform_mix: float = 0.0  # share of uniformly random draws (not learnt from)
+    zoom: float = 0.0  # anchored: multi-scale moves, the widest as a fraction of a
+    # parameter's range (each draw's width is log-uniform between the learnt width and that
+    # many times wider; 0: off)
 
 
 @pytree.dataclass
@@ -80,6 +89,7 @@ class ARState:
     explored: jax.Array  # (B,) bool, which scenarios of the last ask were uniform draws
     anchors: jax.Array  # (B, P) int32, the anchor each scenario of the last ask was drawn at
     anchored: jax.Array  # (B,) bool, whether it had one
+    zooms: jax.Array  # (B,) float32 in [0, 1), each draw's position on the zoom scale
     queue: jax.Array  # (L, K, P) int32, each learner's best distinct scenarios, best first
     queue_signal: jax.Array  # (L, K) float32, their signals (-inf: empty slot)
     memory: jax.Array  # (M,) uint32, hashes of the evaluated scenarios (a ring buffer)
@@ -157,6 +167,13 @@ class AutoregressiveReinforce(Strategy):
         return (jnp.zeros(self.n_params, jnp.int32), jnp.bool_(False)) if self.anchored \
             else None
 
+    def _log_zoom(self, params):
+        """``(P,)`` the widest move's extra log-width: ``zoom`` of the range over the
+        initial local width, never narrower (0 for parameters too small to gain)."""
+        span = jnp.maximum(jnp.asarray(self.shape, jnp.float32) - 1, 1.0)
+        return jnp.maximum(jnp.log(jnp.maximum(params.zoom * span, 1e-6) / ar.LOCAL_STEPS),
+                           0.0)
+
     def init(self, key, params):
         L, P, K = self.learners, self.n_params, max(self.queue, 1)
         keys = jax.random.split(key, L)
@@ -164,7 +181,7 @@ class AutoregressiveReinforce(Strategy):
         return ARState(weights, jax.vmap(optax.scale_by_adam().init)(weights),
                        jnp.zeros(L, bool), jnp.zeros(self.batch, bool),
                        jnp.zeros((self.batch, P), jnp.int32), jnp.zeros(self.batch, bool),
-                       jnp.zeros((L, K, P), jnp.int32), jnp.full((L, K), -jnp.inf, jnp.float32),
+                       jnp.zeros(self.batch, jnp.float32), jnp.zeros((L, K, P), jnp.int32), jnp.full((L, K), -jnp.inf, jnp.float32),
                        jnp.zeros(self.memory if self.resample > 1 else 1, jnp.uint32),
                        jnp.int32(0), jnp.int32(0))
 
@@ -186,8 +203,10 @@ class AutoregressiveReinforce(Strategy):
         lsm = self._lsm(params)
         C = b * (M + 1) if M > 1 else b  # candidates per learner: M per slot + b fallbacks
         # one draw: policy (P), uniform values (P), anchor pick, anchor coin, repeat coin,
-        # uniform-mix coin
-        u = uniform(key, (L, C, 2 * P + 4))
+        # zoom, uniform-mix coin
+        u = uniform(key, (L, C, 2 * P + 5))
+        zooms = u[..., 2 * P + 3]  # (L, C)
+        lz = self._log_zoom(params)
         if self.anchored:  # an anchor from the learner's queue, the k-th best ~ decay^k
             filled = jnp.sum(jnp.isfinite(state.queue_signal), axis=-1)  # (L,)
             K = state.queue.shape[1]
@@ -199,9 +218,9 @@ class AutoregressiveReinforce(Strategy):
             share = jnp.where(state.seen & (params.global_share_found >= 0),
                               params.global_share_found, params.global_share)  # (L,)
             present = (filled[:, None] > 0) & (u[..., 2 * P + 1] >= share[:, None])
-            sampled = jax.vmap(lambda w, ul, al, pl: jax.vmap(
-                lambda ui, ai, pi: ar.sample(w, ui, self.shape, lsm, (ai, pi)))(ul, al, pl))(
-                state.weights, u[..., :P], anchors, present)
+            sampled = jax.vmap(lambda w, ul, al, pl, zl: jax.vmap(
+                lambda ui, ai, pi, zi: ar.sample(w, ui, self.shape, lsm, (ai, pi, zi * lz)))(
+                    ul, al, pl, zl))(state.weights, u[..., :P], anchors, present, zooms)
         else:
             anchors = jnp.zeros((L, C, P), jnp.int32)
             present = jnp.zeros((L, C), bool)
@@ -224,11 +243,12 @@ class AutoregressiveReinforce(Strategy):
             order = jnp.argsort(~(fresh | free), axis=-1, stable=True)[:, :b]
             take = lambda x: jnp.take_along_axis(  # noqa: E731
                 x, order.reshape(order.shape + (1,) * (x.ndim - 2)), axis=1)
-            idx, explored, anchors, present = map(take, (idx, explored, anchors, present))
+            idx, explored, anchors, present, zooms = map(take, (idx, explored, anchors, present,
+                                                                zooms))
             state = self._remember(state, scenario_hash(idx).reshape(-1))
         return idx.reshape(self.batch, P), dataclasses.replace(
             state, explored=explored.reshape(self.batch), anchors=anchors.reshape(self.batch, P),
-            anchored=present.reshape(self.batch))
+            anchored=present.reshape(self.batch), zooms=zooms.reshape(self.batch))
 
     def _evaluated(self, h, state):
         """``h (N,)`` uint32 -> bool: among the remembered hashes."""
@@ -267,18 +287,20 @@ class AutoregressiveReinforce(Strategy):
         acts = indices.reshape(L, b, P)
         anc = state.anchors.reshape(L, b, P)
         pres = state.anchored.reshape(L, b)
+        zooms = state.zooms.reshape(L, b)
+        lz = self._log_zoom(params)
 
-        def loss(w, a, adv_l, ok_l, beta_l, anc_l, pres_l):
+        def loss(w, a, adv_l, ok_l, beta_l, anc_l, pres_l, z_l):
             if self.anchored:
-                lp, ent = jax.vmap(lambda ai, ci, pi: ar.log_prob_and_entropy(
-                    w, ai, self.shape, lsm, (ci, pi)))(a, anc_l, pres_l)
+                lp, ent = jax.vmap(lambda ai, ci, pi, zi: ar.log_prob_and_entropy(
+                    w, ai, self.shape, lsm, (ci, pi, zi * lz)))(a, anc_l, pres_l, z_l)
             else:
                 lp, ent = jax.vmap(lambda ai: ar.log_prob_and_entropy(w, ai, self.shape,
                                                                       lsm))(a)
             n = jnp.maximum(jnp.sum(ok_l), 1)
             return -(jnp.sum(adv_l * lp) + beta_l * jnp.sum(jnp.where(ok_l, ent, 0.0))) / n
 
-        grads = jax.vmap(jax.grad(loss))(state.weights, acts, adv, ok, beta, anc, pres)
+        grads = jax.vmap(jax.grad(loss))(state.weights, acts, adv, ok, beta, anc, pres, zooms)
         updates, opt = jax.vmap(optax.scale_by_adam().update)(grads, state.opt, state.weights)
         lr = jnp.where(seen & (params.lr_found >= 0), params.lr_found, params.lr)  # (L,)
         weights = jax.tree.map(lambda w, u: w - lr.reshape((-1,) + (1,) * (u.ndim - 1)) * u,
