@@ -31,6 +31,7 @@ FIGSIZE = (8, 4.5)
 DPI = 100
 N_TRAJECTORIES = 16  # simulated per figure set: best, typical and 14 (a fixed shape: one program)
 TRUTH_LIMIT = 5_000_000  # largest space whose ground truth the critical-region map sweeps
+PNG = {"compress_level": 1}  # fast zlib: ~3x faster to write than the default, ~12 % larger
 
 
 def _plt():
@@ -172,24 +173,46 @@ def _distance_panel(ax, traj, k, title):
     ax.set_ylim(bottom=0)
 
 
-def prepare(space, sut, sut_params, world) -> None:
+class Prepared:
+    """What :func:`prepare` built ahead of a run's figures: the critical-region map without
+    the run's scenarios (``base``), for the space and ground truth it was drawn from."""
+
+    def __init__(self, space, collision, base):
+        self.describe, self.collision, self.base = space.describe(), collision, base
+
+    def critical_base(self, sp, collision):
+        """The prepared map if it shows this space and ground truth (else None), once."""
+        base, self.base = self.base, None
+        if base is None or sp.describe() != self.describe or \
+                not np.array_equal(collision, self.collision):
+            return None
+        return base
+
+
+def prepare(space, sut, sut_params, world) -> Prepared | None:
     """Build what :func:`make_figures` needs, ahead of time (``runs.execute`` calls it in a
-    background thread while the campaign compiles): matplotlib, the ground truth of the space
-    (per-user cache) and the compiled trajectory program."""
+    background thread while the campaign compiles and searches): matplotlib, the ground truth
+    of the space (per-user cache), the compiled trajectory program, and the critical-region
+    map up to the run's own scenarios."""
     import jaxfalsify as jf
     from jaxfalsify.sweep import ground_truth
 
-    _plt()
+    plt = _plt()
+    truth = None
     if space.size <= TRUTH_LIMIT:
-        ground_truth(space, sut, sut_params, world)
+        truth = ground_truth(space, sut, sut_params, world)
     jf.simulate(space.scenario(np.zeros((N_TRAJECTORIES, len(space.shape)), np.int32)),
                 sut=sut, sut_params=sut_params, world=world)
+    if truth is None or sum(n > 1 for n in space.shape) < 2:
+        return None
+    return Prepared(space, truth["collision"], _critical_base(plt, space, truth, overlay=True))
 
 
-def make_figures(run_dir: Path, world=None) -> list[Path]:
+def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) -> list[Path]:
     """Draw every figure into ``run_dir/figures``; returns the files written. The scenarios
     shown are re-simulated in one call; the critical-region map uses the cached ground truth
-    (:func:`jaxfalsify.sweep.ground_truth`) for spaces of up to 5e6 scenarios."""
+    (:func:`jaxfalsify.sweep.ground_truth`) for spaces of up to 5e6 scenarios. ``prepared``:
+    what :func:`prepare` built for this run (used only where it matches)."""
     import jaxfalsify as jf
     from jaxfalsify.sweep import ground_truth
 
@@ -204,7 +227,7 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
     def save(fig, name):
         path = out / name
         with store.atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=DPI, format="png")
+            fig.savefig(tmp, dpi=DPI, format="png", pil_kwargs=PNG)
         plt.close(fig)
         written.append(path)
 
@@ -284,7 +307,8 @@ def make_figures(run_dir: Path, world=None) -> list[Path]:
     # Critical-region maps from the exhaustive sweep
     if sp.size <= TRUTH_LIMIT and sum(n > 1 for n in sp.shape) >= 2:
         truth = ground_truth(sp, rc.sut, dict(rc.sut_params), world)
-        save(critical_region_figure(plt, sp, truth, ep), "critical_regions.png")
+        base = prepared and prepared.critical_base(sp, truth["collision"])
+        save(critical_region_figure(plt, sp, truth, ep, base=base), "critical_regions.png")
     save(search_figure(plt, sp, ep, rc.strategy), "search_distribution.png")
     return written
 
@@ -320,13 +344,38 @@ def _colorbar_width(m: _Metrics, cb, size: float = 10.0) -> float:
     return TICK + m.width(_tick_texts(cb.ax.yaxis), size) + LABELPAD + _line(size)
 
 
-def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None, points: int = 400):
+def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None, points: int = 400,
+                           base=None):
     """Collision share over every pair of parameters with two or more values (marginalising
     the others), on a perceptual colour scale fitted to the largest share; ``sweep`` holds
     ``collision`` ``(N,)`` in scenario order; ``ep``: a subsample of ``points`` of the run's
     evaluated scenarios drawn on top (collisions as crosses). Axes in the parameters' units,
-    ticks at their values; 2-8 parameters lay out on a grid of at most 4 columns."""
+    ticks at their values; 2-8 parameters lay out on a grid of at most 4 columns. ``base``:
+    the map already drawn without ``ep`` (:func:`prepare`), room left for its legend."""
+    overlay = ep is not None and len(ep["reward"]) > 0
+    fig, axes, pairs = base or _critical_base(plt, sp, sweep, overlay)
+    if overlay:
+        rng = np.random.default_rng(0)
+        sub = np.sort(rng.choice(len(ep["reward"]), min(points, len(ep["reward"])),
+                                 replace=False))
+        hit = np.asarray(ep["collision"])[sub].astype(bool)
+        for ax, (a, b) in zip(axes, pairs):
+            xa = ep[f"{sp.names[a]}_idx"][sub]
+            yb = ep[f"{sp.names[b]}_idx"][sub]
+            ax.scatter(xa[~hit], yb[~hit], s=5, facecolors="none", edgecolors="white",
+                       linewidths=0.5, alpha=0.7, label="evaluated (subsample)")
+            ax.scatter(xa[hit], yb[hit], s=14, marker="x", color="tab:red", linewidths=0.8,
+                       label="evaluated, collision")
+        handles, labels = axes[0].get_legend_handles_labels()
+        _bottom_legend(fig, handles, labels, ncol=2)
+    return fig
+
+
+def _critical_base(plt, sp, sweep: dict, overlay: bool):
+    """``(fig, axes, pairs)``: the critical-region map without the run's scenarios (room
+    left for their legend when ``overlay``)."""
     from matplotlib.colors import Normalize
+    from matplotlib.ticker import MaxNLocator
 
     multi = [p for p in range(len(sp.names)) if sp.shape[p] > 1]
     pairs = list(itertools.combinations(multi, 2))
@@ -337,11 +386,6 @@ def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None, points:
     shares = pair_shares(sp, sweep["collision"], pairs)
     top = max(float(max(np.max(x) for x in shares)), 1e-9)
     norm = Normalize(0.0, top)
-    sub = None
-    if ep is not None and len(ep["reward"]):
-        rng = np.random.default_rng(0)
-        sub = np.sort(rng.choice(len(ep["reward"]), min(points, len(ep["reward"])),
-                                 replace=False))
     ticks = {p: value_ticks(sp, p) for p in multi}
     axes = []
     for (a, b), share in zip(pairs, shares):
@@ -349,14 +393,6 @@ def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None, points:
         axes.append(ax)
         im = ax.imshow(share.T, origin="lower", aspect="auto", cmap="viridis", norm=norm,
                        interpolation="nearest")
-        if sub is not None:
-            hit = np.asarray(ep["collision"])[sub].astype(bool)
-            xa = ep[f"{sp.names[a]}_idx"][sub]
-            yb = ep[f"{sp.names[b]}_idx"][sub]
-            ax.scatter(xa[~hit], yb[~hit], s=5, facecolors="none", edgecolors="white",
-                       linewidths=0.5, alpha=0.7, label="evaluated (subsample)")
-            ax.scatter(xa[hit], yb[hit], s=14, marker="x", color="tab:red", linewidths=0.8,
-                       label="evaluated, collision")
         ax.set_xticks(*ticks[a])
         ax.set_yticks(*ticks[b])
         ax.tick_params(axis="x", labelrotation=45, labelsize=7)
@@ -369,12 +405,13 @@ def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None, points:
     left = TICK + max(m.width(ticks[p][1], 7) for p in multi) + LABELPAD + _line(8)
     below = TICK + rot + LABELPAD + _line(8)
     gap_x, gap_y = max(0.2, rot / 2 + 0.05), 0.25
-    grid_bottom = EDGE + (LEGEND if sub is not None else 0.0)
+    grid_bottom = EDGE + (LEGEND if overlay else 0.0)
     grid_top = H - EDGE - _line(12) - 0.15  # below the suptitle
     cell_h = (grid_top - grid_bottom) / rows
     cb_h = 0.8 * (grid_top - grid_bottom - below - gap_y)
     cax = fig.add_axes([0.9, 0.1, 0.02, cb_h / H])
-    cb = fig.colorbar(im, cax=cax, label=f"collision share (0 .. {top:.2g}, the largest)")
+    cb = fig.colorbar(im, cax=cax, ticks=MaxNLocator(6),
+                      label=f"collision share (0 .. {top:.2g}, the largest)")
     cb_w = cb_h / 20
     right = 0.3 + cb_w + _colorbar_width(m, cb) + EDGE
     cell_w = (W - EDGE - right) / cols
@@ -384,17 +421,16 @@ def critical_region_figure(plt, sp, sweep: dict, ep: dict | None = None, points:
                cell_w - left - gap_x, cell_h - below - gap_y)
     _place(fig, cax, W - right + 0.3, grid_bottom + below + (grid_top - grid_bottom - below
                                                              - gap_y - cb_h) / 2, cb_w, cb_h)
-    if sub is not None:
-        handles, labels = axes[0].get_legend_handles_labels()
-        _bottom_legend(fig, handles, labels, ncol=2)
     fig.suptitle("Critical regions (exhaustive sweep)", y=1 - EDGE / H, va="top")
-    return fig
+    return fig, axes, pairs
 
 
 def search_figure(plt, sp, ep: dict, strategy: str = "", stretches: int = 20):
     """Where the search went: per parameter with two or more values, the share of each of its
     values among the evaluations of each of ``stretches`` equal stretches of the run (an
     estimate of the learner's sampling distribution over time; uniform search is flat)."""
+    from matplotlib.ticker import MaxNLocator
+
     multi = [p for p in range(len(sp.names)) if sp.shape[p] > 1]
     n = len(ep["reward"])
     k = max(1, min(stretches, n))
@@ -423,7 +459,7 @@ def search_figure(plt, sp, ep: dict, strategy: str = "", stretches: int = 20):
         ax.set_xlabel("evaluation")
         ax.set_ylabel(axis_label(sp, p))
         cax = fig.add_axes([0.9, 0.1, 0.02, cb_h / H])
-        cb = fig.colorbar(im, cax=cax, label="share of the stretch")
+        cb = fig.colorbar(im, cax=cax, ticks=MaxNLocator(5), label="share of the stretch")
         panels.append((ax, cax, TICK + m.width(labels, 7) + LABELPAD + _line(),
                        0.15 + cb_h / 20 + _colorbar_width(m, cb) + 0.1))
     width = (W - 2 * EDGE - sum(lw + rw for _, _, lw, rw in panels)) / max(len(panels), 1)

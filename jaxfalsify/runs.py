@@ -297,23 +297,32 @@ def _stats_progress(progress: Progress, total: int, desc: str, start_from: int =
     return update
 
 
-def _prepare_figures(b: Built):
-    """Start preparing the figures (ground truth, compiled programs, matplotlib) in a
-    background thread: XLA compiles without the GIL, so on a cold machine this overlaps the
-    campaign's own compilation. A failure here is ignored (the figures redo the work)."""
-    import threading
+class _Preparing:
+    """The figures' preparation (ground truth, compiled programs, matplotlib, the
+    critical-region map) in a background thread: XLA compiles and runs without the GIL, so
+    this overlaps the campaign's own compilation and search. A failure here is ignored (the
+    figures redo the work)."""
 
-    from jaxfalsify.figures import prepare
+    def __init__(self, b: Built):
+        import threading
 
-    def work():
+        self.result = None
+        self.thread = threading.Thread(target=self._work, args=(b,), daemon=True,
+                                       name="jaxfalsify-prepare-figures")
+        self.thread.start()
+
+    def _work(self, b: Built) -> None:
+        from jaxfalsify.figures import prepare
+
         try:
-            prepare(b.space, b.sut, b.sut_params, WORLD)
+            self.result = prepare(b.space, b.sut, b.sut_params, WORLD)
         except Exception:  # noqa: BLE001 - make_figures repeats it and reports errors
             pass
 
-    t = threading.Thread(target=work, name="jaxfalsify-prepare-figures", daemon=True)
-    t.start()
-    return t
+    def join(self):
+        """What :func:`jaxfalsify.figures.prepare` returned (None if it failed)."""
+        self.thread.join()
+        return self.result
 
 
 def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: bool = False,
@@ -387,7 +396,7 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
                                            b.plan.budget), 1)  # export (or load) the program
         clock.add("compile", time.perf_counter() - t0)
         # then, while XLA compiles it (without the GIL), prepare the figures in the background
-        prep = _prepare_figures(b) if figures else None
+        prep = _Preparing(b) if figures else None
         res = campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan,
                            rc.seed, progress=_stats_progress(progress, b.plan.budget,
                                                              f"{rc.strategy} on {b.space.name}",
@@ -437,8 +446,7 @@ def _finish(b: Built, rc: RunConfig, out: Path, res: campaign.Result, ckpt, star
         from jaxfalsify.figures import make_figures
 
         with clock("figures"):
-            prep.join()
-            make_figures(out, world=WORLD)
+            make_figures(out, world=WORLD, prepared=prep.join())
     if rerun:
         from jaxfalsify.replay import record
 
