@@ -275,31 +275,44 @@ def truth_summary(sp, b, budget: int | None = None) -> dict:
 def search_overhead(strategy, strategy_params, p: campaign.Plan, n_seeds: int) -> float:
     """Seconds per 1000 evaluations (per seed) of the strategy's own ask/tell loop for the
     campaign's updates, without simulation (zero rewards, no collisions), all seeds in one
-    compiled call as the campaign runs them; timed on a second call, after compilation."""
+    compiled call as the campaign runs them (hyperparameters traced, as there); compiled
+    ahead (the program is kept in the per-user cache, see
+    :func:`jaxfalsify.cache.exported_jit`), then one call timed."""
     import jax
     import jax.numpy as jnp
 
-    B = strategy.batch
+    from jaxfalsify import cache, sim
 
-    def one_seed(key):
+    B = strategy.batch
+    f32 = [np.asarray(x, np.float32) for x in jax.tree.leaves(strategy_params)]
+    tree = jax.tree.structure(strategy_params)
+
+    def one_seed(key, params):
         def upd(state, k):
             k_ask, k_tell = jax.random.split(k)
-            idx, state = strategy.ask(k_ask, state, strategy_params)
+            idx, state = strategy.ask(k_ask, state, params)
             z = jnp.zeros(B, jnp.float32)
             state = strategy.tell_outcome(k_tell, state, idx, z, z + 1.0,
-                                          jnp.zeros(B, bool), strategy_params)
+                                          jnp.zeros(B, bool), params)
             return state, idx[0, 0]
 
         k_init, k_run = jax.random.split(key)
-        _, out = jax.lax.scan(upd, strategy.init(k_init, strategy_params),
+        _, out = jax.lax.scan(upd, strategy.init(k_init, params),
                               jax.random.split(k_run, p.n_updates))
         return out.sum()
 
-    fn = jax.jit(lambda keys: jax.lax.map(one_seed, keys))
-    keys = jax.random.split(jax.random.key(0), n_seeds)
-    jax.block_until_ready(fn(keys))
+    def fn(key_data, leaves):
+        params = jax.tree.unflatten(tree, leaves)
+        keys = jax.random.split(jax.random.wrap_key_data(key_data), n_seeds)
+        return jax.lax.map(lambda k: one_seed(k, params), keys)
+
+    args = (sim.seed_key_data(0), f32)
+    static = {"strategy": repr(strategy), "params": str(tree), "updates": p.n_updates,
+              "seeds": n_seeds}
+    prog = cache.exported_jit(fn, "overhead", static, (args[0], f32), lambda: args)
+    compiled = prog.call.lower(*args).compile()
     t0 = time.perf_counter()
-    jax.block_until_ready(fn(keys))
+    jax.block_until_ready(compiled(*args))
     return (time.perf_counter() - t0) / (n_seeds * p.n_updates * B / 1000.0)
 
 
