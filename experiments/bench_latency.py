@@ -1,15 +1,20 @@
 """Wall time of the commands a user types, cold and warm, side by side in one run.
 
-    python experiments/bench_latency.py                      # about 3 minutes on 2 cores
-    python experiments/bench_latency.py --baseline /tmp/old  # also an older checkout's times
+    python experiments/bench_latency.py                      # about 6 minutes on 2 cores
+    python experiments/bench_latency.py --baseline /tmp/old  # also an older version: ~17 min
 
 Every row is a fresh process (``jaxfalsify ...``), timed from outside from start to exit, in a
 scratch folder with its own per-user cache (``JAXFALSIFY_CACHE_DIR``): *cold* rows start from
 an empty cache, *warm* rows follow a run that filled it. "recompiled" says whether the command
 added anything to the cache (a compiled program or an exported one): another space seed or SUT
 parameter value must not. With ``--baseline DIR`` (a checkout of an older commit, e.g. made by
-``git worktree add /tmp/old <commit>``), the same main-job rows run on that code through
-``PYTHONPATH`` (its own flags and JAX cache variable), for a ratio measured in the same run.
+``git worktree add /tmp/old <commit>``, or a copy of ``jaxfalsify/`` with some files at an
+older commit), the same rows run on that code through ``PYTHONPATH``, with its own per-user
+cache and its own flags if it predates ``--evaluations``; each row runs for both versions in
+turn, so load that drifts during the run hits both alike.
+Each row also lists where its time went (the command's own ``timing.json``: start-up, compile,
+search, writing, figures), and two floor rows time a bare ``import jax`` and the CLI's imports
+(``import jaxfalsify.cli``) in a fresh interpreter.
 Writes ``experiments/results/bench_latency.json``.
 """
 
@@ -43,34 +48,68 @@ def timed(cmd: list[str], cwd: Path, env: dict) -> float:
     return dt
 
 
-def rows_for(label: str, exe: list[str], work: Path, env: dict, cache: Path,
-             baseline: bool = False) -> list[dict]:
-    """The main-job rows for one code version (``exe`` runs its CLI)."""
-    run = exe + ["run", "--quiet"]
-    budget = ["--episodes", "4000"] if baseline else []  # the old flag names
-    out = []
+def phases(out: Path) -> dict:
+    """The command's own split of its wall time (``timing.json``), seconds rounded."""
+    try:
+        t = json.loads((out / "timing.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return {k[:-8]: round(v, 2) for k, v in t.items() if k.endswith("_seconds")}
 
-    def row(name, args, recompile_check=False):
-        before = cache_entries(cache)
-        sec = timed(run + args + budget + ["--out", str(work / f"{label}-{len(out)}")], work,
-                    env)
-        r = {"version": label, "row": name, "seconds": sec}
+
+def phases_text(ph: dict) -> str:
+    return ", ".join(f"{k} {v:.1f}" for k, v in ph.items() if k != "total" and v >= 0.05)
+
+
+class Version:
+    """One code version's CLI, cache and scratch folders."""
+
+    def __init__(self, label: str, exe: list[str], env: dict, cache: Path, work: Path,
+                 old_flags: bool = False):
+        self.label, self.exe, self.env, self.cache, self.work = label, exe, env, cache, work
+        self.old_flags = old_flags  # the old budget flag (--episodes), no --sut-param
+        self.n = 0
+
+    def folder(self) -> Path:
+        self.n += 1
+        return self.work / f"{self.label}-{self.n}"
+
+    def row(self, name: str, args: list[str], recompile_check: bool = False) -> dict | None:
+        """``jaxfalsify run ARGS`` timed from outside (None if this version cannot run it)."""
+        if self.old_flags and any(a.startswith("--sut-param") for a in args):
+            return None
+        budget = ["--episodes", "4000"] if self.old_flags else []
+        before = cache_entries(self.cache)
+        folder = self.folder()
+        sec = timed(self.exe + ["run", "--quiet"] + args + budget + ["--out", str(folder)],
+                    self.work, self.env)
+        r = {"version": self.label, "row": name, "seconds": sec, "phases": phases(folder)}
         if recompile_check:
-            r["recompiled"] = cache_entries(cache) > before
-        out.append(r)
-        print(f"{label:>9}  {name:<42} {sec:7.2f} s"
+            r["recompiled"] = cache_entries(self.cache) > before
+        print(f"{self.label:>9}  {name:<42} {sec:7.2f} s"
               + (f"   recompiled: {'yes' if r['recompiled'] else 'no'}"
-                 if recompile_check else ""), flush=True)
+                 if recompile_check else "") + f"   ({phases_text(r['phases'])})", flush=True)
+        return r
 
-    row("run, figures, cold", [])
-    row("run, figures, warm", [])
-    row("run --no-figures, warm", ["--no-figures"])
-    seed_flag = ["--space-seed", "1"]
-    row("run, another space seed", seed_flag + ["--no-figures"], recompile_check=True)
-    if not baseline:
-        row("run, another SUT parameter value", ["--sut-param", "full_brake=7.5",
-                                                 "--no-figures"], recompile_check=True)
-    return out
+    def compare(self, name: str | None) -> dict | None:
+        """``jaxfalsify compare`` (the default strategies x 10 seeds), timed from outside."""
+        if self.old_flags:
+            return None
+        folder = self.folder()
+        sec = timed(self.exe + ["compare", "--quiet", "--out", str(folder)], self.work,
+                    self.env)
+        r = {"version": self.label, "row": name or "compare, cold", "seconds": sec,
+             "phases": phases(folder)}
+        print(f"{self.label:>9}  {r['row']:<42} {sec:7.2f} s   ({phases_text(r['phases'])})",
+              flush=True)
+        return r if name else None
+
+
+RUN_ROWS = [("run, figures, cold", [], False), ("run, figures, warm", [], False),
+            ("run --no-figures, warm", ["--no-figures"], False),
+            ("run, another space seed", ["--space-seed", "1", "--no-figures"], True),
+            ("run, another SUT parameter value", ["--sut-param", "full_brake=7.5",
+                                                  "--no-figures"], True)]
 
 
 def main() -> None:
@@ -85,22 +124,33 @@ def main() -> None:
         cache = tmp / "cache"
         env = dict(os.environ, JAXFALSIFY_CACHE_DIR=str(cache))
         env.pop("JAXFALSIFY_NO_CACHE", None)
+        env.pop("JAX_COMPILATION_CACHE_DIR", None)
         exe = [str(Path(sys.executable).with_name("jaxfalsify"))]
         if not Path(exe[0]).exists():
             exe = [sys.executable, "-m", "jaxfalsify.cli"]
-        rows += rows_for("current", exe, tmp, env, cache)
-        timed(exe + ["compare", "--quiet", "--out", str(tmp / "cmp-cold")], tmp, env)
-        sec = timed(exe + ["compare", "--quiet", "--out", str(tmp / "cmp-warm")], tmp, env)
-        rows.append({"version": "current", "row": "compare 8 strategies x 10 seeds, warm",
-                     "seconds": sec})
-        print(f"{'current':>9}  {'compare 8 strategies x 10 seeds, warm':<42} {sec:7.2f} s")
+        versions = [Version("current", exe, env, cache, tmp)]
         if args.baseline:
             old_cache = tmp / "old-cache"
-            old_env = dict(env, PYTHONPATH=str(args.baseline.resolve()),
-                           JAX_COMPILATION_CACHE_DIR=str(old_cache))
             old_cache.mkdir()
-            rows += rows_for("baseline", [sys.executable, "-m", "jaxfalsify.cli"], tmp,
-                             old_env, old_cache, baseline=True)
+            cli = (args.baseline / "jaxfalsify" / "cli.py").read_text()
+            versions.append(Version(
+                "baseline", [sys.executable, "-m", "jaxfalsify.cli"],
+                dict(env, PYTHONPATH=str(args.baseline.resolve()),
+                     JAXFALSIFY_CACHE_DIR=str(old_cache),
+                     JAX_COMPILATION_CACHE_DIR=str(old_cache / "jax")),
+                old_cache, tmp, old_flags='"--evaluations"' not in cli))
+        for name, code in (("python -c 'import jax' (floor)", "import jax"),
+                           ("python -c 'import jaxfalsify.cli'", "import jaxfalsify.cli")):
+            sec = min(timed([sys.executable, "-c", code], tmp, env) for _ in range(3))
+            rows.append({"version": "current", "row": name, "seconds": sec})
+            print(f"{'current':>9}  {name:<42} {sec:7.2f} s   (best of 3)", flush=True)
+        # each row for every version in turn: load that drifts during the run hits both
+        for name, run_args, check in RUN_ROWS:
+            rows += [r for v in versions if (r := v.row(name, run_args, check))]
+        for v in versions:
+            v.compare(None)  # fills the cache
+        rows += [r for v in versions
+                 if (r := v.compare("compare 8 strategies x 10 seeds, warm"))]
     print()
     print(f"{'row':<42} {'current s':>10} {'target s':>9}"
           + (f" {'baseline s':>11} {'baseline/current':>17}" if args.baseline else ""))
