@@ -591,13 +591,13 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
     idx = indices_of(ep, sp, rows)
     full = sp.scenario(idx)
     sut_params = dict(rc.sut_params)
-    traj = None
-    try:
-        request = ego_request(rc.sut, sut_params, world)
+    try:  # a SUT without a cruise target takes its request from its trajectory
+        ego_request(rc.sut, sut_params, world)
+        cruise = True
     except ValueError:
-        request = None
-    if ego == "replay" or request is None:  # (a SUT without a cruise target: its trajectory)
-        traj = jf.simulate(full, sut=rc.sut, sut_params=sut_params)
+        cruise = False
+    traj = (jf.simulate(full, sut=rc.sut, sut_params=sut_params)
+            if ego == "replay" or not cruise else None)
     fields = ("t", "ego_x", "ego_y", "ego_speed", "ego_accel", "ped_x", "ped_y", "valid")
     files = [road]
     template = None
@@ -607,8 +607,7 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
         label = "best" if which == "best" else f"critical_{k + 1:03d}"
         title = f"{label} (evaluation {row + 1})"
         over = {n[4:]: float(values[n]) for n in sp.names if n.startswith("sut.")}
-        req = ego_request(rc.sut, {**sut_params, **over}, world, tr) if (
-            request is None or over) else request
+        req = ego_request(rc.sut, {**sut_params, **over}, world, tr)
         if ego == "replay":
             params = {n: float(np.asarray(full[n])[k]) for n in full}
             files.append(write_scenario(out / f"{label}.xosc", road.name, tr, params, world,
