@@ -160,6 +160,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sut(c)
     c.add_argument("--out", type=Path, help="folder for compare.json/.md "
                    "(default runs/compare-<timestamp>)")
+    c.add_argument("--jobs", type=_int("--jobs", 1),
+                   help="strategies searched side by side (default: one per CPU core, at "
+                   "most 4; results are the same, only wall times differ)")
     c.add_argument("--force", action="store_true")
     c.add_argument("--quiet", action="store_true", help="no progress")
     _distributed_flags(c)
@@ -354,7 +357,7 @@ def cmd_compare(args, stop, startup) -> int:
                                    space_seed=args.space_seed or 0, sut=args.sut or "carla-tm",
                                    sut_params=_assignments(args.sut_param, "--sut-param"),
                                    strategy_params=_per_strategy(args.strategy_param),
-                                   budgets=budgets)
+                                   budgets=budgets, jobs=args.jobs or 0)
     config.check()
     out = args.out or Path("runs") / f"compare-{time.strftime('%Y%m%d-%H%M%S')}"
     pid, n_proc = _start_distributed(args)
@@ -398,7 +401,8 @@ def _compare_suite(args, names, stop, startup) -> int:
         if given:
             raise UsageError(f"--suite takes its spaces, SUTs and budgets from the suite file; "
                              f"drop {flag}")
-    suite = compare.load_suite(args.suite, seeds=args.seeds, strategies=names)
+    suite = compare.load_suite(args.suite, seeds=args.seeds, strategies=names,
+                               jobs=args.jobs or 0)
     out = args.out or Path("runs") / f"suite-{time.strftime('%Y%m%d-%H%M%S')}"
     result = compare.execute_suite(suite, out, force=args.force,
                                    progress=_progress(args.quiet), stop=stop,

@@ -15,8 +15,15 @@ Per strategy (its seeds in one compiled call), see :func:`seed_stats` and :func:
   uniform random's share is ``2^P' / N``, P' the parameters with two or more values);
 * the mean reward of the last quarter of the evaluations (the last 1000 of 4000);
 * search overhead: seconds per 1000 evaluations the strategy's own ``ask``/``tell`` take without
-  simulation (timed separately after compilation, all seeds at once; ``result["overhead"]``);
-* wall seconds for all seeds together, compilation included.
+  simulation (timed after all searches, one strategy at a time, on ``OVERHEAD_SEEDS`` seeds in
+  one compiled call; ``result["overhead"]``);
+* wall seconds for all seeds together, compilation included (with ``jobs`` > 1 the strategies
+  run side by side, ``jobs`` at a time, so each one's wall time includes sharing the machine).
+
+The strategies run ``jobs`` at a time in threads (XLA runs a compiled campaign without Python's
+lock, and a campaign of small batches keeps one core busy): on 2 cores two side by side take
+about half the time of one after the other. Every result is the same whatever ``jobs`` is
+(each strategy's seeds are their own compiled call); only the wall times differ.
 
 ``compare.json`` holds every figure per seed (``per_seed`` rows).
 """
@@ -25,6 +32,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import threading
 import time
 from pathlib import Path
 from typing import Any, Mapping
@@ -54,6 +63,13 @@ class CompareConfig:
     budgets: tuple[int, ...] = ()  # also report at these smaller budgets (first evaluations)
     # options per strategy, e.g. {"cem": {"elite_frac": 0.2}} (the registry's defaults otherwise)
     strategy_params: Mapping[str, Mapping[str, Any]] = dataclasses.field(default_factory=dict)
+    jobs: int = 0  # strategies searched side by side (0: one per CPU core, at most 4)
+
+    def resolved_jobs(self) -> int:
+        """``jobs``, 0 resolved to the usable CPU cores (at most 4 and the strategy count)."""
+        n = self.jobs or min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                             else (os.cpu_count() or 1))
+        return max(1, min(n, len(self.strategies)))
 
     def run_config(self, strategy: str) -> RunConfig:
         return RunConfig(space=self.space, space_seed=self.space_seed, sut=self.sut,
@@ -65,6 +81,7 @@ class CompareConfig:
         from jaxfalsify.runs import check_int
 
         check_int("seeds", self.seeds, 1, 10_000)
+        check_int("jobs", self.jobs, 0, 256)
         for b in self.budgets:
             check_int("budgets", b, 1, self.evaluations)
         if not self.strategies:
@@ -81,7 +98,8 @@ class CompareConfig:
     def to_toml(self) -> str:
         return cfg.dumps_toml({"kind": "compare", "strategies": list(self.strategies),
                                "seeds": self.seeds, "evaluations": self.evaluations,
-                               "space_seed": self.space_seed, "sut": self.sut,
+                               "jobs": self.resolved_jobs(), "space_seed": self.space_seed,
+                               "sut": self.sut,
                                "sut_params": dict(self.sut_params),
                                "strategy_params": {k: dict(v) for k, v
                                                    in self.strategy_params.items()},
@@ -316,6 +334,79 @@ def search_overhead(strategy, strategy_params, p: campaign.Plan, n_seeds: int) -
     return (time.perf_counter() - t0) / (n_seeds * p.n_updates * B / 1000.0)
 
 
+OVERHEAD_SEEDS = 2  # seeds the search-overhead timing runs (a per-evaluation figure)
+
+
+def _search_side_by_side(builds, seeds: list[int], jobs: int, progress: Progress, stop,
+                         out: Path, evaluations: int) -> dict:
+    """Every strategy's campaigns on ``seeds``, ``jobs`` strategies at a time in threads, one
+    progress bar over all of them. Returns ``{label: {"results", "wall", "compile"}}`` and
+    ``"_wall"`` (the whole). A stop request, Ctrl-C or an error in one strategy stops the
+    others at their next chunk; then :class:`~jaxfalsify.runs.Interrupted` (or the error) is
+    raised and nothing is written."""
+    from concurrent.futures import ThreadPoolExecutor, wait
+
+    halt = threading.Event()
+    lock = threading.Lock()
+    done: dict[str, int] = {}
+    finished: list[str] = []
+    total = sum(b.plan.budget for _, b in builds)  # evaluations per seed, all strategies
+    bar = {"started": False}
+
+    def halted() -> bool:
+        return halt.is_set() or (stop is not None and bool(stop()))
+
+    def tick(label, n):
+        with lock:
+            done[label] = n
+            if not bar["started"]:
+                progress.start(total, 0, "eval", f"{len(builds)} strategies x {len(seeds)} "
+                               f"seeds, {jobs} side by side")
+                bar["started"] = True
+            progress.update(sum(done.values()), strategies=f"{len(finished)}/{len(builds)}")
+
+    def one(item):
+        label, b = item
+        t0 = time.perf_counter()
+        results = campaign.run_seeds(b.space, b.sut, b.sut_params, b.strategy,
+                                     b.strategy_params, b.plan, seeds,
+                                     progress=lambda n, _r, label=label: tick(label, n),
+                                     stop=halted) if seeds else []
+        with lock:
+            finished.append(label)
+        return {"results": results, "wall": time.perf_counter() - t0,
+                "compile": results[0].compile_seconds if results else 0.0}
+
+    progress.phase(f"searching: {len(builds)} strategies x {len(seeds)} seeds x {evaluations} "
+                   f"evaluations, {jobs} side by side (each compiles or loads its program "
+                   f"first)")
+    t0 = time.perf_counter()
+    ex = ThreadPoolExecutor(jobs, thread_name_prefix="jaxfalsify-compare")
+    futures = [ex.submit(one, item) for item in builds]
+    try:
+        wait(futures, return_when="FIRST_EXCEPTION")
+        for f in futures:
+            if f.done() and f.exception() is not None:
+                raise f.exception()
+        out_map = {label: f.result() for (label, _), f in zip(builds, futures)}
+    except BaseException as e:
+        halt.set()
+        for f in futures:
+            f.cancel()
+        ex.shutdown(wait=True)
+        progress.close()
+        if isinstance(e, (campaign.Stopped, KeyboardInterrupt)):
+            from jaxfalsify.runs import Interrupted
+
+            raise Interrupted("compare", out, len(finished), len(builds), "strategies "
+                              "(nothing written; rerun the comparison)") from None
+        raise
+    ex.shutdown(wait=True)
+    progress.close()
+    out_map["_wall"] = time.perf_counter() - t0
+    return out_map
+
+
 def execute(config: CompareConfig, out: Path | str, *, force: bool = False,
             progress: Progress | None = None, stop=None, process_id: int = 0,
             num_processes: int = 1, startup_seconds: float = 0.0) -> dict:
@@ -350,44 +441,28 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
             truth = truth_summary(sp, base, config.evaluations)  # cached by process 0: a load
     lo, hi = share(config.seeds, process_id, num_processes)
     mine = list(range(lo, hi))
+    builds = [(search.canonical(e), config.run_config(e).build()) for e in config.strategies]
+    jobs = config.resolved_jobs()
+    searched = _search_side_by_side(builds, mine, jobs, progress, stop, out, config.evaluations)
+    if jobs == 1:
+        for label, _ in builds:
+            clock.add("compile", searched[label]["compile"])
+            clock.add("search", searched[label]["wall"] - searched[label]["compile"])
+    else:  # compiling/loading and searching overlap across strategies: one phase
+        clock.add("compile_and_search", searched["_wall"])
     parts: dict[str, dict] = {}
-    for k, entry in enumerate(config.strategies):
-        b = config.run_config(entry).build()
-        label = search.canonical(entry)
-        t0 = time.perf_counter()
-        progress.phase(f"[{k + 1}/{len(config.strategies)}] {label}: compiling "
-                       f"{len(mine)} seeds x {config.evaluations} evaluations")
-        started = {}
-
-        def chunk_done(done, records, label=label):
-            if not started:
-                progress.start(b.plan.budget, done, "eval", f"{label} ({len(mine)} seeds)")
-                started["yes"] = True
-            progress.update(done)
-
-        try:
-            results = campaign.run_seeds(sp, b.sut, b.sut_params, b.strategy,
-                                         b.strategy_params, b.plan, mine, progress=chunk_done,
-                                         stop=stop) if mine else []
-        except (campaign.Stopped, KeyboardInterrupt):
-            progress.close()
-            from jaxfalsify.runs import Interrupted
-
-            raise Interrupted("compare", out, k, len(config.strategies), "strategies (nothing "
-                              "written; rerun the comparison)") from None
-        progress.close()
-        wall = time.perf_counter() - t0
+    n_over = min(len(mine), OVERHEAD_SEEDS)
+    for label, b in builds:
+        results = searched[label]["results"]
         stats = [seed_stats(s, r, truth, config.evaluations) for s, r in zip(mine, results)]
-        small = {b: [seed_stats(s, r, truth, b) for s, r in zip(mine, results)]
-                 for b in sorted(set(config.budgets)) if b < config.evaluations}
-        with clock("overhead"):
-            overhead = (search_overhead(b.strategy, b.strategy_params, b.plan, len(mine))
+        small = {bb: [seed_stats(s, r, truth, bb) for s, r in zip(mine, results)]
+                 for bb in sorted(set(config.budgets)) if bb < config.evaluations}
+        with clock("overhead"):  # one strategy at a time, after all searches: uncontended
+            overhead = (search_overhead(b.strategy, b.strategy_params, b.plan, n_over)
                         if mine and config.overhead else None)
-        parts[label] = {"stats": stats, "wall": wall, "overhead": overhead,
-                        "compile": results[0].compile_seconds if results else 0.0,
-                        "small": {str(b): v for b, v in small.items()}}
-        clock.add("compile", parts[label]["compile"])
-        clock.add("search", wall - parts[label]["compile"])
+        parts[label] = {"stats": stats, "wall": searched[label]["wall"], "overhead": overhead,
+                        "compile": searched[label]["compile"],
+                        "small": {str(bb): v for bb, v in small.items()}}
     if num_processes > 1:
         out.mkdir(parents=True, exist_ok=True)
         store.write_json(out / f".compare.part-{process_id:05d}.json", parts)
@@ -417,7 +492,8 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
     result = {"space": sp.name, "space_seed": config.space_seed, "sut": config.sut,
               "sut_params": dict(config.sut_params),
               "evaluations": config.evaluations, "seeds": config.seeds,
-              "processes": num_processes, **truth, "rows": rows, "budgets": by_budget,
+              "processes": num_processes, "jobs": jobs, **truth, "rows": rows,
+              "budgets": by_budget,
               "overhead": {k: v.get("overhead") for k, v in merged.items()},
               "versions": cfg.versions()}
     if process_id == 0:
@@ -467,6 +543,12 @@ def uniform_line(result: dict, u: dict, budget: int) -> str:
             f"corners: {_share(result['uniform_corner_share'])}.")
 
 
+def side_by_side(result: dict) -> str:
+    """``", 2 strategies side by side"`` when the wall times were shared (else empty)."""
+    jobs = result.get("jobs", 1)
+    return f", {jobs} strategies side by side" if jobs > 1 else ""
+
+
 def table_markdown(result: dict) -> str:
     """The comparison as a Markdown table, with uniform random's analytic expectation."""
     budget = result["evaluations"]
@@ -474,7 +556,7 @@ def table_markdown(result: dict) -> str:
             f"[IQR] (none = {budget + 1}) | best, normalised (median) | seeds at global max | "
             "distinct critical found (median) / all | evaluations on box corners (median) | "
             "mean reward, last quarter (median) | overhead s / 1000 evaluations | "
-            "wall s (all seeds) |")
+            f"wall s (all seeds{side_by_side(result)}) |")
     lines = [head, "|" + "---|" * 10]
     overhead = result.get("overhead", {})
     for r in result["rows"]:
@@ -559,6 +641,7 @@ class SuiteConfig:
     budgets: tuple[int, ...] = (250, 1000, 4000)
     seeds: int = 10
     strategies: tuple[str, ...] = DEFAULT_STRATEGIES
+    jobs: int = 0  # strategies searched side by side (0: one per CPU core, at most 4)
 
     def compare_config(self, entry: SuiteEntry) -> CompareConfig:
         names = tuple(n for n in self.strategies
@@ -566,7 +649,8 @@ class SuiteConfig:
         return CompareConfig(strategies=names, seeds=self.seeds,
                              evaluations=max(self.budgets), space=entry.space,
                              space_seed=entry.space_seed, sut=entry.sut,
-                             sut_params=dict(entry.sut_params), budgets=tuple(self.budgets))
+                             sut_params=dict(entry.sut_params), budgets=tuple(self.budgets),
+                             jobs=self.jobs)
 
     def check(self) -> None:
         from jaxfalsify.runs import check_int
@@ -584,9 +668,9 @@ _ENTRY_KEYS = {"space", "sut", "sut_params", "space_seed", "exclude"}
 
 
 def load_suite(path: Path | str, seeds: int | None = None,
-               strategies: tuple[str, ...] | None = None) -> SuiteConfig:
+               strategies: tuple[str, ...] | None = None, jobs: int = 0) -> SuiteConfig:
     """A suite from its TOML file (one-line ValueError naming the bad key); ``seeds`` and
-    ``strategies`` override the file's."""
+    ``strategies`` override the file's; ``jobs`` as in :class:`CompareConfig`."""
     path = Path(path)
     doc = cfg.read_toml(path, "--suite")
     where = str(path)
@@ -618,7 +702,8 @@ def load_suite(path: Path | str, seeds: int | None = None,
         raise ValueError(f"{where}: budgets must be a list of evaluation counts")
     names = strategies or tuple(doc.get("strategies", DEFAULT_STRATEGIES))
     suite = SuiteConfig(str(doc.get("name", path.stem)), tuple(out),
-                        tuple(sorted(set(budgets))), seeds or doc.get("seeds", 10), names)
+                        tuple(sorted(set(budgets))), seeds or doc.get("seeds", 10), names,
+                        jobs)
     suite.check()
     return suite
 

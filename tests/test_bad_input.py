@@ -138,6 +138,7 @@ CASES = [
     (["sweep", "--space", "space_zero_samples.toml"], "samples must be a positive integer"),
     (["compare", "--evaluations", "0"], "--evaluations must be >= 1"),
     (["compare", "--seeds", "0"], "--seeds must be >= 1"),
+    (["compare", "--jobs", "0"], "--jobs must be >= 1"),
     # a batch larger than the space where that matters
     (["run", "--space", "tiny.toml", "--strategy", "grid", "--batch", "64"],
      "exceeds the space's 32 scenarios"),

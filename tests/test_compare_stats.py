@@ -143,3 +143,54 @@ def test_per_strategy_options_reach_that_strategy_only():
         CompareConfig(strategies=("cem",), strategy_params={"anneal": {"t0": 1.0}}).check()
     with pytest.raises(ValueError, match="no option 'nope'"):
         CompareConfig(strategies=("cem",), strategy_params={"cem": {"nope": 1.0}}).check()
+
+
+def _tiny_compare(tmp_path, name, jobs, stop=None):
+    from conftest import TINY_SPACE
+
+    from jaxfalsify.compare import CompareConfig, execute
+
+    space = tmp_path / "tiny.toml"
+    space.write_text(TINY_SPACE)
+    cfg = CompareConfig(strategies=("random", "cem", "anneal"), seeds=2, evaluations=48,
+                        space=str(space), overhead=False, jobs=jobs)
+    return execute(cfg, tmp_path / name, stop=stop)
+
+
+def test_strategies_side_by_side_give_the_same_results(tmp_path):
+    """``jobs`` strategies searched at once in threads: every figure of compare.json equals the
+    one-at-a-time run's (only wall times differ); the resolved jobs are recorded."""
+    import json
+
+    one = _tiny_compare(tmp_path, "one", jobs=1)
+    three = _tiny_compare(tmp_path, "three", jobs=3)
+    assert one["jobs"] == 1 and three["jobs"] == 3
+    assert [r["strategy"] for r in three["rows"]] == ["random", "cem", "anneal"]
+    drop = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"}  # noqa: E731
+                         for r in rows]
+    assert drop(one["rows"]) == drop(three["rows"])
+    for a, b in zip(one["budgets"], three["budgets"]):
+        assert drop(a["rows"]) == drop(b["rows"])
+    assert "jobs = 3" in (tmp_path / "three" / "config.toml").read_text()
+    assert "3 strategies side by side" in (tmp_path / "three" / "compare.md").read_text()
+    assert json.loads((tmp_path / "one" / "compare.json").read_text())["rows"][0]["per_seed"]
+
+
+def test_side_by_side_stop_interrupts_every_strategy_and_writes_nothing(tmp_path):
+    """A stop request while strategies run side by side ends all of them at their next chunk:
+    Interrupted is raised (naming how many strategies had finished) and no result is
+    written."""
+    import pytest
+
+    from jaxfalsify.runs import Interrupted
+
+    calls = []
+
+    def stop():
+        calls.append(1)
+        return len(calls) > 2  # a few chunks in
+
+    with pytest.raises(Interrupted, match=r"interrupted after \d of 3 strategies"):
+        _tiny_compare(tmp_path, "stopped", jobs=2, stop=stop)
+    assert not (tmp_path / "stopped" / "compare.json").exists()
+    assert not (tmp_path / "stopped" / "compare.md").exists()
