@@ -17,8 +17,10 @@ a free softmax head plus a Gaussian bump over the value ranks. The bump lets wha
 about one value carry to its neighbours (the search moves towards a failure region as an
 evolution strategy's mean would, instead of value by value); the free head sharpens onto the
 individual values that fail. The bump is at least 0.05 of the range wide (a narrower one
-would move its mass wholesale from value to value as its mean drifts). Heads start at zero (``sigma = 1``): the first proposals are
-close to uniform. Padded values get logit ``MASKED`` (probability exactly 0).
+would move its mass wholesale from value to value as its mean drifts). Heads start at zero
+(``sigma = 1``): the first proposals are close to uniform. Each head is computed over its own
+parameter's values only (the weights are padded to the widest parameter, the padding unused);
+:func:`conditionals` pads the probabilities with exact zeros.
 
 Weights are a dict of arrays (Glorot-uniform LSTM kernels, forget-gate bias 1, zero heads), so
 many controllers stack along a leading axis and are vmapped.
@@ -30,8 +32,8 @@ import jax
 import numpy as np
 import jax.numpy as jnp
 
-from jaxfalsify.search.base import categorical_from_uniform, value_mask
-from jaxfalsify.search.controller import MASKED, _glorot, lstm_step
+from jaxfalsify.search.base import categorical_from_uniform
+from jaxfalsify.search.controller import _glorot, lstm_step
 
 
 LOG_SIGMA_MIN = float(np.log(0.05))
@@ -100,33 +102,40 @@ def step_input(p: jax.Array, chosen: jax.Array, n_params: int, anchor=None) -> j
     return jnp.concatenate(x)
 
 
-def head_logits(w: dict, p: jax.Array, h: jax.Array, shape: tuple[int, ...],
+def head_logits(w: dict, p: int, h: jax.Array, shape: tuple[int, ...],
                 log_sigma_min=LOG_SIGMA_MIN, anchor=None) -> jax.Array:
-    """Masked logits ``(max_n,)`` of parameter ``p`` from the LSTM output ``h (H,)``; the
-    bump is at least ``exp(log_sigma_min)`` of the range wide. With an anchor present the bump
-    is centred on the anchor's rank plus a learnt offset, ``a_p + 0.5 tanh(h . e_p + f_p)``,
-    its log-width gains a learnt bias (starting at ``LOCAL_STEPS`` value steps), and the
-    anchor's own value a learnt *stay* logit (starting where about ``MOVES`` parameters change
-    per draw): a learnt local move around a good scenario, one or two parameters at a time
-    (the paper's controller, too, reads the previous action)."""
-    free = h @ w["head"]["w"][p] + w["head"]["b"][p]
+    """Logits ``(shape[p],)`` of parameter ``p`` (a Python int) from the LSTM output
+    ``h (H,)``; the bump is at least ``exp(log_sigma_min)`` of the range wide. With an anchor
+    present the bump is centred on the anchor's rank plus a learnt offset,
+    ``a_p + 0.5 tanh(h . e_p + f_p)``, its log-width gains a learnt bias (starting at
+    ``LOCAL_STEPS`` value steps), and the anchor's own value a learnt *stay* logit (starting
+    where about ``MOVES`` parameters change per draw): a learnt local move around a good
+    scenario, one or two parameters at a time (the paper's controller, too, reads the previous
+    action). Only the parameter's own values are computed (the weights are padded to the
+    widest parameter; the padding is never read)."""
+    n = shape[p]
+    free = h @ w["head"]["w"][p][:, :n] + w["head"]["b"][p][:n]
     mu = jax.nn.sigmoid(h @ w["mu"]["w"][p] + w["mu"]["b"][p])
     log_sigma = h @ w["sigma"]["w"][p] + w["sigma"]["b"][p]
+    r = value_ranks(shape)[p, :n]
     stay = 0.0
     if anchor is not None:
         ranks, present, zoom = anchor
         local = ranks[p] + 0.5 * jnp.tanh(h @ w["delta"]["w"][p] + w["delta"]["b"][p])
         mu = jnp.where(present, local, mu)
         log_sigma = jnp.where(present, log_sigma + w["local"]["b"][p] + zoom[p], log_sigma)
-        at = jnp.abs(value_ranks(shape)[p] - ranks[p]) < 1e-6  # the anchor's own value
+        at = jnp.abs(r - ranks[p]) < 1e-6  # the anchor's own value
         stay = jnp.where(present & at, h @ w["stay"]["w"][p] + w["stay"]["b"][p], 0.0)
     # never narrower than half a value step (a one-value parameter: any width)
-    floor = jnp.maximum(log_sigma_min, jnp.log(0.5 / jnp.maximum(
-        jnp.asarray(shape, jnp.float32)[p] - 1, 1.0)))
+    floor = jnp.maximum(log_sigma_min, jnp.float32(np.log(0.5 / max(n - 1, 1))))
     sigma = jnp.exp(jnp.clip(log_sigma, floor, 1.0))
-    r = value_ranks(shape)[p]
     bump = -0.5 * jnp.square((r - mu) / sigma)
-    return jnp.where(value_mask(shape)[p], free + bump + stay, MASKED)
+    return free + bump + stay
+
+
+def padded(x: jax.Array, shape: tuple[int, ...], fill=0.0) -> jax.Array:
+    """A parameter's ``(n,)`` vector padded to the widest parameter ``(max_n,)``."""
+    return jnp.pad(x, (0, max(shape) - x.shape[0]), constant_values=fill)
 
 
 def _anchor_ranks(anchor, shape):
@@ -143,25 +152,25 @@ def _anchor_ranks(anchor, shape):
 def _scan(w: dict, shape: tuple[int, ...], step_fn, xs, log_sigma_min=LOG_SIGMA_MIN,
           anchor=None):
     """Run the controller over the P parameters for one scenario; ``step_fn(p, logits, x)``
-    returns ``(value index, output)`` where ``x`` is that step's per-scenario input.
-    ``anchor``: ``(indices (P,), present[, zoom (P,)])`` for an anchored controller."""
+    (``p`` a Python int, ``logits (shape[p],)``) returns ``(value index, output)`` where ``x``
+    is that step's per-scenario input; the outputs are stacked ``(P, ...)``. ``anchor``:
+    ``(indices (P,), present[, zoom (P,)])`` for an anchored controller. The P steps are
+    unrolled (a handful of parameters, each with its own number of values: a loop over the
+    controller's structure, not over data)."""
     P = len(shape)
     hidden = w["lstm"]["u"].shape[0]
     ranks = value_ranks(shape)
     anc = _anchor_ranks(anchor, shape)
-
-    def one(carry, inp):
-        h, c, chosen = carry
-        p, x = inp
-        h, c = lstm_step(w["lstm"], (h, c), step_input(p, chosen, P, None if anc is None else anc[:2]),
-                         activation=jnp.tanh)
+    h, c, chosen = jnp.zeros(hidden), jnp.zeros(hidden), jnp.zeros(P)
+    outs = []
+    for p in range(P):
+        h, c = lstm_step(w["lstm"], (h, c), step_input(p, chosen, P, None if anc is None
+                                                       else anc[:2]), activation=jnp.tanh)
         logits = head_logits(w, p, h, shape, log_sigma_min, anc)
-        a, out = step_fn(p, logits, x)
+        a, out = step_fn(p, logits, xs[p])
         chosen = chosen.at[p].set(ranks[p, a])
-        return (h, c, chosen), out
-
-    init_c = (jnp.zeros(hidden), jnp.zeros(hidden), jnp.zeros(P))
-    return jax.lax.scan(one, init_c, (jnp.arange(P), xs))[1]
+        outs.append(out)
+    return jax.tree.map(lambda *o: jnp.stack(o), *outs)
 
 
 def sample(w: dict, u: jax.Array, shape: tuple[int, ...],
@@ -193,6 +202,6 @@ def conditionals(w: dict, action: jax.Array, shape: tuple[int, ...],
     """``(P, max_n)`` the probabilities of every parameter's values given ``action``'s values
     before it (row 0 is the first parameter's marginal)."""
     def step_fn(p, logits, a):
-        return a, jax.nn.softmax(logits)
+        return a, padded(jax.nn.softmax(logits), shape)
 
     return _scan(w, shape, step_fn, action, log_sigma_min, anchor)

@@ -193,7 +193,8 @@ class AutoregressiveReinforce(Strategy):
         w = jax.tree.map(lambda x: x[learner], state.weights)
 
         def step_fn(p, logits, _):
-            return jnp.argmax(logits).astype(jnp.int32), jax.nn.softmax(logits)
+            return jnp.argmax(logits).astype(jnp.int32), ar.padded(jax.nn.softmax(logits),
+                                                                   self.shape)
 
         return ar._scan(w, self.shape, step_fn, jnp.zeros(self.n_params), self._lsm(params),
                         self._global())
@@ -202,6 +203,7 @@ class AutoregressiveReinforce(Strategy):
         L, b, P, M = self.learners, self.per_learner, self.n_params, self.resample
         lsm = self._lsm(params)
         C = b * (M + 1) if M > 1 else b  # candidates per learner: M per slot + b fallbacks
+        Cp = b * M if M > 1 else b  # of which the policy draws (the rest: uniform fallbacks)
         # one draw: policy (P), uniform values (P), anchor pick, anchor coin, repeat coin,
         # zoom, uniform-mix coin
         u = uniform(key, (L, C, 2 * P + 5))
@@ -220,12 +222,16 @@ class AutoregressiveReinforce(Strategy):
             present = (filled[:, None] > 0) & (u[..., 2 * P + 1] >= share[:, None])
             sampled = jax.vmap(lambda w, ul, al, pl, zl: jax.vmap(
                 lambda ui, ai, pi, zi: ar.sample(w, ui, self.shape, lsm, (ai, pi, zi * lz)))(
-                    ul, al, pl, zl))(state.weights, u[..., :P], anchors, present, zooms)
+                    ul, al, pl, zl))(state.weights, u[:, :Cp, :P], anchors[:, :Cp],
+                                     present[:, :Cp], zooms[:, :Cp])
         else:
             anchors = jnp.zeros((L, C, P), jnp.int32)
             present = jnp.zeros((L, C), bool)
             sampled = jax.vmap(lambda w, ul: jax.vmap(
-                lambda ui: ar.sample(w, ui, self.shape, lsm))(ul))(state.weights, u[..., :P])
+                lambda ui: ar.sample(w, ui, self.shape, lsm))(ul))(state.weights,
+                                                                  u[:, :Cp, :P])
+        # the uniform fallbacks need no policy draw
+        sampled = jnp.pad(sampled, ((0, 0), (0, C - Cp), (0, 0)))
         explored = u[..., -1] < params.uniform_mix
         if M > 1:  # the last b candidates are uniform fallbacks, taken when too few are new
             explored = explored | (jnp.arange(C) >= b * M)[None, :]
