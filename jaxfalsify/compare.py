@@ -290,12 +290,11 @@ def truth_summary(sp, b, budget: int | None = None) -> dict:
     return out
 
 
-def search_overhead(strategy, strategy_params, p: campaign.Plan, n_seeds: int) -> float:
-    """Seconds per 1000 evaluations (per seed) of the strategy's own ask/tell loop for the
-    campaign's updates, without simulation (zero rewards, no collisions), all seeds in one
-    compiled call as the campaign runs them (hyperparameters traced, as there); compiled
-    ahead (the program is kept in the per-user cache, see
-    :func:`jaxfalsify.cache.exported_jit`), then one call timed."""
+def overhead_program(strategy, strategy_params, p: campaign.Plan, n_seeds: int):
+    """The compiled ask/tell loop that :func:`search_overhead` times, and its arguments:
+    ``(compiled, args, evaluations per call in thousands)``. Kept in the per-user cache (see
+    :func:`jaxfalsify.cache.exported_jit`) and compiled ahead, so loading it can happen while
+    other strategies search and the timing covers the loop alone."""
     import jax
     import jax.numpy as jnp
 
@@ -328,20 +327,33 @@ def search_overhead(strategy, strategy_params, p: campaign.Plan, n_seeds: int) -
     static = {"strategy": repr(strategy), "params": str(tree), "updates": p.n_updates,
               "seeds": n_seeds}
     prog = cache.exported_jit(fn, "overhead", static, (args[0], f32), lambda: args)
-    compiled = prog.call.lower(*args).compile()
+    return prog.call.lower(*args).compile(), args, n_seeds * p.n_updates * B / 1000.0
+
+
+def search_overhead(strategy, strategy_params, p: campaign.Plan, n_seeds: int,
+                    prepared=None) -> float:
+    """Seconds per 1000 evaluations (per seed) of the strategy's own ask/tell loop for the
+    campaign's updates, without simulation (zero rewards, no collisions), ``n_seeds`` seeds in
+    one compiled call as the campaign runs them (hyperparameters traced, as there): one call of
+    :func:`overhead_program` (or the ``prepared`` one) timed."""
+    import jax
+
+    compiled, args, thousands = prepared or overhead_program(strategy, strategy_params, p,
+                                                             n_seeds)
     t0 = time.perf_counter()
     jax.block_until_ready(compiled(*args))
-    return (time.perf_counter() - t0) / (n_seeds * p.n_updates * B / 1000.0)
+    return (time.perf_counter() - t0) / thousands
 
 
 OVERHEAD_SEEDS = 2  # seeds the search-overhead timing runs (a per-evaluation figure)
 
 
 def _search_side_by_side(builds, seeds: list[int], jobs: int, progress: Progress, stop,
-                         out: Path, evaluations: int) -> dict:
+                         out: Path, evaluations: int, overhead_seeds: int = 0) -> dict:
     """Every strategy's campaigns on ``seeds``, ``jobs`` strategies at a time in threads, one
     progress bar over all of them. Returns ``{label: {"results", "wall", "compile"}}`` and
-    ``"_wall"`` (the whole). A stop request, Ctrl-C or an error in one strategy stops the
+    ``"_wall"`` (the whole); with ``overhead_seeds`` each strategy's overhead program is
+    loaded after its search (``"overhead_program"``), to be timed later. A stop request, Ctrl-C or an error in one strategy stops the
     others at their next chunk; then :class:`~jaxfalsify.runs.Interrupted` (or the error) is
     raised and nothing is written."""
     from concurrent.futures import ThreadPoolExecutor, wait
@@ -372,9 +384,12 @@ def _search_side_by_side(builds, seeds: list[int], jobs: int, progress: Progress
                                      b.strategy_params, b.plan, seeds,
                                      progress=lambda n, _r, label=label: tick(label, n),
                                      stop=halted) if seeds else []
+        wall = time.perf_counter() - t0
+        prepared = (overhead_program(b.strategy, b.strategy_params, b.plan, overhead_seeds)
+                    if overhead_seeds and not halted() else None)
         with lock:
             finished.append(label)
-        return {"results": results, "wall": time.perf_counter() - t0,
+        return {"results": results, "wall": wall, "overhead_program": prepared,
                 "compile": results[0].compile_seconds if results else 0.0}
 
     progress.phase(f"searching: {len(builds)} strategies x {len(seeds)} seeds x {evaluations} "
@@ -443,7 +458,9 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
     mine = list(range(lo, hi))
     builds = [(search.canonical(e), config.run_config(e).build()) for e in config.strategies]
     jobs = config.resolved_jobs()
-    searched = _search_side_by_side(builds, mine, jobs, progress, stop, out, config.evaluations)
+    n_over = min(len(mine), OVERHEAD_SEEDS) if config.overhead else 0
+    searched = _search_side_by_side(builds, mine, jobs, progress, stop, out, config.evaluations,
+                                    n_over)
     if jobs == 1:
         for label, _ in builds:
             clock.add("compile", searched[label]["compile"])
@@ -451,15 +468,15 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
     else:  # compiling/loading and searching overlap across strategies: one phase
         clock.add("compile_and_search", searched["_wall"])
     parts: dict[str, dict] = {}
-    n_over = min(len(mine), OVERHEAD_SEEDS)
     for label, b in builds:
         results = searched[label]["results"]
         stats = [seed_stats(s, r, truth, config.evaluations) for s, r in zip(mine, results)]
         small = {bb: [seed_stats(s, r, truth, bb) for s, r in zip(mine, results)]
                  for bb in sorted(set(config.budgets)) if bb < config.evaluations}
         with clock("overhead"):  # one strategy at a time, after all searches: uncontended
-            overhead = (search_overhead(b.strategy, b.strategy_params, b.plan, n_over)
-                        if mine and config.overhead else None)
+            overhead = (search_overhead(b.strategy, b.strategy_params, b.plan, n_over,
+                                        searched[label]["overhead_program"])
+                        if n_over else None)
         parts[label] = {"stats": stats, "wall": searched[label]["wall"], "overhead": overhead,
                         "compile": searched[label]["compile"],
                         "small": {str(bb): v for bb, v in small.items()}}
