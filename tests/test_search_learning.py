@@ -81,7 +81,16 @@ def _np_log_prob(w, action, shape, anchor=None, sigma_min=0.05, zoom=None):
     return total, ent
 
 
-def test_autoregressive_log_prob_matches_step_by_step_numpy():
+@pytest.fixture(params=["scanned", "unrolled"])
+def controller_path(request, monkeypatch):
+    """Both ways the controller runs its steps: scanned with padded heads, and unrolled with
+    each head at its own width (chosen by the space's size in practice; forced here)."""
+    monkeypatch.setattr(ar, "UNROLL_ABOVE", 0 if request.param == "unrolled" else 10**9)
+    return request.param
+
+
+def test_autoregressive_log_prob_matches_step_by_step_numpy(controller_path):
+    assert ar.unrolled(SHAPE) == (controller_path == "unrolled")
     w = _random_weights(SHAPE)
     for action in ([0, 0, 0], [3, 5, 2], [1, 4, 0], [2, 0, 1]):
         lp, ent = ar.log_prob_and_entropy(w, jnp.asarray(action), SHAPE)
@@ -98,7 +107,7 @@ def test_autoregressive_log_prob_matches_step_by_step_numpy():
     assert np.abs(joint.sum(2) - np.outer(m0, m1)).max() > 1e-3
 
 
-def test_autoregressive_sampling_follows_the_conditionals():
+def test_autoregressive_sampling_follows_the_conditionals(controller_path):
     """Sampling by inverse CDF step by step: the empirical frequencies of 20,000 draws match
     the exact joint probabilities."""
     w = _random_weights((3, 4), seed=2)
@@ -111,7 +120,7 @@ def test_autoregressive_sampling_follows_the_conditionals():
     np.testing.assert_allclose(freq, exact, atol=0.012)
 
 
-def test_anchored_controller_log_prob_matches_step_by_step_numpy():
+def test_anchored_controller_log_prob_matches_step_by_step_numpy(controller_path):
     """The anchored controller (the default's local move): the same NumPy computation with
     the anchor's inputs, the bump centred at the anchor plus a learnt offset and the stay
     logit; and the same controller without an anchor."""

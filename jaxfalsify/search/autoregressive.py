@@ -18,9 +18,10 @@ about one value carry to its neighbours (the search moves towards a failure regi
 evolution strategy's mean would, instead of value by value); the free head sharpens onto the
 individual values that fail. The bump is at least 0.05 of the range wide (a narrower one
 would move its mass wholesale from value to value as its mean drifts). Heads start at zero
-(``sigma = 1``): the first proposals are close to uniform. Each head is computed over its own
-parameter's values only (the weights are padded to the widest parameter, the padding unused);
-:func:`conditionals` pads the probabilities with exact zeros.
+(``sigma = 1``): the first proposals are close to uniform. Weights are padded to the widest
+parameter; on spaces with a few wide parameters (:func:`unrolled`) the steps are unrolled and
+each head computed over its own values only, elsewhere they are scanned and padded values get
+logit ``MASKED`` (probability exactly 0); :func:`conditionals` pads with exact zeros.
 
 Weights are a dict of arrays (Glorot-uniform LSTM kernels, forget-gate bias 1, zero heads), so
 many controllers stack along a leading axis and are vmapped.
@@ -32,8 +33,8 @@ import jax
 import numpy as np
 import jax.numpy as jnp
 
-from jaxfalsify.search.base import categorical_from_uniform
-from jaxfalsify.search.controller import _glorot, lstm_step
+from jaxfalsify.search.base import categorical_from_uniform, value_mask
+from jaxfalsify.search.controller import MASKED, _glorot, lstm_step
 
 
 LOG_SIGMA_MIN = float(np.log(0.05))
@@ -102,18 +103,19 @@ def step_input(p: jax.Array, chosen: jax.Array, n_params: int, anchor=None) -> j
     return jnp.concatenate(x)
 
 
-def head_logits(w: dict, p: int, h: jax.Array, shape: tuple[int, ...],
+def head_logits(w: dict, p, h: jax.Array, shape: tuple[int, ...],
                 log_sigma_min=LOG_SIGMA_MIN, anchor=None) -> jax.Array:
-    """Logits ``(shape[p],)`` of parameter ``p`` (a Python int) from the LSTM output
-    ``h (H,)``; the bump is at least ``exp(log_sigma_min)`` of the range wide. With an anchor
-    present the bump is centred on the anchor's rank plus a learnt offset,
-    ``a_p + 0.5 tanh(h . e_p + f_p)``, its log-width gains a learnt bias (starting at
+    """Logits of parameter ``p`` from the LSTM output ``h (H,)``: ``(shape[p],)`` over its own
+    values when ``p`` is a Python int, else (``p`` traced) ``(max_n,)`` with the padded values
+    at ``MASKED`` (probability exactly 0). The bump is at least ``exp(log_sigma_min)`` of the
+    range wide. With an anchor present the bump is centred on the anchor's rank plus a learnt
+    offset, ``a_p + 0.5 tanh(h . e_p + f_p)``, its log-width gains a learnt bias (starting at
     ``LOCAL_STEPS`` value steps), and the anchor's own value a learnt *stay* logit (starting
     where about ``MOVES`` parameters change per draw): a learnt local move around a good
     scenario, one or two parameters at a time (the paper's controller, too, reads the previous
-    action). Only the parameter's own values are computed (the weights are padded to the
-    widest parameter; the padding is never read)."""
-    n = shape[p]
+    action)."""
+    own = isinstance(p, int)
+    n = shape[p] if own else max(shape)
     free = h @ w["head"]["w"][p][:, :n] + w["head"]["b"][p][:n]
     mu = jax.nn.sigmoid(h @ w["mu"]["w"][p] + w["mu"]["b"][p])
     log_sigma = h @ w["sigma"]["w"][p] + w["sigma"]["b"][p]
@@ -127,10 +129,23 @@ def head_logits(w: dict, p: int, h: jax.Array, shape: tuple[int, ...],
         at = jnp.abs(r - ranks[p]) < 1e-6  # the anchor's own value
         stay = jnp.where(present & at, h @ w["stay"]["w"][p] + w["stay"]["b"][p], 0.0)
     # never narrower than half a value step (a one-value parameter: any width)
-    floor = jnp.maximum(log_sigma_min, jnp.float32(np.log(0.5 / max(n - 1, 1))))
+    floor = jnp.maximum(log_sigma_min, jnp.log(0.5 / jnp.maximum(
+        jnp.asarray(shape, jnp.float32)[p] - 1, 1.0)))
     sigma = jnp.exp(jnp.clip(log_sigma, floor, 1.0))
     bump = -0.5 * jnp.square((r - mu) / sigma)
-    return free + bump + stay
+    logits = free + bump + stay
+    return logits if own else jnp.where(value_mask(shape)[p], logits, MASKED)
+
+
+UNROLL_ABOVE = 1024  # padded head values (P x the widest parameter's values) above which the
+# controller's steps are unrolled, each head at its own width
+
+
+def unrolled(shape: tuple[int, ...]) -> bool:
+    """Whether :func:`_scan` unrolls the steps (heads at their own widths: less work per draw
+    on spaces with a few wide parameters, a larger program to load) or scans them (heads
+    padded to the widest parameter)."""
+    return len(shape) * max(shape) > UNROLL_ABOVE
 
 
 def padded(x: jax.Array, shape: tuple[int, ...], fill=0.0) -> jax.Array:
@@ -152,23 +167,30 @@ def _anchor_ranks(anchor, shape):
 def _scan(w: dict, shape: tuple[int, ...], step_fn, xs, log_sigma_min=LOG_SIGMA_MIN,
           anchor=None):
     """Run the controller over the P parameters for one scenario; ``step_fn(p, logits, x)``
-    (``p`` a Python int, ``logits (shape[p],)``) returns ``(value index, output)`` where ``x``
-    is that step's per-scenario input; the outputs are stacked ``(P, ...)``. ``anchor``:
-    ``(indices (P,), present[, zoom (P,)])`` for an anchored controller. The P steps are
-    unrolled (a handful of parameters, each with its own number of values: a loop over the
-    controller's structure, not over data)."""
+    returns ``(value index, output)`` where ``x`` is that step's per-scenario input; the
+    outputs are stacked ``(P, ...)``. ``anchor``: ``(indices (P,), present[, zoom (P,)])`` for
+    an anchored controller. Where :func:`unrolled`, ``p`` is a Python int and ``logits`` has
+    the parameter's own width (a loop over the controller's structure, not over data); else a
+    ``lax.scan`` with ``p`` traced and ``logits (max_n,)``."""
     P = len(shape)
     hidden = w["lstm"]["u"].shape[0]
     ranks = value_ranks(shape)
     anc = _anchor_ranks(anchor, shape)
-    h, c, chosen = jnp.zeros(hidden), jnp.zeros(hidden), jnp.zeros(P)
-    outs = []
-    for p in range(P):
+
+    def one(carry, p, x):
+        h, c, chosen = carry
         h, c = lstm_step(w["lstm"], (h, c), step_input(p, chosen, P, None if anc is None
                                                        else anc[:2]), activation=jnp.tanh)
         logits = head_logits(w, p, h, shape, log_sigma_min, anc)
-        a, out = step_fn(p, logits, xs[p])
-        chosen = chosen.at[p].set(ranks[p, a])
+        a, out = step_fn(p, logits, x)
+        return (h, c, chosen.at[p].set(ranks[p, a])), out
+
+    carry = (jnp.zeros(hidden), jnp.zeros(hidden), jnp.zeros(P))
+    if not unrolled(shape):
+        return jax.lax.scan(lambda c, inp: one(c, *inp), carry, (jnp.arange(P), xs))[1]
+    outs = []
+    for p in range(P):
+        carry, out = one(carry, p, xs[p])
         outs.append(out)
     return jax.tree.map(lambda *o: jnp.stack(o), *outs)
 
