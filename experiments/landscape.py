@@ -141,7 +141,7 @@ def main(argv=None) -> None:
         q = np.percentile(cens, [25, 50, 75])
         found = sum(f is not None for f in fills)
         result["radii"][str(r)] = {"basin_share": basin, "basin_over_p": basin * coll.size / n_coll,
-                                   "flood_fill": [f for f in fills],
+                                   "flood_fill": fills,
                                    "flood_fill_median": float(q[1]),
                                    "flood_fill_found": found}
         print(f"| {r} | {basin:.2e} | {basin * coll.size / n_coll:.1f} | {q[1]:g} "

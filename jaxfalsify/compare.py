@@ -353,9 +353,9 @@ def _search_side_by_side(builds, seeds: list[int], jobs: int, progress: Progress
     """Every strategy's campaigns on ``seeds``, ``jobs`` strategies at a time in threads, one
     progress bar over all of them. Returns ``{label: {"results", "wall", "compile"}}`` and
     ``"_wall"`` (the whole); with ``overhead_seeds`` each strategy's overhead program is
-    loaded after its search (``"overhead_program"``), to be timed later. A stop request, Ctrl-C or an error in one strategy stops the
-    others at their next chunk; then :class:`~jaxfalsify.runs.Interrupted` (or the error) is
-    raised and nothing is written."""
+    loaded after its search (``"overhead_program"``), to be timed later. A stop request,
+    Ctrl-C or an error in one strategy stops the others at their next chunk; then
+    :class:`~jaxfalsify.runs.Interrupted` (or the error) is raised and nothing is written."""
     from concurrent.futures import ThreadPoolExecutor, wait
 
     halt = threading.Event()

@@ -148,9 +148,9 @@ def unrolled(shape: tuple[int, ...]) -> bool:
     return len(shape) * max(shape) > UNROLL_ABOVE
 
 
-def padded(x: jax.Array, shape: tuple[int, ...], fill=0.0) -> jax.Array:
-    """A parameter's ``(n,)`` vector padded to the widest parameter ``(max_n,)``."""
-    return jnp.pad(x, (0, max(shape) - x.shape[0]), constant_values=fill)
+def padded(x: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """A parameter's ``(n,)`` vector padded with zeros to the widest parameter ``(max_n,)``."""
+    return jnp.pad(x, (0, max(shape) - x.shape[0]))
 
 
 def _anchor_ranks(anchor, shape):

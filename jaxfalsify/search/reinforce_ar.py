@@ -181,7 +181,8 @@ class AutoregressiveReinforce(Strategy):
         return ARState(weights, jax.vmap(optax.scale_by_adam().init)(weights),
                        jnp.zeros(L, bool), jnp.zeros(self.batch, bool),
                        jnp.zeros((self.batch, P), jnp.int32), jnp.zeros(self.batch, bool),
-                       jnp.zeros(self.batch, jnp.float32), jnp.zeros((L, K, P), jnp.int32), jnp.full((L, K), -jnp.inf, jnp.float32),
+                       jnp.zeros(self.batch, jnp.float32), jnp.zeros((L, K, P), jnp.int32),
+                       jnp.full((L, K), -jnp.inf, jnp.float32),
                        jnp.zeros(self.memory if self.resample > 1 else 1, jnp.uint32),
                        jnp.int32(0), jnp.int32(0))
 
@@ -234,7 +235,7 @@ class AutoregressiveReinforce(Strategy):
         sampled = jnp.pad(sampled, ((0, 0), (0, C - Cp), (0, 0)))
         explored = u[..., -1] < params.uniform_mix
         if M > 1:  # the last b candidates are uniform fallbacks, taken when too few are new
-            explored = explored | (jnp.arange(C) >= b * M)[None, :]
+            explored = explored | (jnp.arange(C) >= Cp)[None, :]
         idx = jnp.where(explored[..., None], uniform_indices(u[..., P:2 * P], self.shape),
                         sampled)  # (L, C, P)
         if M > 1:  # per learner, the first b candidates that are new (in drawing order)
@@ -245,7 +246,7 @@ class AutoregressiveReinforce(Strategy):
             fresh = (~self._evaluated(h, state) & ~repeated).reshape(L, C)
             # a learner with a collision may repeat, for a share repeat_found of its draws
             free = state.seen[:, None] & (u[..., 2 * P + 2] < params.repeat_found) \
-                & (jnp.arange(C) < b * M)[None, :]
+                & (jnp.arange(C) < Cp)[None, :]
             order = jnp.argsort(~(fresh | free), axis=-1, stable=True)[:, :b]
             take = lambda x: jnp.take_along_axis(  # noqa: E731
                 x, order.reshape(order.shape + (1,) * (x.ndim - 2)), axis=1)
