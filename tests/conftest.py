@@ -1,8 +1,12 @@
 import os
 import tempfile
 
-# one per-user cache for the whole test session (and its subprocesses), never the user's own
-os.environ["JAXFALSIFY_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxfalsify-test-cache-")
+# one per-user cache for the whole test session, its subprocesses and its pytest-xdist
+# workers (they inherit the controller's environment), never the user's own
+if "JAXFALSIFY_TEST_SESSION_CACHE" not in os.environ:
+    os.environ["JAXFALSIFY_TEST_SESSION_CACHE"] = tempfile.mkdtemp(
+        prefix="jaxfalsify-test-cache-")
+os.environ["JAXFALSIFY_CACHE_DIR"] = os.environ["JAXFALSIFY_TEST_SESSION_CACHE"]
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402

@@ -92,15 +92,16 @@ def controller_path(request, monkeypatch):
 def test_autoregressive_log_prob_matches_step_by_step_numpy(controller_path):
     assert ar.unrolled(SHAPE) == (controller_path == "unrolled")
     w = _random_weights(SHAPE)
+    allidx = np.array(np.unravel_index(np.arange(np.prod(SHAPE)), SHAPE)).T
+    logp, ents = jax.jit(jax.vmap(lambda a: ar.log_prob_and_entropy(w, a, SHAPE)))(
+        jnp.asarray(allidx))
     for action in ([0, 0, 0], [3, 5, 2], [1, 4, 0], [2, 0, 1]):
-        lp, ent = ar.log_prob_and_entropy(w, jnp.asarray(action), SHAPE)
+        i = np.ravel_multi_index(action, SHAPE)
         elp, eent = _np_log_prob(w, action, SHAPE)
-        assert float(lp) == pytest.approx(elp, abs=1e-4)
-        assert float(ent) == pytest.approx(eent, abs=1e-4)
+        assert float(logp[i]) == pytest.approx(elp, abs=1e-4)
+        assert float(ents[i]) == pytest.approx(eent, abs=1e-4)
     # a distribution over the whole space: the probabilities of all 72 scenarios sum to 1,
     # and they do not factorise (the controller conditions on earlier values)
-    allidx = np.array(np.unravel_index(np.arange(np.prod(SHAPE)), SHAPE)).T
-    logp = jax.vmap(lambda a: ar.log_prob_and_entropy(w, a, SHAPE)[0])(jnp.asarray(allidx))
     joint = np.exp(np.asarray(logp, np.float64)).reshape(SHAPE)
     assert joint.sum() == pytest.approx(1.0, abs=1e-5)
     m0, m1 = joint.sum((1, 2)), joint.sum((0, 2))
@@ -112,7 +113,7 @@ def test_autoregressive_sampling_follows_the_conditionals(controller_path):
     the exact joint probabilities."""
     w = _random_weights((3, 4), seed=2)
     u = jax.random.uniform(jax.random.key(0), (20000, 2))
-    draws = np.asarray(jax.vmap(lambda ui: ar.sample(w, ui, (3, 4)))(u))
+    draws = np.asarray(jax.jit(jax.vmap(lambda ui: ar.sample(w, ui, (3, 4))))(u))
     assert draws.min() >= 0 and np.all(draws.max(0) <= [2, 3])
     freq = np.bincount(draws[:, 0] * 4 + draws[:, 1], minlength=12) / len(draws)
     allidx = np.array(np.unravel_index(np.arange(12), (3, 4))).T
@@ -126,22 +127,20 @@ def test_anchored_controller_log_prob_matches_step_by_step_numpy(controller_path
     logit; and the same controller without an anchor."""
     shape = (4, 6, 1, 9)
     w = _random_weights(shape, anchored=True, seed=3)
-    for action, anchor in (([0, 0, 0, 0], [3, 5, 0, 8]), ([3, 5, 0, 2], [3, 4, 0, 2]),
-                           ([1, 2, 0, 8], [1, 2, 0, 8]), ([2, 0, 0, 4], None)):
-        arg = None if anchor is None else (jnp.asarray(anchor), jnp.bool_(True))
-        lp, ent = ar.log_prob_and_entropy(w, jnp.asarray(action), shape, ar.LOG_SIGMA_MIN,
-                                          arg if arg else (jnp.zeros(4, jnp.int32),
-                                                           jnp.bool_(False)))
-        elp, eent = _np_log_prob(w, action, shape, anchor)
-        assert float(lp) == pytest.approx(elp, abs=1e-4)
-        assert float(ent) == pytest.approx(eent, abs=1e-4)
-    # a multi-scale draw: the anchored bump's log-width plus the draw's zoom
     zoom = np.array([0.7, 1.9, 0.0, 0.3])
-    for action, anchor in (([0, 0, 0, 0], [3, 5, 0, 8]), ([3, 1, 0, 2], [3, 4, 0, 2])):
-        lp, ent = ar.log_prob_and_entropy(w, jnp.asarray(action), shape, ar.LOG_SIGMA_MIN,
-                                          (jnp.asarray(anchor), jnp.bool_(True),
-                                           jnp.asarray(zoom, jnp.float32)))
-        elp, eent = _np_log_prob(w, action, shape, anchor, zoom=zoom)
+    # (action, anchor or None, zoom or None); a zoomed draw (multi-scale): the anchored bump's
+    # log-width plus the draw's zoom
+    cases = [([0, 0, 0, 0], [3, 5, 0, 8], None), ([3, 5, 0, 2], [3, 4, 0, 2], None),
+             ([1, 2, 0, 8], [1, 2, 0, 8], None), ([2, 0, 0, 4], None, None),
+             ([0, 0, 0, 0], [3, 5, 0, 8], zoom), ([3, 1, 0, 2], [3, 4, 0, 2], zoom)]
+    lps, ents = jax.jit(jax.vmap(lambda a, c, pr, z: ar.log_prob_and_entropy(
+        w, a, shape, ar.LOG_SIGMA_MIN, (c, pr, z))))(
+        jnp.asarray([a for a, _, _ in cases]),
+        jnp.asarray([c if c is not None else [0] * 4 for _, c, _ in cases]),
+        jnp.asarray([c is not None for _, c, _ in cases]),
+        jnp.asarray([z if z is not None else np.zeros(4) for _, _, z in cases], jnp.float32))
+    for (action, anchor, z), lp, ent in zip(cases, lps, ents):
+        elp, eent = _np_log_prob(w, action, shape, anchor, zoom=z)
         assert float(lp) == pytest.approx(elp, abs=1e-4)
         assert float(ent) == pytest.approx(eent, abs=1e-4)
 
@@ -155,10 +154,12 @@ def test_zoomed_anchored_draws_are_wider_by_the_zoom():
     anchor = jnp.array([0, 400])
     u = jax.random.uniform(jax.random.key(1), (20000, 2))
     lsm = jnp.log(search.options("reinforce/default")["sigma_min"])
+    zoomed = jax.jit(jax.vmap(lambda ui, zz: ar.sample(w, ui, shape, lsm,
+                                                       (anchor, jnp.bool_(True), zz)),
+                              in_axes=(0, None)))
     for z in (0.0, np.log(10.0)):
         zz = jnp.asarray([0.0, z], jnp.float32)
-        draws = np.asarray(jax.vmap(lambda ui: ar.sample(w, ui, shape, lsm,
-                                                         (anchor, jnp.bool_(True), zz)))(u))
+        draws = np.asarray(zoomed(u, zz))
         step = (draws[:, 1] - 400)[draws[:, 1] != 400]
         sigma = ar.LOCAL_STEPS * np.exp(z)
         d = np.arange(1, 401)
@@ -180,8 +181,8 @@ def test_initial_anchored_draws_move_about_one_parameter_near_the_anchor():
     anchor = jnp.array([10, 15, 0, 20])
     u = jax.random.uniform(jax.random.key(1), (20000, 4))
     lsm = jnp.log(search.options("reinforce/default")["sigma_min"])
-    draws = np.asarray(jax.vmap(lambda ui: ar.sample(w, ui, shape, lsm,
-                                                     (anchor, jnp.bool_(True))))(u))
+    draws = np.asarray(jax.jit(jax.vmap(lambda ui: ar.sample(w, ui, shape, lsm,
+                                                             (anchor, jnp.bool_(True)))))(u))
     moved = draws != np.asarray(anchor)
     assert np.all(draws[:, 2] == 0)
     np.testing.assert_allclose(moved[:, [0, 1, 3]].mean(0), 1 / 3, atol=0.02)
@@ -242,6 +243,7 @@ def test_default_never_repeats_a_scenario_before_a_collision():
     assert np.any(np.all(idx == np.asarray(target), axis=1))
 
 
+@pytest.mark.slow
 def test_default_anchors_every_draw_once_it_has_a_collision():
     """reinforce/default draws a share ``global_share`` (0.25) without an anchor until its
     first collision and none after (``global_share_found`` 0): over 100 asks of 32 from the
@@ -250,21 +252,20 @@ def test_default_anchors_every_draw_once_it_has_a_collision():
     reject the repeats that anchored draws make more often.)"""
     shape = (10, 10, 10, 10)
     strat, p = search.make("reinforce/default", shape, resample=1)
-    state = strat.init(jax.random.key(0), p)
-    idx, state = strat.ask(jax.random.key(1), state, p)
+    asks = jax.jit(jax.vmap(lambda k, st: strat.ask(k, st, p), in_axes=(0, None)))
+    tell = jax.jit(strat.tell_outcome)
+    keys = jax.random.split(jax.random.key(3), 100)  # 100 asks from one state, compiled once
+    idx, state = jax.tree.map(lambda x: x[0], asks(keys, strat.init(jax.random.key(0), p)))
     rob = jnp.arange(strat.batch, dtype=jnp.float32) + 0.5
-    before = strat.tell_outcome(jax.random.key(2), state, idx, -0.01 * rob, rob,
-                                jnp.zeros(strat.batch, bool), p)
-    after = strat.tell_outcome(jax.random.key(2), state, idx, -0.01 * rob, rob,
-                               jnp.arange(strat.batch) == 3, p)
+    before = tell(jax.random.key(2), state, idx, -0.01 * rob, rob,
+                  jnp.zeros(strat.batch, bool), p)
+    after = tell(jax.random.key(2), state, idx, -0.01 * rob, rob,
+                 jnp.arange(strat.batch) == 3, p)
     assert not bool(before.seen[0]) and bool(after.seen[0])
 
     def unanchored_share(st):
-        def one(k):
-            _, s2 = strat.ask(k, st, p)
-            return s2.anchored, s2.explored
-        a, e = jax.jit(jax.vmap(one))(jax.random.split(jax.random.key(3), 100))
-        a, e = np.asarray(a), np.asarray(e)
+        s2 = asks(keys, st)[1]
+        a, e = np.asarray(s2.anchored), np.asarray(s2.explored)
         return np.mean(~a[~e])
 
     assert abs(unanchored_share(before) - 0.25) < 0.03
