@@ -3,6 +3,7 @@ Python loop (the original's shape of work), plus sweep times, compile time and p
 
     python experiments/bench_throughput.py            # full table (a few minutes on 2 cores)
     python experiments/bench_throughput.py --quick    # small sizes only
+    python experiments/bench_throughput.py --chunk 1048576 --sizes 1e3,1e5,1e7,1e8  # a GPU
 
 Scenarios are drawn from the ``paper-extended`` space with a fixed stride, so every size sees
 the same mix. A *scenario-step* is one scenario advanced by one 0.1 s step of the fixed 30 s
@@ -35,7 +36,8 @@ from jaxfalsify import sim
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.config import versions
 from jaxfalsify.reference import python_loop_evaluate, reference_evaluate
-from jaxfalsify.sweep import calibrations, evaluate_chunk, plan_chunks
+from jaxfalsify import sweep
+from jaxfalsify.sweep import calibrations, plan_chunks
 
 SPACE = jf.load_space("paper-extended")
 STRIDE = 997  # prime, coprime with the space size; size * STRIDE < 2**31 (no int32 overflow)
@@ -56,6 +58,7 @@ def _bench_chunk(start, table, params, world, chunk, sharding=None):
 
 
 def _chunk_fn(chunk):
+    """The compiled chunk with everything but the start bound (chunk rounded by plan_chunks)."""
     return partial(_bench_chunk, table=SPACE.table_array, params=PARAMS, world=jf.WORLD,
                    chunk=chunk, sharding=sim.local_batch_sharding())
 
@@ -106,34 +109,49 @@ def one(n: int) -> None:
 
 
 def sweep_seconds(space_name: str) -> dict:
+    """An exhaustive sweep's loop, best of 3 after compilation, two ways side by side: totals
+    reduced on the device (what ``--rows none`` runs) and every outcome brought to the host
+    and reduced there (what a sweep that keeps rows runs, less the writing)."""
     sp = jf.load_space(space_name)
-    chunk = plan_chunks(sp.size, CHUNK)
     calib = calibrations(SUT, {})
-    run = partial(evaluate_chunk, table=sp.table_array, params=calib.stacked(),
-                  key_data=sim.seed_key_data(0), world=jf.WORLD, layout=sp.layout, sut=SUT,
-                  chunk=chunk)
-    t0 = time.perf_counter()
-    run(0)
-    compile_s = time.perf_counter() - t0  # from the per-machine cache after the first time
-    best = float("inf")
-    for _ in range(3):
+    res = {"space": space_name, "n": sp.size}
+    for name, reduced in (("device", True), ("host", False)):
+        def loop():
+            reds = [sweep.Reducer()]
+            for b, e, cols in sweep.iter_sweep(sp, calib, chunk=CHUNK, reduced=reduced):
+                if reduced:
+                    sweep._add_reduced(reds, sp, calib, b, e, cols)
+                else:
+                    reds[0].add(cols)
+            return reds[0]
         t0 = time.perf_counter()
-        for b in range(0, sp.size, chunk):
-            run(b)
-        best = min(best, time.perf_counter() - t0)
-    return {"space": space_name, "n": sp.size, "seconds": best, "compile_seconds": compile_s}
+        red = loop()
+        res[f"compile_{name}_seconds"] = time.perf_counter() - t0  # first pass, compile incl.
+        res[f"{name}_seconds"] = min(time_call(loop) for _ in range(3))
+        res[f"{name}_collisions"] = red.collisions
+    assert res["device_collisions"] == res["host_collisions"]
+    res["seconds"], res["compile_seconds"] = res["device_seconds"], res["compile_device_seconds"]
+    return res
 
 
 def main() -> None:
+    global CHUNK
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="sizes up to 1e5 only")
+    ap.add_argument("--sizes", default=None,
+                    help="comma-separated batch sizes (default 1e3..1e7; --quick: ..1e5)")
+    ap.add_argument("--chunk", type=int, default=CHUNK,
+                    help=f"scenarios per compiled call (default {CHUNK}; GPUs want ~1e6)")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results"
                     / "bench_throughput.json")
     args = ap.parse_args()
+    CHUNK = args.chunk
     sizes = [1_000, 10_000, 100_000] + ([] if args.quick else [1_000_000, 10_000_000])
+    if args.sizes:
+        sizes = [int(float(v)) for v in args.sizes.split(",")]
     rows = []
     print(f"device: {jax.devices()[0].device_kind} x{jax.device_count()}, "
-          f"{os.cpu_count()} cores, jax {jax.__version__}")
+          f"{os.cpu_count()} cores, jax {jax.__version__}, chunk {CHUNK}")
     print(f"{'batch':>10} {'jax s':>9} {'horizon steps/s':>16} {'episode steps/s':>16} "
           f"{'numpy s':>9} {'jax/numpy':>10} {'py-loop s':>10} {'jax/py-loop':>12}")
     for n in sizes:
@@ -159,14 +177,17 @@ def main() -> None:
     sweeps = [sweep_seconds("paper")] + ([] if args.quick else [sweep_seconds("paper-extended")])
     for s in sweeps:
         print(f"sweep {s['space']:>15}: {s['n']:>9} scenarios in {s['seconds']:.3f} s "
-              f"after {s['compile_seconds']:.2f} s compile")
+              f"(first pass with compile {s['compile_seconds']:.2f} s); outcomes to the host "
+              f"and reduced there: {s['host_seconds']:.3f} s "
+              f"(x{s['host_seconds'] / s['seconds']:.2f})")
     mem = {}
-    for n in ([100_000] if args.quick else [100_000, 1_000_000, 10_000_000]):
+    for n in ([100_000] if args.quick else [100_000, 1_000_000, 10_000_000]):  # in a fresh process: default chunk
         mem[n] = peak_rss_mib(n)
         print(f"peak memory, {n:>10} scenarios: {mem[n]:8.0f} MiB", flush=True)
     if len(mem) > 1:
         print(f"peak memory ratio 1e7 / 1e5: {mem[10_000_000] / mem[100_000]:.2f}")
     result = {"device": jax.devices()[0].device_kind, "device_count": jax.device_count(),
+              "chunk": CHUNK,
               "cpu_count": os.cpu_count(), "platform": platform.platform(),
               "versions": versions(), "rows": rows, "sweeps": sweeps,
               "peak_rss_mib": {str(k): v for k, v in mem.items()}}

@@ -75,41 +75,80 @@ def sweep_chunk(start, table, params, key, world, *, layout: Layout, sut: sut_li
     return idx, out
 
 
+def reduce_chunk(start, n_valid, table, params, key, world, *, layout: Layout,
+                 sut: sut_lib.SUT, chunk: int, sharding=None):
+    """:func:`sweep_chunk` reduced on the device, for sweeps that keep no rows (on a GPU,
+    moving every outcome to the host costs ~10x the simulation). Only the first ``n_valid``
+    rows count. Per calibration ``(C,)``: ``collisions``, ``nonfinite`` (int32), ``top`` (the
+    largest reward, NaN counted as -inf; float32), ``ties`` (valid rows with reward == top),
+    ``best`` (the first row reaching it), and that row's ``idx (C, P)`` and outcome fields
+    ``(C,)``. Pure; jit it.
+    """
+    idx, out = sweep_chunk(start, table, params, key, world, layout=layout, sut=sut,
+                           chunk=chunk, sharding=sharding)
+    valid = jnp.arange(chunk) < n_valid
+    r = jnp.where(jnp.isnan(out.reward) | ~valid, -jnp.inf, out.reward)  # (C, chunk)
+    best = jnp.argmax(r, axis=1)  # the first maximum
+    top = jnp.max(r, axis=1)
+    pick = lambda v: jnp.take_along_axis(v, best[:, None], axis=1)[:, 0]  # noqa: E731
+    return {"collisions": jnp.sum(out.collision & valid, axis=1, dtype=jnp.int32),
+            "nonfinite": jnp.sum(out.nonfinite & valid, axis=1, dtype=jnp.int32),
+            "top": top, "ties": jnp.sum(valid & (r == top[:, None]), axis=1, dtype=jnp.int32),
+            "best": best.astype(jnp.int32), "idx": idx[best],
+            "out": {k: pick(v) for k, v in vars(out).items()}}
+
+
 @functools.lru_cache(maxsize=32)
 def _chunk_program(layout: Layout, sut: sut_lib.SUT, chunk: int, params_tree,
-                   params_avals: tuple, world_tree):
+                   params_avals: tuple, world_tree, reduced: bool = False):
     sharding = sim.local_batch_sharding()
 
-    def fn(start, table, params_leaves, key_data, world_leaves):
-        idx, out = sweep_chunk(start, table, jax.tree.unflatten(params_tree, params_leaves),
-                               jax.random.wrap_key_data(key_data),
-                               jax.tree.unflatten(world_tree, world_leaves), layout=layout,
-                               sut=sut, chunk=chunk, sharding=sharding)
+    def fn(start, n_valid, table, params_leaves, key_data, world_leaves):
+        args = (start, table, jax.tree.unflatten(params_tree, params_leaves),
+                jax.random.wrap_key_data(key_data), jax.tree.unflatten(world_tree, world_leaves))
+        kw = {"layout": layout, "sut": sut, "chunk": chunk, "sharding": sharding}
+        if reduced:
+            return reduce_chunk(args[0], n_valid, *args[1:], **kw)
+        idx, out = sweep_chunk(*args, **kw)
         return idx, vars(out)
 
     table = jax.ShapeDtypeStruct((len(layout.shape), max(layout.shape)), jnp.float32)
     key_args = (table, list(params_avals))
 
     def example():
-        return (np.int32(0), np.zeros(table.shape, np.float32),
+        return (np.int32(0), np.int32(chunk), np.zeros(table.shape, np.float32),
                 [np.zeros(a.shape, a.dtype) for a in params_avals], np.zeros(2, np.uint32),
                 [np.float32(0)] * world_tree.num_leaves)
 
     key = sut_lib.cache_key(sut)
     static = None if key is None else {"layout": repr(layout), "sut": key, "chunk": chunk,
-                                       "params": str(params_tree), "world": str(world_tree)}
+                                       "params": str(params_tree), "world": str(world_tree),
+                                       "reduced": reduced}
     return cache.exported_jit(fn, "sweep", static, key_args, example)
+
+
+def _program(params, world, layout: Layout, sut: sut_lib.SUT, chunk: int, reduced: bool):
+    p_leaves, p_tree = jax.tree.flatten(sim._f32(params))
+    w_leaves, w_tree = jax.tree.flatten(sim._f32(world))
+    avals = tuple(jax.ShapeDtypeStruct(x.shape, x.dtype) for x in p_leaves)
+    prog = _chunk_program(layout, sut, chunk, p_tree, avals, w_tree, reduced)
+    return prog, p_leaves, w_leaves
 
 
 def evaluate_chunk(start: int, table, params, key_data, world, *, layout: Layout,
                    sut: sut_lib.SUT, chunk: int):
     """:func:`sweep_chunk`, compiled (cached per machine): NumPy ``(indices, outcome dict)``."""
-    p_leaves, p_tree = jax.tree.flatten(sim._f32(params))
-    w_leaves, w_tree = jax.tree.flatten(sim._f32(world))
-    avals = tuple(jax.ShapeDtypeStruct(x.shape, x.dtype) for x in p_leaves)
-    prog = _chunk_program(layout, sut, chunk, p_tree, avals, w_tree)
-    idx, out = prog(np.int32(start), table, p_leaves, key_data, w_leaves)
+    prog, p_leaves, w_leaves = _program(params, world, layout, sut, chunk, False)
+    idx, out = prog(np.int32(start), np.int32(chunk), table, p_leaves, key_data, w_leaves)
     return np.asarray(idx), {k: np.asarray(v) for k, v in out.items()}
+
+
+def evaluate_reduced(start: int, n_valid: int, table, params, key_data, world, *,
+                     layout: Layout, sut: sut_lib.SUT, chunk: int) -> dict:
+    """:func:`reduce_chunk`, compiled (cached per machine), as NumPy."""
+    prog, p_leaves, w_leaves = _program(params, world, layout, sut, chunk, True)
+    res = prog(np.int32(start), np.int32(n_valid), table, p_leaves, key_data, w_leaves)
+    return jax.tree.map(np.asarray, res)
 
 
 def chunk_table(space: Space, begin: int, idx: np.ndarray, out, calib: "Calibrations"
@@ -194,10 +233,11 @@ def check_sweepable(space: Space) -> None:
 
 def iter_sweep(space: Space, calib: Calibrations, world: sim.World = sim.WORLD,
                chunk: int = DEFAULT_CHUNK, start: int = 0, stop: int | None = None,
-               planned: int | None = None, key=None):
+               planned: int | None = None, key=None, reduced: bool = False):
     """Yield ``(begin, end, columns)`` for consecutive chunks of scenarios ``[start, stop)``
     (host-side loop; each chunk is one call of the same compiled function, sharded over the
-    local devices). ``planned`` fixes the compiled chunk size."""
+    local devices). ``planned`` fixes the compiled chunk size. With ``reduced`` the chunk is
+    reduced on the device and ``columns`` is :func:`reduce_chunk`'s dict (no rows)."""
     check_sweepable(space)
     stop = space.size if stop is None else stop
     chunk = planned or plan_chunks(max(stop - start, 1), max(256, chunk // calib.count))
@@ -205,8 +245,11 @@ def iter_sweep(space: Space, calib: Calibrations, world: sim.World = sim.WORLD,
     key_data = sim.seed_key_data(0) if key is None else key
     for b in range(start, stop, chunk):
         e = min(b + chunk, stop)
-        idx, out = evaluate_chunk(b, table, params, key_data, world, layout=space.layout,
-                                  sut=calib.sut, chunk=chunk)
+        kw = {"layout": space.layout, "sut": calib.sut, "chunk": chunk}
+        if reduced:
+            yield b, e, evaluate_reduced(b, e - b, table, params, key_data, world, **kw)
+            continue
+        idx, out = evaluate_chunk(b, table, params, key_data, world, **kw)
         idx = idx[: e - b]
         yield b, e, chunk_table(space, b, idx, out, calib)
 
@@ -242,6 +285,28 @@ class Reducer:
             self.best_ties = int(np.sum(r == r[i]))
         elif r[i] == self.best_reward:
             self.best_ties += int(np.sum(r == r[i]))
+
+
+
+def _add_reduced(reds: list[Reducer], space: Space, calib: Calibrations, b: int, e: int,
+                 res: dict) -> None:
+    """Fold one chunk's device-side totals (:func:`reduce_chunk`) into the reducers: the
+    same state :meth:`Reducer.add` reaches from the chunk's rows."""
+    for c, red in enumerate(reds):
+        red.n += e - b
+        red.collisions += int(res["collisions"][c])
+        red.nonfinite += int(res["nonfinite"][c])
+        top = float(res["top"][c])
+        if top > red.best_reward:
+            i = int(res["best"][c])
+            out = {k: np.repeat(v[c:c + 1, None], calib.count, axis=0)
+                   for k, v in res["out"].items()}
+            row = chunk_table(space, b + i, res["idx"][c:c + 1], out, calib)
+            red.best_reward = top
+            red.best_row = {k: cfg.plain(v[c]) for k, v in row.items()}
+            red.best_ties = int(res["ties"][c])
+        elif top == red.best_reward:
+            red.best_ties += int(res["ties"][c])
 
 
 def _split_cols(cols: dict, calib: Calibrations) -> list[dict]:
@@ -482,9 +547,11 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
     t0 = time.perf_counter()
     compile_s, started = 0.0, False
     try:
+        reduced = config.rows == "none"  # totals computed on the device
         for c, (b, e, cols) in enumerate(iter_sweep(space, calib, world, config.chunk,
                                                     resumed_from, end, planned=planned,
-                                                    key=sim.seed_key_data(config.seed)),
+                                                    key=sim.seed_key_data(config.seed),
+                                                    reduced=reduced),
                                          start=done):
             if not started:
                 compile_s = time.perf_counter() - t0
@@ -492,7 +559,9 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
                                f"sweep {space.name} / {config.sut}"
                                + (f" [process {process_id}/{num_processes}]" if multi else ""))
                 started = True
-            for red, part in zip(reds, _split_cols(cols, calib)):
+            if reduced:
+                _add_reduced(reds, space, calib, b, e, cols)
+            for red, part in zip(reds, [] if reduced else _split_cols(cols, calib)):
                 red.add(part)
             if config.rows != "none":
                 if config.rows == "collisions":

@@ -11,7 +11,9 @@ import pytest
 
 import jaxfalsify as jf
 from jaxfalsify.cli import main
-from jaxfalsify.sweep import sweep_arrays
+from jaxfalsify import sut as sut_lib
+from jaxfalsify.sweep import (Reducer, _add_reduced, _split_cols, calibrations, iter_sweep,
+                              sweep_arrays)
 
 SMALL = """
 name = "small"
@@ -117,3 +119,37 @@ def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path):
         assert summary["calibrations"][c]["n_collisions"] == int(alone["collision"].sum())
     # the weaker brake must matter somewhere, or the test proves nothing
     assert summary["calibrations"][0]["n_collisions"] != summary["calibrations"][1]["n_collisions"]
+
+
+def test_summary_only_sweep_reduces_on_device_like_rows(small_space, tmp_path):
+    """``--rows none`` reduces each chunk on the device; the totals (counts, global maximum,
+    its ties, the best scenario's every field, per calibration) equal those folded from the
+    rows, over several chunks (the maximum's ties spread over them) and a padded last one."""
+    sp, calib = jf.load_space(small_space), calibrations(sut_lib.resolve("carla-tm"),
+                                                         {"full_brake": [3.0, 8.0]})
+    from_rows, reduced = [Reducer() for _ in range(2)], [Reducer() for _ in range(2)]
+    for _, _, cols in iter_sweep(sp, calib, planned=32):
+        for red, part in zip(from_rows, _split_cols(cols, calib)):
+            red.add(part)
+    for b, e, res in iter_sweep(sp, calib, planned=32, reduced=True):
+        _add_reduced(reduced, sp, calib, b, e, res)
+    as_text = lambda reds: json.dumps([r.state() for r in reds])  # noqa: E731 - NaN == NaN
+    assert as_text(reduced) == as_text(from_rows)
+    assert from_rows[0].best_ties > 1 and from_rows[0].collisions != from_rows[1].collisions
+    # a range ending inside a chunk (a process's share): rows past it are other scenarios
+    (_, _, res), = iter_sweep(sp, calib, stop=1, planned=32, reduced=True)
+    (_, _, cols), = iter_sweep(sp, calib, stop=1, planned=32)
+    np.testing.assert_array_equal(res["top"], cols["reward"])
+    np.testing.assert_array_equal(res["ties"], [1, 1])
+    assert from_rows[0].best_reward > cols["reward"][0]  # the mask matters here
+    # the command: no rows written, the summary from the device-side totals
+    out = tmp_path / "none"
+    assert main(["sweep", "--space", str(small_space), "--sut-param", "full_brake=3,8",
+                 "--rows", "none", "--out", str(out), "--quiet"]) == 0
+    assert not (out / "sweep.parquet").exists()
+    summary = json.loads((out / "summary.json").read_text())
+    for c, red in enumerate(from_rows):
+        got = summary["calibrations"][c]
+        assert (got["n_collisions"], got["global_max_ties"]) == (red.collisions, red.best_ties)
+        assert got["global_max_reward"] == red.best_reward
+        assert got["global_max_scenario"]["scenario"] == red.best_row["scenario"]
