@@ -5,6 +5,7 @@ import json
 import os
 import tomllib
 
+import jax
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
@@ -12,8 +13,8 @@ import pytest
 import jaxfalsify as jf
 from jaxfalsify.cli import main
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.sweep import (Reducer, _add_reduced, _split_cols, calibrations, iter_sweep,
-                              sweep_arrays)
+from jaxfalsify.sweep import (Reducer, SweepConfig, _add_reduced, _split_cols, calibrations,
+                              iter_sweep, sweep_arrays)
 
 SMALL = """
 name = "small"
@@ -121,7 +122,7 @@ def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path):
     assert summary["calibrations"][0]["n_collisions"] != summary["calibrations"][1]["n_collisions"]
 
 
-def test_summary_only_sweep_reduces_on_device_like_rows(small_space, tmp_path):
+def test_summary_only_sweep_reduces_on_device_like_rows(small_space, tmp_path, monkeypatch):
     """``--rows none`` reduces each chunk on the device; the totals (counts, global maximum,
     its ties, the best scenario's every field, per calibration) equal those folded from the
     rows, over several chunks (the maximum's ties spread over them) and a padded last one."""
@@ -153,3 +154,7 @@ def test_summary_only_sweep_reduces_on_device_like_rows(small_space, tmp_path):
         assert (got["n_collisions"], got["global_max_ties"]) == (red.collisions, red.best_ties)
         assert got["global_max_reward"] == red.best_reward
         assert got["global_max_scenario"]["scenario"] == red.best_row["scenario"]
+    # the chunk resolved for this backend is recorded (2^17 on CPUs; 2^20 on accelerators)
+    assert tomllib.loads((out / "config.toml").read_text())["chunk"] == 131072
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert SweepConfig().chunk == 1048576
