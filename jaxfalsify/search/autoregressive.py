@@ -34,7 +34,7 @@ import numpy as np
 import jax.numpy as jnp
 
 from jaxfalsify.search.base import categorical_from_uniform, value_mask
-from jaxfalsify.search.controller import MASKED, _glorot, lstm_step
+from jaxfalsify.search.controller import MASKED, _glorot, lstm_step, mm
 
 
 LOG_SIGMA_MIN = float(np.log(0.05))
@@ -116,18 +116,18 @@ def head_logits(w: dict, p, h: jax.Array, shape: tuple[int, ...],
     action)."""
     own = isinstance(p, int)
     n = shape[p] if own else max(shape)
-    free = h @ w["head"]["w"][p][:, :n] + w["head"]["b"][p][:n]
-    mu = jax.nn.sigmoid(h @ w["mu"]["w"][p] + w["mu"]["b"][p])
-    log_sigma = h @ w["sigma"]["w"][p] + w["sigma"]["b"][p]
+    free = mm(h, w["head"]["w"][p][:, :n]) + w["head"]["b"][p][:n]
+    mu = jax.nn.sigmoid(mm(h, w["mu"]["w"][p]) + w["mu"]["b"][p])
+    log_sigma = mm(h, w["sigma"]["w"][p]) + w["sigma"]["b"][p]
     r = value_ranks(shape)[p, :n]
     stay = 0.0
     if anchor is not None:
         ranks, present, zoom = anchor
-        local = ranks[p] + 0.5 * jnp.tanh(h @ w["delta"]["w"][p] + w["delta"]["b"][p])
+        local = ranks[p] + 0.5 * jnp.tanh(mm(h, w["delta"]["w"][p]) + w["delta"]["b"][p])
         mu = jnp.where(present, local, mu)
         log_sigma = jnp.where(present, log_sigma + w["local"]["b"][p] + zoom[p], log_sigma)
         at = jnp.abs(r - ranks[p]) < 1e-6  # the anchor's own value
-        stay = jnp.where(present & at, h @ w["stay"]["w"][p] + w["stay"]["b"][p], 0.0)
+        stay = jnp.where(present & at, mm(h, w["stay"]["w"][p]) + w["stay"]["b"][p], 0.0)
     # never narrower than half a value step (a one-value parameter: any width)
     floor = jnp.maximum(log_sigma_min, jnp.log(0.5 / jnp.maximum(
         jnp.asarray(shape, jnp.float32)[p] - 1, 1.0)))
