@@ -44,12 +44,12 @@ from jaxfalsify.space import Layout, Space
 OUTCOME_FIELDS = tuple(f.name for f in dataclasses.fields(sim.Outcome))
 DEFAULT_CHUNK = 1 << 17  # on CPUs
 ACCELERATOR_CHUNK = 1 << 20  # on GPUs / TPUs (an H100 ran 2^17-scenario chunks 4.5x slower)
+ROWS = ("all", "collisions", "none")
 
 
 def default_chunk() -> int:
     """A sweep's default scenarios per compiled call for JAX's default backend."""
     return DEFAULT_CHUNK if jax.default_backend() == "cpu" else ACCELERATOR_CHUNK
-ROWS = ("all", "collisions", "none")
 
 
 def plan_chunks(size: int, chunk: int = DEFAULT_CHUNK) -> int:
@@ -291,7 +291,6 @@ class Reducer:
             self.best_ties = int(np.sum(r == r[i]))
         elif r[i] == self.best_reward:
             self.best_ties += int(np.sum(r == r[i]))
-
 
 
 def _add_reduced(reds: list[Reducer], space: Space, calib: Calibrations, b: int, e: int,
