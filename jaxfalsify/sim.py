@@ -589,14 +589,22 @@ def simulate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = 
     return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), traj)
 
 
+def default_chunk() -> int:
+    """Scenarios per compiled call by default on JAX's default backend: 2^17 on CPUs, 2^20 on
+    GPUs / TPUs (an H100 ran 2^17-scenario chunks 4.5x slower: 5.3e9 against 2.4e10
+    scenario-steps/s)."""
+    return 1 << 17 if jax.default_backend() == "cpu" else 1 << 20
+
+
 def evaluate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = WORLD,
-             key=0, chunk_size: int = 1 << 17) -> Outcome:
+             key=0, chunk_size: int | None = None) -> Outcome:
     """Per-scenario outcomes (metrics and the paper's reward) of concrete scenarios.
 
-    Arguments as :func:`simulate`. Batches larger than ``chunk_size`` are evaluated chunk by
-    chunk (the last chunk padded to the same shape, so nothing recompiles) so memory stays
-    flat; results do not depend on the chunking.
+    Arguments as :func:`simulate`. Batches larger than ``chunk_size`` (default
+    :func:`default_chunk`) are evaluated chunk by chunk (the last chunk padded to the same
+    shape, so nothing recompiles) so memory stays flat; results do not depend on the chunking.
     """
+    chunk_size = default_chunk() if chunk_size is None else chunk_size
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size <= 0:
         raise ValueError(f"chunk_size must be a positive integer (got {chunk_size!r})")
     scenario, sut_params = split_sut_values(scenario, sut_params, sut)
