@@ -6,6 +6,7 @@ import os
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -39,9 +40,8 @@ def _free_port():
         return s.getsockname()[1]
 
 
-@pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
-@ON_CPU
-def test_two_process_sweep_union_equals_single_process(tmp_path):
+def _two_process_sweep(tmp_path, *extra) -> Path:
+    """``jaxfalsify sweep`` of SPACE on 2 processes (CPU, gloo); returns its folder."""
     space = tmp_path / "space.toml"
     space.write_text(SPACE)
     out = tmp_path / "dist"
@@ -50,16 +50,23 @@ def test_two_process_sweep_union_equals_single_process(tmp_path):
     env.pop("XLA_FLAGS", None)
     procs = [subprocess.Popen(
         [sys.executable, "-m", "jaxfalsify.cli", "sweep", "--space", str(space), "--out",
-         str(out), "--quiet", "--chunk", "16", "--distributed", "--coordinator",
+         str(out), "--quiet", "--chunk", "16", *extra, "--distributed", "--coordinator",
          f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i)],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
     for p in procs:
         _, err = p.communicate(timeout=300)
         assert p.returncode == 0, err[-2000:]
+    return out
+
+
+@pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
+@ON_CPU
+def test_two_process_sweep_union_equals_single_process(tmp_path):
+    out = _two_process_sweep(tmp_path)
     parts = sorted(out.glob("sweep.part-*-of-00002.parquet"))
     assert len(parts) == 2
     union = pa.concat_tables([pq.read_table(p) for p in parts]).to_pydict()
-    sp = jf.load_space(space)
+    sp = jf.load_space(tmp_path / "space.toml")
     single = sweep_arrays(sp)
     assert union["scenario"] == list(range(sp.size))  # no gaps, no duplicates, in order
     for k, v in single.items():
@@ -69,6 +76,26 @@ def test_two_process_sweep_union_equals_single_process(tmp_path):
     assert s["n_collisions"] == int(single["collision"].sum())
     r = np.where(np.isnan(single["reward"]), -np.inf, single["reward"])
     assert s["global_max_scenario"]["scenario"] == int(np.argmax(r))
+
+
+@pytest.mark.slow
+@ON_CPU
+def test_two_process_summary_only_sweep_equals_single_process(tmp_path):
+    """``--rows none`` on 2 processes: each reduces its share on the device (process 0's
+    share ends inside its compiled chunk); the merged summary equals one process's sweep that
+    keeps every row."""
+    from jaxfalsify.cli import main
+
+    out = _two_process_sweep(tmp_path, "--rows", "none")
+    assert not list(out.glob("*.parquet"))
+    single = tmp_path / "single"
+    assert main(["sweep", "--space", str(tmp_path / "space.toml"), "--out", str(single),
+                 "--quiet"]) == 0
+    a, b = (json.loads((d / "summary.json").read_text()) for d in (out, single))
+    assert (a.pop("processes"), b.pop("processes")) == (2, 1)
+    assert (a.pop("rows"), b.pop("rows")) == ("none", "all")
+    assert (a.pop("parts"), b.pop("parts")) == ([], ["sweep.parquet"])
+    assert a["n_collisions"] > 0 and a == b
 
 
 def test_distributed_flags_need_their_values(capsys):
