@@ -78,7 +78,7 @@ def sweep_chunk(start, table, params, key, world, *, layout: Layout, sut: sut_li
 def reduce_chunk(start, n_valid, table, params, key, world, *, layout: Layout,
                  sut: sut_lib.SUT, chunk: int, sharding=None):
     """:func:`sweep_chunk` reduced on the device, for sweeps that keep no rows (on a GPU,
-    moving every outcome to the host costs ~10x the simulation). Only the first ``n_valid``
+    moving every outcome to the host and reducing it there cost ~10x the simulation). Only the first ``n_valid``
     rows count. Per calibration ``(C,)``: ``collisions``, ``nonfinite`` (int32), ``top`` (the
     largest reward, NaN counted as -inf; float32), ``ties`` (valid rows with reward == top),
     ``best`` (the first row reaching it), and that row's ``idx (C, P)`` and outcome fields
@@ -325,8 +325,9 @@ class SweepConfig:
     sut: str = "carla-tm"
     sut_params: Mapping[str, Any] = dataclasses.field(default_factory=dict)  # value or list
     seed: int = 0  # the SUT's randomness (sensor noise); deterministic SUTs ignore it
-    chunk: int = dataclasses.field(default_factory=sim.default_chunk)  # most scenarios (x
-    # calibrations) per compiled call; config.toml records the value resolved
+    chunk: int | None = None  # most scenarios (x calibrations) per compiled call; None:
+    # the backend's default (sim.default_chunk), resolved by execute once any distributed
+    # runtime is up (choosing it starts JAX's backend); config.toml records the value
     rows: str = "all"  # all, collisions or none (summary only)
 
     def build(self) -> tuple[Space, Calibrations]:
@@ -334,7 +335,8 @@ class SweepConfig:
 
         check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
         check_int("seed", self.seed, 0, SEED_LIMIT - 1)
-        check_int("chunk", self.chunk, 1, 1 << 24)
+        if self.chunk is not None:
+            check_int("chunk", self.chunk, 1, 1 << 24)
         if self.rows not in ROWS:
             raise ValueError(f"rows must be one of {', '.join(ROWS)} (got {self.rows!r})")
         if not isinstance(self.sut, str):
@@ -342,6 +344,11 @@ class SweepConfig:
         sp = build_space(self.space, self.space_seed)
         sut = sut_lib.resolve(self.sut)
         return sp, calibrations(sut, check_mapping("sut_params", self.sut_params))
+
+    def resolved(self) -> "SweepConfig":
+        """This config with the default chunk chosen for JAX's backend."""
+        return self if self.chunk is not None else dataclasses.replace(
+            self, chunk=sim.default_chunk())
 
     def to_toml(self, space: Space, processes: int = 1) -> str:
         doc = {"kind": "sweep", "sut": self.sut, "space_seed": self.space_seed,
@@ -474,14 +481,17 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     clock = Clock(startup_seconds)
     progress = progress or Progress()
     space, calib = config.build()
+    config = config.resolved()
     check_sweepable(space)
     from jaxfalsify.runs import check_space_sut
 
     check_space_sut(space, calib.sut)
     out = Path(out) if out is not None else default_out(space, config.sut, config.space_seed)
-    cfg.check_memory(max(256, config.chunk // calib.count) * calib.count
-                     * (len(space.shape) * 2 + len(OUTCOME_FIELDS) + 4) * 16
-                     + config.chunk * 2048, f"a sweep chunk of {config.chunk} scenarios",
+    rows_bytes = 0 if config.rows == "none" else (  # host-side columns of one chunk
+        max(256, config.chunk // calib.count) * calib.count
+        * (len(space.shape) * 2 + len(OUTCOME_FIELDS) + 4) * 16)
+    work_bytes = config.chunk * 2048 if jax.default_backend() == "cpu" else 0  # else on the GPU
+    cfg.check_memory(rows_bytes + work_bytes, f"a sweep chunk of {config.chunk} scenarios",
                      "lower --chunk")
     lk = store.open_folder(out, "sweep", force=force, resume=resume,
                            name=".lock" if process_id == 0 else f".lock-part-{process_id:05d}")
@@ -703,6 +713,7 @@ def committed(config: SweepConfig, out: Path, process_id: int = 0, num_processes
     """Scenarios this process has committed in ``out``'s checkpoint (0 if none); raises
     :class:`~jaxfalsify.store.CheckpointError` if the checkpoint is unusable."""
     space, calib = config.build()
+    config = config.resolved()
     begin, end, planned, ck, fp = _layout(config, space, calib, Path(out), process_id,
                                           num_processes, world)
     if not (ck / "state.json").exists():

@@ -50,7 +50,7 @@ def _two_process_sweep(tmp_path, *extra) -> Path:
     env.pop("XLA_FLAGS", None)
     procs = [subprocess.Popen(
         [sys.executable, "-m", "jaxfalsify.cli", "sweep", "--space", str(space), "--out",
-         str(out), "--quiet", "--chunk", "16", *extra, "--distributed", "--coordinator",
+         str(out), "--quiet", *extra, "--distributed", "--coordinator",
          f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i)],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
     for p in procs:
@@ -62,7 +62,7 @@ def _two_process_sweep(tmp_path, *extra) -> Path:
 @pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 @ON_CPU
 def test_two_process_sweep_union_equals_single_process(tmp_path):
-    out = _two_process_sweep(tmp_path)
+    out = _two_process_sweep(tmp_path, "--chunk", "16")
     parts = sorted(out.glob("sweep.part-*-of-00002.parquet"))
     assert len(parts) == 2
     union = pa.concat_tables([pq.read_table(p) for p in parts]).to_pydict()
@@ -83,7 +83,8 @@ def test_two_process_sweep_union_equals_single_process(tmp_path):
 def test_two_process_summary_only_sweep_equals_single_process(tmp_path):
     """``--rows none`` on 2 processes: each reduces its share on the device (process 0's
     share ends inside its compiled chunk); the merged summary equals one process's sweep that
-    keeps every row."""
+    keeps every row. No ``--chunk``: choosing the default must wait for the distributed
+    start-up (which must come before JAX's backend starts)."""
     from jaxfalsify.cli import main
 
     out = _two_process_sweep(tmp_path, "--rows", "none")

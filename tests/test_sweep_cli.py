@@ -158,4 +158,5 @@ def test_summary_only_sweep_reduces_on_device_like_rows(small_space, tmp_path, m
     assert tomllib.loads((out / "config.toml").read_text())["chunk"] == (
         131072 if jax.default_backend() == "cpu" else 1048576)
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    assert SweepConfig().chunk == jf.sim.default_chunk() == 1048576
+    assert SweepConfig().chunk is None  # chosen by execute, after a distributed start-up
+    assert SweepConfig().resolved().chunk == jf.sim.default_chunk() == 1048576
