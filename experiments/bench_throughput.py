@@ -119,10 +119,7 @@ def sweep_seconds(space_name: str) -> dict:
         def loop():
             reds = [sweep.Reducer()]
             for b, e, cols in sweep.iter_sweep(sp, calib, chunk=CHUNK, reduced=reduced):
-                if reduced:
-                    sweep._add_reduced(reds, sp, calib, b, e, cols)
-                else:
-                    reds[0].add(cols)
+                sweep.fold(reds, sp, calib, b, e, cols, reduced)
             return reds[0]
         t0 = time.perf_counter()
         red = loop()
@@ -181,7 +178,8 @@ def main() -> None:
               f"and reduced there: {s['host_seconds']:.3f} s "
               f"(x{s['host_seconds'] / s['seconds']:.2f})")
     mem = {}
-    for n in ([100_000] if args.quick else [100_000, 1_000_000, 10_000_000]):  # in a fresh process: default chunk
+    # each in a fresh process, with the default chunk
+    for n in ([100_000] if args.quick else [100_000, 1_000_000, 10_000_000]):
         mem[n] = peak_rss_mib(n)
         print(f"peak memory, {n:>10} scenarios: {mem[n]:8.0f} MiB", flush=True)
     if len(mem) > 1:

@@ -42,7 +42,7 @@ from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.space import Layout, Space
 
 OUTCOME_FIELDS = tuple(f.name for f in dataclasses.fields(sim.Outcome))
-DEFAULT_CHUNK = 1 << 17  # library helpers' default; a sweep's: sim.default_chunk()
+DEFAULT_CHUNK = sim.CPU_CHUNK  # library helpers' default; a sweep's: sim.default_chunk()
 ROWS = ("all", "collisions", "none")
 
 
@@ -78,8 +78,8 @@ def sweep_chunk(start, table, params, key, world, *, layout: Layout, sut: sut_li
 def reduce_chunk(start, n_valid, table, params, key, world, *, layout: Layout,
                  sut: sut_lib.SUT, chunk: int, sharding=None):
     """:func:`sweep_chunk` reduced on the device, for sweeps that keep no rows (on a GPU,
-    moving every outcome to the host and reducing it there cost ~10x the simulation). Only the first ``n_valid``
-    rows count. Per calibration ``(C,)``: ``collisions``, ``nonfinite`` (int32), ``top`` (the
+    moving every outcome to the host and reducing it there cost ~10x the simulation). Only
+    the first ``n_valid`` rows count. Per calibration ``(C,)``: ``collisions``, ``nonfinite`` (int32), ``top`` (the
     largest reward, NaN counted as -inf; float32), ``ties`` (valid rows with reward == top),
     ``best`` (the first row reaching it), and that row's ``idx (C, P)`` and outcome fields
     ``(C,)``. Pure; jit it.
@@ -314,6 +314,17 @@ def _split_cols(cols: dict, calib: Calibrations) -> list[dict]:
         return [cols]
     n = len(cols["scenario"]) // calib.count
     return [{k: v[c * n:(c + 1) * n] for k, v in cols.items()} for c in range(calib.count)]
+
+
+def fold(reds: list[Reducer], space: Space, calib: Calibrations, b: int, e: int, cols: dict,
+         reduced: bool) -> None:
+    """Add one chunk of :func:`iter_sweep` (rows, or with ``reduced`` device-side totals) to
+    the per-calibration reducers."""
+    if reduced:
+        _add_reduced(reds, space, calib, b, e, cols)
+        return
+    for red, part in zip(reds, _split_cols(cols, calib)):
+        red.add(part)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -569,10 +580,7 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
                                f"sweep {space.name} / {config.sut}"
                                + (f" [process {process_id}/{num_processes}]" if multi else ""))
                 started = True
-            if reduced:
-                _add_reduced(reds, space, calib, b, e, cols)
-            for red, part in zip(reds, [] if reduced else _split_cols(cols, calib)):
-                red.add(part)
+            fold(reds, space, calib, b, e, cols, reduced)
             if config.rows != "none":
                 if config.rows == "collisions":
                     cols = {k: v[cols["collision"]] for k, v in cols.items()}

@@ -13,8 +13,8 @@ import pytest
 import jaxfalsify as jf
 from jaxfalsify.cli import main
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.sweep import (Reducer, SweepConfig, _add_reduced, _split_cols, calibrations,
-                              iter_sweep, sweep_arrays)
+from jaxfalsify.sweep import (Reducer, SweepConfig, calibrations, fold, iter_sweep,
+                              sweep_arrays)
 
 SMALL = """
 name = "small"
@@ -129,11 +129,9 @@ def test_summary_only_sweep_reduces_on_device_like_rows(small_space, tmp_path, m
     sp, calib = jf.load_space(small_space), calibrations(sut_lib.resolve("carla-tm"),
                                                          {"full_brake": [3.0, 8.0]})
     from_rows, reduced = [Reducer() for _ in range(2)], [Reducer() for _ in range(2)]
-    for _, _, cols in iter_sweep(sp, calib, planned=32):
-        for red, part in zip(from_rows, _split_cols(cols, calib)):
-            red.add(part)
-    for b, e, res in iter_sweep(sp, calib, planned=32, reduced=True):
-        _add_reduced(reduced, sp, calib, b, e, res)
+    for reds, on_device in ((from_rows, False), (reduced, True)):
+        for b, e, cols in iter_sweep(sp, calib, planned=32, reduced=on_device):
+            fold(reds, sp, calib, b, e, cols, on_device)
     as_text = lambda reds: json.dumps([r.state() for r in reds])  # noqa: E731 - NaN == NaN
     assert as_text(reduced) == as_text(from_rows)
     assert from_rows[0].best_ties > 1 and from_rows[0].collisions != from_rows[1].collisions
