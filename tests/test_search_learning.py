@@ -34,14 +34,16 @@ def _random_weights(shape, hidden=8, seed=0, anchored=False):
     return jax.tree.map(lambda x: jnp.asarray(rng.normal(0, 0.7, x.shape), jnp.float32), w)
 
 
-def _np_log_prob(w, action, shape, anchor=None, sigma_min=0.05, zoom=None):
+def _np_log_prob(w, action, shape, anchor=None, sigma_min=0.05, zoom=None, edge_mass=0.0):
     """log pi(action) and the summed entropies step by step in float64: x_p = [onehot(p),
     earlier ranks * 2 - 1] (plus, for an anchored controller, [anchor ranks * 2 - 1, which
     earlier parameters left the anchor's value, 1]), one tanh LSTM step, logits = free head +
     Gaussian bump over the value ranks (+ the stay logit at the anchor's value). Without an
     anchor the bump is centred at sigmoid(.), with one at the anchor's rank + 0.5 tanh(.); its
     width exp(clip(., ln max(sigma_min, 0.5 / (n - 1)), 1)), an anchored one's log-width plus
-    the draw's ``zoom[p]``."""
+    the draw's ``zoom[p]``; with ``edge_mass`` an anchored bump's first / last value also takes
+    that share of the Gaussian's mass beyond the bound (SciPy's normal CDF), in units of a value's
+    own mass ``step * density``."""
     P, H = len(shape), np.asarray(w["lstm"]["u"]).shape[0]
     W = jax.tree.map(lambda x: np.asarray(x, np.float64), w)
     anchored = "stay" in W
@@ -72,6 +74,14 @@ def _np_log_prob(w, action, shape, anchor=None, sigma_min=0.05, zoom=None):
         sigma = np.exp(np.clip(log_sigma, floor, 1))
         r = np.arange(n) / max(n - 1, 1)
         z = free - 0.5 * ((r - mu) / sigma) ** 2
+        if anchored and anchor is not None and edge_mass > 0 and n > 1:
+            step = 1.0 / (n - 1)
+            own = step / (sigma * np.sqrt(2 * np.pi))  # a value's mass per unit of exp(bump)
+            tails = (stats.norm.cdf((-step / 2 - mu) / sigma),
+                     stats.norm.cdf((mu - 1 - step / 2) / sigma))
+            for v, tail in zip((0, n - 1), tails):
+                bump = -0.5 * ((r[v] - mu) / sigma) ** 2
+                z[v] = free[v] + np.log(np.exp(bump) + edge_mass * tail / own)
         if anchored and anchor is not None:
             z[anchor[p]] += h @ W["stay"]["w"][p] + W["stay"]["b"][p]
         lse = z.max() + np.log(np.sum(np.exp(z - z.max())))
@@ -143,6 +153,21 @@ def test_anchored_controller_log_prob_matches_step_by_step_numpy(controller_path
         elp, eent = _np_log_prob(w, action, shape, anchor, zoom=z)
         assert float(lp) == pytest.approx(elp, abs=1e-4)
         assert float(ent) == pytest.approx(eent, abs=1e-4)
+    # moves that stop at a bound (edge_mass): the first / last value takes that share of the
+    # mass beyond it; anchors at and near the bounds, wide (zoomed) and narrow moves
+    edge = [([0, 0, 0, 8], [0, 1, 0, 7], zoom, 0.7), ([3, 5, 0, 0], [3, 4, 0, 1], zoom, 1.0),
+            ([1, 0, 0, 8], [0, 0, 0, 8], None, 0.4), ([2, 3, 0, 4], [3, 5, 0, 8], zoom, 0.0)]
+    lps, ents = jax.jit(jax.vmap(lambda a, c, z, em: ar.log_prob_and_entropy(
+        w, a, shape, ar.LOG_SIGMA_MIN, (c, jnp.bool_(True), z, em))))(
+        jnp.asarray([a for a, _, _, _ in edge]), jnp.asarray([c for _, c, _, _ in edge]),
+        jnp.asarray([z if z is not None else np.zeros(4) for _, _, z, _ in edge], jnp.float32),
+        jnp.asarray([m for _, _, _, m in edge], jnp.float32))
+    for (action, anchor, z, m), lp, ent in zip(edge, lps, ents):
+        elp, eent = _np_log_prob(w, action, shape, anchor, zoom=z, edge_mass=m)
+        assert float(lp) == pytest.approx(elp, abs=1e-4)
+        assert float(ent) == pytest.approx(eent, abs=1e-4)
+    # and the bound's share matters: the first case without it differs
+    assert abs(float(lps[0]) - _np_log_prob(w, edge[0][0], shape, edge[0][1], zoom=zoom)[0]) > 1e-2
 
 
 def test_zoomed_anchored_draws_are_wider_by_the_zoom():

@@ -122,7 +122,7 @@ def head_logits(w: dict, p, h: jax.Array, shape: tuple[int, ...],
     r = value_ranks(shape)[p, :n]
     stay = 0.0
     if anchor is not None:
-        ranks, present, zoom = anchor
+        ranks, present, zoom, edge_mass = anchor
         local = ranks[p] + 0.5 * jnp.tanh(mm(h, w["delta"]["w"][p]) + w["delta"]["b"][p])
         mu = jnp.where(present, local, mu)
         log_sigma = jnp.where(present, log_sigma + w["local"]["b"][p] + zoom[p], log_sigma)
@@ -133,8 +133,28 @@ def head_logits(w: dict, p, h: jax.Array, shape: tuple[int, ...],
         jnp.asarray(shape, jnp.float32)[p] - 1, 1.0)))
     sigma = jnp.exp(jnp.clip(log_sigma, floor, 1.0))
     bump = -0.5 * jnp.square((r - mu) / sigma)
+    if anchor is not None:
+        bump = jnp.where(present & (edge_mass > 0),
+                         _edge_clipped(bump, mu, sigma, edge_mass, shape, p, n), bump)
     logits = free + bump + stay
     return logits if own else jnp.where(value_mask(shape)[p], logits, MASKED)
+
+
+def _edge_clipped(bump, mu, sigma, edge_mass, shape, p, n):
+    """An anchored bump whose first / last value also takes ``edge_mass`` of the Gaussian's
+    mass beyond that bound (a move past a bound stops at it; 0: the bump is renormalised
+    inside the box). Log-mass relative to a value's own mass ``step * density``; one-value
+    parameters unchanged."""
+    span = jnp.maximum(jnp.asarray(shape, jnp.float32)[p] - 1, 1.0)
+    half = 0.5 / span
+    log_own = jnp.log(2 * half / (sigma * np.sqrt(2 * np.pi)))
+    log_w = jnp.log(jnp.maximum(edge_mass, 1e-30))
+    lo = jax.scipy.special.log_ndtr((-half - mu) / sigma) - log_own + log_w
+    hi = jax.scipy.special.log_ndtr((mu - 1.0 - half) / sigma) - log_own + log_w
+    v = jnp.arange(n)
+    last = jnp.asarray(shape, jnp.int32)[p] - 1
+    tail = jnp.where(v == 0, lo, jnp.where(v == last, hi, -1e30))
+    return jnp.where((span > 1) & ((v == 0) | (v == last)), jnp.logaddexp(bump, tail), bump)
 
 
 UNROLL_ABOVE = 1024  # padded head values (P x the widest parameter's values) above which the
@@ -154,14 +174,15 @@ def padded(x: jax.Array, shape: tuple[int, ...]) -> jax.Array:
 
 
 def _anchor_ranks(anchor, shape):
-    """``(indices (P,), present[, zoom (P,)])`` -> ``(ranks (P,) in [0, 1], present,
-    zoom (P,))`` (zoom 0 when not given), or None."""
+    """``(indices (P,), present[, zoom (P,)[, edge_mass]])`` -> ``(ranks (P,) in [0, 1],
+    present, zoom (P,), edge_mass)`` (zoom and edge_mass 0 when not given), or None."""
     if anchor is None:
         return None
     idx, present = anchor[0], anchor[1]
     zoom = anchor[2] if len(anchor) > 2 else jnp.zeros(len(shape), jnp.float32)
+    edge_mass = anchor[3] if len(anchor) > 3 else jnp.float32(0.0)
     span = jnp.maximum(jnp.asarray(shape, jnp.float32) - 1, 1.0)
-    return idx.astype(jnp.float32) / span, jnp.asarray(present), zoom
+    return idx.astype(jnp.float32) / span, jnp.asarray(present), zoom, edge_mass
 
 
 def _scan(w: dict, shape: tuple[int, ...], step_fn, xs, log_sigma_min=LOG_SIGMA_MIN,

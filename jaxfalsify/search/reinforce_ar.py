@@ -25,6 +25,10 @@ a reward that is flat until the first collision, failures that are rare.
   in a few moves and small ones searched value by value. The factor is drawn from a known
   distribution that no weight changes, so the policy gradient conditions on it (kept per draw
   in ``zooms``) and stays unbiased.
+* **Moves that stop at a bound** (``edge_mass``, off by default): that share of an anchored
+  move's Gaussian mass beyond the first / last value goes to that value (1: moves clipped to
+  the box, as evolution strategies clip; 0: renormalised inside it). For failures on the box's
+  faces (README: ``huge-aeb``); it costs on interior failures, so it is not the default.
 * **No repeats until a collision** (``resample``): a deterministic SUT gives the same outcome
   twice, so a repeated scenario wastes an evaluation. The controller draws ``resample``
   candidates per scenario it asks and takes the first ones not evaluated before (a ``memory``
@@ -76,6 +80,9 @@ class ARParams:
     repeat_found: float = 0.0  # once the learner has a collision: share of its draws that
     # may repeat an evaluated scenario
     uniform_mix: float = 0.0  # share of uniformly random draws (not learnt from)
+    edge_mass: float = 0.0  # anchored: share of a move's mass beyond a bound that stops at
+    # the bound's value (1: clipped moves, as an evolution strategy clips; 0: renormalised
+    # inside the box)
     zoom: float = 0.0  # anchored: multi-scale moves, the widest as a fraction of a
     # parameter's range (each draw's width is log-uniform between the learnt width and that
     # many times wider; 0: off)
@@ -210,6 +217,7 @@ class AutoregressiveReinforce(Strategy):
         u = uniform(key, (L, C, 2 * P + 5))
         zooms = u[..., 2 * P + 3]  # (L, C)
         lz = self._log_zoom(params)
+        em = jnp.asarray(params.edge_mass, jnp.float32)
         if self.anchored:  # an anchor from the learner's queue, the k-th best ~ decay^k
             filled = jnp.sum(jnp.isfinite(state.queue_signal), axis=-1)  # (L,)
             K = state.queue.shape[1]
@@ -222,7 +230,7 @@ class AutoregressiveReinforce(Strategy):
                               params.global_share_found, params.global_share)  # (L,)
             present = (filled[:, None] > 0) & (u[..., 2 * P + 1] >= share[:, None])
             sampled = jax.vmap(lambda w, ul, al, pl, zl: jax.vmap(
-                lambda ui, ai, pi, zi: ar.sample(w, ui, self.shape, lsm, (ai, pi, zi * lz)))(
+                lambda ui, ai, pi, zi: ar.sample(w, ui, self.shape, lsm, (ai, pi, zi * lz, em)))(
                     ul, al, pl, zl))(state.weights, u[:, :Cp, :P], anchors[:, :Cp],
                                      present[:, :Cp], zooms[:, :Cp])
         else:
@@ -296,11 +304,12 @@ class AutoregressiveReinforce(Strategy):
         pres = state.anchored.reshape(L, b)
         zooms = state.zooms.reshape(L, b)
         lz = self._log_zoom(params)
+        em = jnp.asarray(params.edge_mass, jnp.float32)
 
         def loss(w, a, adv_l, ok_l, beta_l, anc_l, pres_l, z_l):
             if self.anchored:
                 lp, ent = jax.vmap(lambda ai, ci, pi, zi: ar.log_prob_and_entropy(
-                    w, ai, self.shape, lsm, (ci, pi, zi * lz)))(a, anc_l, pres_l, z_l)
+                    w, ai, self.shape, lsm, (ci, pi, zi * lz, em)))(a, anc_l, pres_l, z_l)
             else:
                 lp, ent = jax.vmap(lambda ai: ar.log_prob_and_entropy(w, ai, self.shape,
                                                                       lsm))(a)
