@@ -153,8 +153,8 @@ def _edge_clipped(bump, mu, sigma, edge_mass, shape, p, n):
     hi = jax.scipy.special.log_ndtr((mu - 1.0 - half) / sigma) - log_own + log_w
     v = jnp.arange(n)
     last = jnp.asarray(shape, jnp.int32)[p] - 1
-    tail = jnp.where(v == 0, lo, jnp.where(v == last, hi, -1e30))
-    return jnp.where((span > 1) & ((v == 0) | (v == last)), jnp.logaddexp(bump, tail), bump)
+    tail = jnp.where(v == 0, lo, jnp.where(v == last, hi, -1e30))  # inner values: + 0
+    return jnp.where(span > 1, jnp.logaddexp(bump, tail), bump)
 
 
 UNROLL_ABOVE = 1024  # padded head values (P x the widest parameter's values) above which the
