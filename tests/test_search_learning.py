@@ -3,6 +3,8 @@ from: the controller's log-probabilities against a step-by-step NumPy computatio
 interior island of a synthetic space, the shaped signal and rank baseline by hand, CMA-ES with
 margin's correction against the normal distribution (SciPy)."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,7 +13,7 @@ from scipy import stats
 
 from jaxfalsify import search
 from jaxfalsify.search import autoregressive as ar
-from jaxfalsify.search import base, cmaes
+from jaxfalsify.search import base, cmaes, surrogate
 from jaxfalsify.search.reinforce_ar import scenario_hash, top_distinct
 
 SHAPE = (4, 6, 3)
@@ -306,6 +308,105 @@ def test_shaped_signal_and_centred_ranks_by_hand():
     r = np.asarray(base.centred_ranks(jnp.array([3.0, 1.0, 2.0, 2.0, -jnp.inf])))
     # valid: 3, 1, 2, 2 -> ranks 3, 0, 1.5, 1.5 over n - 1 = 3, minus 0.5; -inf gets 0
     np.testing.assert_allclose(r, [0.5, -0.5, 0.0, 0.0, 0.0], atol=1e-7)
+
+
+def _np_gp(x, y, z):
+    """Textbook GP regression (Rasmussen & Williams Alg. 2.1) in float64 on the filled points
+    only, the length scale by the exact log marginal likelihood (Eq. 2.30)."""
+    x, y = x[np.isfinite(y)], y[np.isfinite(y)]
+    mu, sd = y.mean(), y.std()
+    t = (y - mu) / sd
+    best = None
+    for ell in surrogate.LENGTH_SCALES:
+        k = np.exp(-0.5 * ((x[:, None] - x[None]) ** 2).sum(-1) / ell**2)
+        k += surrogate.NOISE * np.eye(len(x))
+        lml = -0.5 * t @ np.linalg.solve(k, t) - 0.5 * np.linalg.slogdet(k)[1]
+        if best is None or lml > best[0]:
+            best = (lml, ell, k)
+    _, ell, k = best
+    ks = np.exp(-0.5 * ((z[:, None] - x[None]) ** 2).sum(-1) / ell**2)
+    mean = mu + sd * ks @ np.linalg.solve(k, t)
+    var = 1.0 - np.einsum("ij,ji->i", ks, np.linalg.solve(k, ks.T))
+    return mean, sd * np.sqrt(np.maximum(var, 0.0)), ell
+
+
+@pytest.mark.parametrize("ell_true", [0.1, 0.4])
+def test_gp_surrogate_matches_textbook_regression_with_empty_slots(ell_true):
+    """The screening GP (fixed shapes, empty slots masked) against float64 GP regression on
+    the filled points alone: same length scale chosen, same posterior mean and std, and the
+    mean interpolates the data. The signal is a smooth function of the scaled value ranks."""
+    shape = (30, 20, 50)
+    rng = np.random.default_rng(int(ell_true * 10))
+    hist = np.stack([rng.integers(0, n, 40) for n in shape], -1)
+    xs = hist / (np.array(shape) - 1.0)
+    y = np.sin(xs @ np.array([1.0, -2.0, 0.5]) / ell_true) + 0.3 * xs[:, 0]
+    y[[3, 17, 31]] = -np.inf  # empty slots
+    cand = np.stack([rng.integers(0, n, 25) for n in shape], -1)
+    mean, std, ell = jax.jit(surrogate.posterior)(
+        surrogate.unit(jnp.asarray(hist), shape), jnp.asarray(y, jnp.float32),
+        surrogate.unit(jnp.asarray(cand), shape))
+    m_ref, s_ref, ell_ref = _np_gp(xs, y, cand / (np.array(shape) - 1.0))
+    assert float(ell) == pytest.approx(ell_ref)
+    np.testing.assert_allclose(np.asarray(mean), m_ref, atol=2e-3 * np.ptp(y[np.isfinite(y)]))
+    np.testing.assert_allclose(np.asarray(std), s_ref, atol=2e-3 * y[np.isfinite(y)].std())
+    # at the data the mean reproduces the signal (the nugget is 1e-3 of its variance)
+    m_at, _, _ = surrogate.posterior(surrogate.unit(jnp.asarray(hist), shape),
+                                     jnp.asarray(y, jnp.float32),
+                                     surrogate.unit(jnp.asarray(hist), shape))
+    ok = np.isfinite(y)
+    np.testing.assert_allclose(np.asarray(m_at)[ok], y[ok], atol=0.05 * np.ptp(y[ok]))
+    # ucb = mean + kappa * std; too few points: no model
+    u = surrogate.ucb(surrogate.unit(jnp.asarray(hist), shape), jnp.asarray(y, jnp.float32),
+                      surrogate.unit(jnp.asarray(cand), shape), 0.5)
+    np.testing.assert_allclose(np.asarray(u), np.asarray(mean) + 0.5 * np.asarray(std),
+                               rtol=1e-5, atol=1e-6)
+    y2 = np.full(40, -np.inf)
+    y2[:2] = [1.0, 2.0]
+    m2, s2, _ = surrogate.posterior(surrogate.unit(jnp.asarray(hist), shape),
+                                    jnp.asarray(y2, jnp.float32),
+                                    surrogate.unit(jnp.asarray(cand), shape))
+    assert np.all(np.asarray(m2) == 0) and np.all(np.asarray(s2) == 0)
+
+
+@pytest.mark.slow
+def test_surrogate_screening_asks_the_best_new_candidates():
+    """With ``surrogate`` on and a smooth signal seen so far, each asked scenario is new and,
+    before a collision, the asked batch's GP bound is at least that of the same learner's
+    unscreened ask (the first new candidates) from the same state and key; after a
+    collision the screening is off and both asks agree exactly."""
+    shape = (10, 10, 10, 10)
+    target = jnp.array([7, 2, 5, 4])
+    on, p = search.make("reinforce/default", shape, surrogate=64, resample=8)
+    off, _ = search.make("reinforce/default", shape, resample=8)
+
+    def outcome(idx):
+        rob = jnp.sqrt(jnp.sum(jnp.square(idx - target), -1)).astype(jnp.float32) + 0.5
+        return -0.01 * rob, rob
+
+    def upd(state, k):
+        k1, k2 = jax.random.split(k)
+        idx, state = on.ask(k1, state, p)
+        r, rob = outcome(idx)
+        return on.tell_outcome(k2, state, idx, r, rob, jnp.zeros(on.batch, bool), p), None
+
+    st = jax.lax.scan(upd, on.init(jax.random.key(0), p),
+                      jax.random.split(jax.random.key(1), 3))[0]
+    assert np.isfinite(np.asarray(st.history_signal)).sum() == 64  # 3 x 32 evaluated, ring 64
+
+    def ask(strat, seen):
+        s2 = dataclasses.replace(st, seen=jnp.full_like(st.seen, seen))
+        idx, _ = strat.ask(jax.random.key(5), s2, p)
+        bound = surrogate.ucb(surrogate.unit(st.history, shape), st.history_signal,
+                              surrogate.unit(idx, shape), p.kappa)
+        return np.asarray(idx), np.asarray(bound)
+
+    idx_on, b_on = ask(on, False)
+    idx_off, b_off = ask(off, False)
+    assert len({tuple(i) for i in idx_on}) == on.batch
+    assert b_on.mean() > b_off.mean() and b_on.min() >= np.median(b_off)
+    idx_on2, _ = ask(on, True)
+    idx_off2, _ = ask(off, True)
+    np.testing.assert_array_equal(idx_on2, idx_off2)
 
 
 # ------------------------------------------------------------------ learning

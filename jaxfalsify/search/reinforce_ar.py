@@ -35,6 +35,11 @@ a reward that is flat until the first collision, failures that are rare.
   of 32-bit hashes of the evaluated scenarios) and not repeated within the batch, then uniform
   draws if too few are new. Once a learner has found a collision, a share ``repeat_found`` of
   its draws may repeat, so it can converge on the best scenario (the paper's learning curve).
+* **Surrogate screening** (``surrogate``, off by default): until the learner has a
+  collision, a Gaussian process fitted to its last ``surrogate`` evaluations
+  (:mod:`jaxfalsify.search.surrogate`) ranks the new candidates (``resample`` per asked
+  scenario) by ``mean + kappa * std`` of the signal, and the best are asked instead of the
+  first new ones. The policy still proposes every candidate and learns from what is asked.
 * **Baseline**: centred ranks of the learning signal within the batch (``advantage="rank"``:
   scale-free, robust to the jump a collision makes) or the signal standardised
   (``"normalised"``).
@@ -59,6 +64,7 @@ import optax
 
 from jaxfalsify import pytree
 from jaxfalsify.search import autoregressive as ar
+from jaxfalsify.search import surrogate as gp
 from jaxfalsify.search.base import (Strategy, categorical_from_uniform, centred_ranks,
                                     check_signal, shaped_signal, uniform, uniform_indices)
 
@@ -83,6 +89,7 @@ class ARParams:
     edge_mass: float = 0.0  # anchored: share of a move's mass beyond a bound that stops at
     # the bound's value (1: clipped moves, as an evolution strategy clips; 0: renormalised
     # inside the box)
+    kappa: float = 0.3  # surrogate: candidates ranked by GP mean + kappa * std
     zoom: float = 0.0  # anchored: multi-scale moves, the widest as a fraction of a
     # parameter's range (each draw's width is log-uniform between the learnt width and that
     # many times wider; 0: off)
@@ -102,6 +109,9 @@ class ARState:
     memory: jax.Array  # (M,) uint32, hashes of the evaluated scenarios (a ring buffer)
     memory_at: jax.Array  # () int32, hashes written so far (slot = memory_at % M)
     told: jax.Array  # () int32, updates so far
+    history: jax.Array  # (H, P) int32, the last H evaluated scenarios (surrogate; H >= 1)
+    history_signal: jax.Array  # (H,) float32, their signals (-inf: empty slot)
+    history_at: jax.Array  # () int32, evaluations written so far
 
 
 def scenario_hash(indices: jax.Array) -> jax.Array:
@@ -132,7 +142,8 @@ class AutoregressiveReinforce(Strategy):
     (``rank`` or ``normalised``), ``signal`` (``shaped`` or ``reward``), ``queue`` (best
     scenarios kept per learner), ``anchored`` (draw around them; needs ``queue``),
     ``resample`` (candidates per asked scenario; 1: repeats allowed), ``memory`` (evaluated
-    scenarios remembered)."""
+    scenarios remembered), ``surrogate`` (evaluations the GP
+    screening is fitted to; 0: off; needs ``resample`` >= 2)."""
 
     hidden: int = 32
     learners: int = 4
@@ -142,6 +153,7 @@ class AutoregressiveReinforce(Strategy):
     anchored: bool = False
     resample: int = 1
     memory: int = 4096
+    surrogate: int = 0
 
     Params = ARParams
 
@@ -158,6 +170,9 @@ class AutoregressiveReinforce(Strategy):
             raise ValueError(f"queue must be >= 0 (got {self.queue})")
         if self.anchored and self.queue < 1:
             raise ValueError("anchored needs queue >= 1")
+        if self.surrogate < 0 or (self.surrogate and self.resample < 2):
+            raise ValueError(f"surrogate must be >= 0 and needs resample >= 2 (got "
+                             f"surrogate={self.surrogate}, resample={self.resample})")
         if self.resample < 1 or self.memory < 1:
             raise ValueError(f"resample and memory must be >= 1 (got {self.resample}, "
                              f"{self.memory})")
@@ -191,7 +206,9 @@ class AutoregressiveReinforce(Strategy):
                        jnp.zeros(self.batch, jnp.float32), jnp.zeros((L, K, P), jnp.int32),
                        jnp.full((L, K), -jnp.inf, jnp.float32),
                        jnp.zeros(self.memory if self.resample > 1 else 1, jnp.uint32),
-                       jnp.int32(0), jnp.int32(0))
+                       jnp.int32(0), jnp.int32(0),
+                       jnp.zeros((max(self.surrogate, 1), P), jnp.int32),
+                       jnp.full(max(self.surrogate, 1), -jnp.inf, jnp.float32), jnp.int32(0))
 
     def probs(self, state, learner: int = 0, params=None) -> jax.Array:
         """``(P, max_n)``: each parameter's probabilities (draws without an anchor) given the
@@ -255,7 +272,16 @@ class AutoregressiveReinforce(Strategy):
             # a learner with a collision may repeat, for a share repeat_found of its draws
             free = state.seen[:, None] & (u[..., 2 * P + 2] < params.repeat_found) \
                 & (jnp.arange(C) < Cp)[None, :]
-            order = jnp.argsort(~(fresh | free), axis=-1, stable=True)[:, :b]
+            if self.surrogate:  # new candidates by the GP's bound, best first, until a collision
+                score = jax.lax.cond(
+                    jnp.all(state.seen), lambda: jnp.zeros(L * C, jnp.float32),
+                    lambda: gp.ucb(gp.unit(state.history, self.shape), state.history_signal,
+                                   gp.unit(idx.reshape(-1, P), self.shape), params.kappa))
+                score = jnp.where(state.seen[:, None], 0.0, score.reshape(L, C))
+                order = jnp.argsort(jnp.where(fresh | free, -score, jnp.inf), axis=-1,
+                                    stable=True)[:, :b]
+            else:
+                order = jnp.argsort(~(fresh | free), axis=-1, stable=True)[:, :b]
             take = lambda x: jnp.take_along_axis(  # noqa: E731
                 x, order.reshape(order.shape + (1,) * (x.ndim - 2)), axis=1)
             idx, explored, anchors, present, zooms = map(take, (idx, explored, anchors, present,
@@ -328,5 +354,12 @@ class AutoregressiveReinforce(Strategy):
                                                                  -jnp.inf))
         else:
             q, qs = state.queue, state.queue_signal
+        hist, hist_s, hist_at = state.history, state.history_signal, state.history_at
+        if self.surrogate:  # a ring buffer of the last evaluations for the GP
+            slots = (hist_at + jnp.arange(self.batch)) % self.surrogate
+            hist = hist.at[slots].set(indices.reshape(self.batch, P))
+            hist_s = hist_s.at[slots].set(jnp.where(jnp.isfinite(signal), signal, -jnp.inf))
+            hist_at = jnp.minimum(hist_at + self.batch, 2**30)
         return dataclasses.replace(state, weights=weights, opt=opt, seen=seen, queue=q,
-                                   queue_signal=qs, told=state.told + 1)
+                                   queue_signal=qs, told=state.told + 1, history=hist,
+                                   history_signal=hist_s, history_at=hist_at)
