@@ -56,9 +56,9 @@ def posterior(x: jax.Array, y: jax.Array, z: jax.Array):
         return lml, chol, alpha
 
     ells = jnp.asarray(LENGTH_SCALES, jnp.float32)
-    lmls = jax.vmap(lambda e: fit(e)[0])(ells)
-    ell = ells[jnp.argmax(jnp.where(jnp.isfinite(lmls), lmls, -jnp.inf))]
-    _, chol, alpha = fit(ell)
+    lmls, chols, alphas = jax.vmap(fit)(ells)  # every candidate fitted once
+    best = jnp.argmax(jnp.where(jnp.isfinite(lmls), lmls, -jnp.inf))
+    ell, chol, alpha = ells[best], chols[best], alphas[best]
     ks = jnp.where(ok[None, :], jnp.exp(-0.5 * dz / ell**2), 0.0)  # (N, H)
     v = jax.scipy.linalg.solve_triangular(chol, ks.T, lower=True)  # (H, N)
     var = jnp.maximum(1.0 - jnp.sum(v * v, 0), 0.0)
