@@ -36,10 +36,13 @@ a reward that is flat until the first collision, failures that are rare.
   draws if too few are new. Once a learner has found a collision, a share ``repeat_found`` of
   its draws may repeat, so it can converge on the best scenario (the paper's learning curve).
 * **Surrogate screening** (``surrogate``, off by default): until the learner has a
-  collision, a Gaussian process fitted to its last ``surrogate`` evaluations
-  (:mod:`jaxfalsify.search.surrogate`) ranks the new candidates (``resample`` per asked
-  scenario) by ``mean + kappa * std`` of the signal, and the best are asked instead of the
-  first new ones. The policy still proposes every candidate and learns from what is asked.
+  collision, a Gaussian process (:mod:`jaxfalsify.search.surrogate`) fitted to its last
+  ``surrogate`` evaluations and its queue of best scenarios picks which of the new candidates
+  (``resample`` per asked scenario) are asked: by GP-BUCB, the highest ``mean + kappa * std``
+  first, each further pick's std shrunk as if the earlier ones had been observed, so a batch
+  spreads over the promising candidates. One length scale per parameter, refined by marginal
+  likelihood one parameter per update. The policy still proposes every candidate and learns
+  from what is asked.
 * **Baseline**: centred ranks of the learning signal within the batch (``advantage="rank"``:
   scale-free, robust to the jump a collision makes) or the signal standardised
   (``"normalised"``).
@@ -89,7 +92,7 @@ class ARParams:
     edge_mass: float = 0.0  # anchored: share of a move's mass beyond a bound that stops at
     # the bound's value (1: clipped moves, as an evolution strategy clips; 0: renormalised
     # inside the box)
-    kappa: float = 0.3  # surrogate: candidates ranked by GP mean + kappa * std
+    kappa: float = 1.0  # surrogate: candidates picked by GP mean + kappa * std (standardised)
     zoom: float = 0.0  # anchored: multi-scale moves, the widest as a fraction of a
     # parameter's range (each draw's width is log-uniform between the learnt width and that
     # many times wider; 0: off)
@@ -112,6 +115,7 @@ class ARState:
     history: jax.Array  # (H, P) int32, the last H evaluated scenarios (surrogate; H >= 1)
     history_signal: jax.Array  # (H,) float32, their signals (-inf: empty slot)
     history_at: jax.Array  # () int32, evaluations written so far
+    ell: jax.Array  # (P,) float32, the GP's length scales (surrogate; fractions of each range)
 
 
 def scenario_hash(indices: jax.Array) -> jax.Array:
@@ -141,9 +145,11 @@ class AutoregressiveReinforce(Strategy):
     """Static: ``hidden`` LSTM units, ``learners`` (divides ``batch``), ``advantage``
     (``rank`` or ``normalised``), ``signal`` (``shaped`` or ``reward``), ``queue`` (best
     scenarios kept per learner), ``anchored`` (draw around them; needs ``queue``),
-    ``resample`` (candidates per asked scenario; 1: repeats allowed), ``memory`` (evaluated
-    scenarios remembered), ``surrogate`` (evaluations the GP
-    screening is fitted to; 0: off; needs ``resample`` >= 2)."""
+    ``resample`` (policy candidates per asked scenario; 1: repeats allowed), ``explore``
+    (uniformly random candidates per asked scenario beside them, with ``resample`` >= 2: the
+    fallbacks when too few policy draws are new, and the GP's to pick from), ``memory``
+    (evaluated scenarios remembered), ``surrogate`` (evaluations the GP screening is fitted
+    to; 0: off; needs ``resample`` >= 2)."""
 
     hidden: int = 32
     learners: int = 4
@@ -152,6 +158,7 @@ class AutoregressiveReinforce(Strategy):
     queue: int = 0
     anchored: bool = False
     resample: int = 1
+    explore: int = 1
     memory: int = 4096
     surrogate: int = 0
 
@@ -173,9 +180,9 @@ class AutoregressiveReinforce(Strategy):
         if self.surrogate < 0 or (self.surrogate and self.resample < 2):
             raise ValueError(f"surrogate must be >= 0 and needs resample >= 2 (got "
                              f"surrogate={self.surrogate}, resample={self.resample})")
-        if self.resample < 1 or self.memory < 1:
-            raise ValueError(f"resample and memory must be >= 1 (got {self.resample}, "
-                             f"{self.memory})")
+        if self.resample < 1 or self.memory < 1 or self.explore < 1:
+            raise ValueError(f"resample, explore and memory must be >= 1 (got "
+                             f"{self.resample}, {self.explore}, {self.memory})")
 
     @property
     def per_learner(self) -> int:
@@ -208,7 +215,8 @@ class AutoregressiveReinforce(Strategy):
                        jnp.zeros(self.memory if self.resample > 1 else 1, jnp.uint32),
                        jnp.int32(0), jnp.int32(0),
                        jnp.zeros((max(self.surrogate, 1), P), jnp.int32),
-                       jnp.full(max(self.surrogate, 1), -jnp.inf, jnp.float32), jnp.int32(0))
+                       jnp.full(max(self.surrogate, 1), -jnp.inf, jnp.float32), jnp.int32(0),
+                       jnp.full(P, gp.ARD_START, jnp.float32))
 
     def probs(self, state, learner: int = 0, params=None) -> jax.Array:
         """``(P, max_n)``: each parameter's probabilities (draws without an anchor) given the
@@ -224,10 +232,16 @@ class AutoregressiveReinforce(Strategy):
         return ar._scan(w, self.shape, step_fn, jnp.zeros(self.n_params), self._lsm(params),
                         self._global())
 
-    def ask(self, key, state, params):
+    def candidates(self, key, state, params):
+        """The scenarios an ask chooses from, per learner: ``idx (L, C, P)``, ``explored``
+        (uniform draws), ``anchors (L, C, P)``, ``present`` (anchored), ``zooms`` (all ``(L,
+        C)``) and ``allowed (L, C)``, the candidates that may be asked (new, or free to repeat
+        once the learner has a collision); ``C = b`` and all allowed when ``resample`` is 1,
+        else ``b * (resample + explore)``, the policy draws first."""
         L, b, P, M = self.learners, self.per_learner, self.n_params, self.resample
         lsm = self._lsm(params)
-        C = b * (M + 1) if M > 1 else b  # candidates per learner: M per slot + b fallbacks
+        E = self.explore if M > 1 else 0  # uniform candidates per slot
+        C = b * (M + E)  # candidates per learner: M policy draws per slot + E uniform ones
         Cp = b * M if M > 1 else b  # of which the policy draws (the rest: uniform fallbacks)
         # one draw: policy (P), uniform values (P), anchor pick, anchor coin, repeat coin,
         # zoom, uniform-mix coin
@@ -259,11 +273,12 @@ class AutoregressiveReinforce(Strategy):
         # the uniform fallbacks need no policy draw
         sampled = jnp.pad(sampled, ((0, 0), (0, C - Cp), (0, 0)))
         explored = u[..., -1] < params.uniform_mix
-        if M > 1:  # the last b candidates are uniform fallbacks, taken when too few are new
+        if M > 1:  # the last b * E candidates are uniform draws (fallbacks when too few are new)
             explored = explored | (jnp.arange(C) >= Cp)[None, :]
         idx = jnp.where(explored[..., None], uniform_indices(u[..., P:2 * P], self.shape),
                         sampled)  # (L, C, P)
-        if M > 1:  # per learner, the first b candidates that are new (in drawing order)
+        allowed = jnp.ones((L, C), bool)
+        if M > 1:
             h = scenario_hash(idx).reshape(-1)
             n = h.shape[0]
             repeated = jnp.any((h[:, None] == h[None, :])
@@ -272,24 +287,48 @@ class AutoregressiveReinforce(Strategy):
             # a learner with a collision may repeat, for a share repeat_found of its draws
             free = state.seen[:, None] & (u[..., 2 * P + 2] < params.repeat_found) \
                 & (jnp.arange(C) < Cp)[None, :]
-            if self.surrogate:  # new candidates by the GP's bound, best first, until a collision
-                score = jax.lax.cond(
-                    jnp.all(state.seen), lambda: jnp.zeros(L * C, jnp.float32),
-                    lambda: gp.ucb(gp.unit(state.history, self.shape), state.history_signal,
-                                   gp.unit(idx.reshape(-1, P), self.shape), params.kappa))
-                score = jnp.where(state.seen[:, None], 0.0, score.reshape(L, C))
-                order = jnp.argsort(jnp.where(fresh | free, -score, jnp.inf), axis=-1,
-                                    stable=True)[:, :b]
+            allowed = fresh | free
+        return dict(idx=idx, explored=explored, anchors=anchors, present=present, zooms=zooms,
+                    allowed=allowed)
+
+    def ask(self, key, state, params):
+        b, P = self.per_learner, self.n_params
+        c = self.candidates(key, state, params)
+        if self.resample > 1:  # per learner, b of the allowed candidates
+            plain = jnp.argsort(~c["allowed"], axis=-1, stable=True)[:, :b]  # in drawing order
+            if self.surrogate:  # until a collision, the GP picks among the allowed candidates
+                order, state = jax.lax.cond(
+                    jnp.all(state.seen), lambda: (plain, state),
+                    lambda: self._screen(state, c["idx"], c["allowed"], params))
+                order = jnp.where(state.seen[:, None], plain, order)
             else:
-                order = jnp.argsort(~(fresh | free), axis=-1, stable=True)[:, :b]
-            take = lambda x: jnp.take_along_axis(  # noqa: E731
-                x, order.reshape(order.shape + (1,) * (x.ndim - 2)), axis=1)
-            idx, explored, anchors, present, zooms = map(take, (idx, explored, anchors, present,
-                                                                zooms))
-            state = self._remember(state, scenario_hash(idx).reshape(-1))
-        return idx.reshape(self.batch, P), dataclasses.replace(
-            state, explored=explored.reshape(self.batch), anchors=anchors.reshape(self.batch, P),
-            anchored=present.reshape(self.batch), zooms=zooms.reshape(self.batch))
+                order = plain
+            c = {k: jnp.take_along_axis(v, order.reshape(order.shape + (1,) * (v.ndim - 2)),
+                                        axis=1) for k, v in c.items()}
+            state = self._remember(state, scenario_hash(c["idx"]).reshape(-1))
+        return c["idx"].reshape(self.batch, P), dataclasses.replace(
+            state, explored=c["explored"].reshape(self.batch),
+            anchors=c["anchors"].reshape(self.batch, P),
+            anchored=c["present"].reshape(self.batch), zooms=c["zooms"].reshape(self.batch))
+
+    def _screen(self, state, idx, allowed, params):
+        """GP-BUCB picks ``(L, b)`` among each learner's candidates ``idx (L, C, P)`` (only
+        ``allowed (L, C)`` ones while any is left), with the length scale of one parameter
+        (in turn, over those with two or more values) refined first."""
+        L, K, P = self.learners, max(self.queue, 1), self.n_params
+        q = state.queue.reshape(L * K, P)
+        # the GP's data: the last evaluations and the best ones (a repeat counted once)
+        dup = jnp.any(jnp.all(state.history[:, None, :] == q[None, :, :], -1)
+                      & jnp.isfinite(state.queue_signal.reshape(-1))[None, :], -1)
+        x = gp.unit(jnp.concatenate([state.history, q]), self.shape)
+        y = jnp.concatenate([jnp.where(dup, -jnp.inf, state.history_signal),
+                             state.queue_signal.reshape(-1)])
+        movable = jnp.asarray([p for p, n in enumerate(self.shape) if n > 1] or [0])
+        model = gp.refine(x, y, state.ell, movable[state.told % movable.shape[0]])
+        z = gp.unit(idx, self.shape)
+        order = jax.vmap(lambda zl, al: gp.batch_ucb(model, zl, al, params.kappa,
+                                                     self.per_learner))(z, allowed)
+        return order, dataclasses.replace(state, ell=model.ell)
 
     def _evaluated(self, h, state):
         """``h (N,)`` uint32 -> bool: among the remembered hashes."""

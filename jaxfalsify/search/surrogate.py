@@ -1,25 +1,35 @@
-"""A small Gaussian-process surrogate of the learning signal, for screening candidates.
+"""A small Gaussian-process surrogate of the learning signal, for choosing among candidates.
 
 ``reinforce/default`` draws several candidates per scenario it asks; until it has a collision,
-a GP fitted to its last evaluations (``surrogate`` of them) ranks the new candidates by the
-upper confidence bound ``mean + kappa * std`` and the best are asked (README: "Surrogate
-screening"). Everything here is fixed-shape and jit-friendly: empty history slots are masked,
-not dropped.
+a GP fitted to its recent and best evaluations picks which of the new candidates are asked
+(README: "Surrogate screening"), one batch at a time by GP-BUCB: the highest upper confidence
+bound ``mean + kappa * std`` first, then each further pick with the variance shrunk as if the
+earlier picks had been observed (Desautels, Krause & Burdick, "Parallelizing
+exploration-exploitation tradeoffs in Gaussian process bandit optimization", JMLR 15, 2014),
+so a batch spreads over the promising candidates instead of piling onto one. Everything here
+is fixed-shape and jit-friendly: empty data slots are masked, not dropped.
 
-Model: zero-mean GP on the standardised signal, squared-exponential kernel with one length
-scale on the value ranks scaled to ``[0, 1]`` per parameter, a nugget of ``NOISE``; the length
-scale is the one of ``LENGTH_SCALES`` with the highest log marginal likelihood (Rasmussen &
-Williams, *Gaussian Processes for Machine Learning*, 2006, Eq. 2.25-2.26 and 2.30).
+Model: zero-mean GP on the standardised signal, squared-exponential kernel on the value ranks
+scaled to ``[0, 1]`` per parameter, a nugget of ``NOISE``. Length scales are chosen by the log
+marginal likelihood (Rasmussen & Williams, *Gaussian Processes for Machine Learning*, 2006,
+Alg. 2.1, Eq. 2.30): one for all parameters among ``LENGTH_SCALES`` (:func:`posterior`), or
+one per parameter (automatic relevance determination), refined one parameter per update among
+``ARD_SCALES`` (:func:`refine`): a parameter that does not matter (CARLA's weather for the
+Traffic Manager) gets a long scale and stops spreading the candidates.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 LENGTH_SCALES = (0.03, 0.06, 0.12, 0.25, 0.5)  # candidates, fractions of every range
+ARD_SCALES = (0.03, 0.06, 0.12, 0.25, 0.5, 1.0, 4.0)  # candidates per parameter
+ARD_START = 0.12  # every parameter's scale before it is refined
 NOISE = 1e-3  # nugget, in units of the standardised signal's variance
-MIN_POINTS = 3  # fewer valid history points: no model (every score 0)
+MIN_POINTS = 3  # fewer valid data points: no model (mean 0, prior variance)
 
 
 def unit(indices: jax.Array, shape: tuple[int, ...]) -> jax.Array:
@@ -29,11 +39,29 @@ def unit(indices: jax.Array, shape: tuple[int, ...]) -> jax.Array:
     return indices.astype(jnp.float32) / span
 
 
-def posterior(x: jax.Array, y: jax.Array, z: jax.Array):
-    """GP posterior at ``z (N, P)`` given points ``x (H, P)`` and signals ``y (H,)`` (both in
-    unit coordinates; a non-finite ``y`` marks an empty slot). Returns ``(mean (N,), std (N,),
-    length_scale ())`` in the signal's units (mean 0, std 0 when fewer than ``MIN_POINTS``
-    slots are filled)."""
+class Model(NamedTuple):
+    """A GP fitted to ``x (H, P)`` (unit coordinates) with length scales ``ell (P,)``."""
+
+    x: jax.Array  # (H, P)
+    ok: jax.Array  # (H,) bool, filled slots
+    ell: jax.Array  # (P,) length scales, fractions of each range
+    chol: jax.Array  # (H, H) Cholesky factor of K + nugget (empty slots: identity rows)
+    alpha: jax.Array  # (H,) (K + nugget)^-1 t, t the standardised targets (0 in empty slots)
+    mu: jax.Array  # () the signal's mean over the filled slots
+    sd: jax.Array  # () its standard deviation (1 if 0)
+    lml: jax.Array  # () log marginal likelihood, up to a constant
+    enough: jax.Array  # () bool, at least MIN_POINTS filled slots
+
+
+def _sq_dist(a: jax.Array, b: jax.Array, ell: jax.Array) -> jax.Array:
+    """``(N, M)`` squared distances of ``a (N, P)`` and ``b (M, P)`` in length-scale units."""
+    return jnp.sum(jnp.square((a[:, None, :] - b[None, :, :]) / ell), -1)
+
+
+def fit(x: jax.Array, y: jax.Array, ell) -> Model:
+    """The GP of signals ``y (H,)`` at ``x (H, P)`` (a non-finite ``y`` marks an empty slot)
+    with length scales ``ell`` (a scalar or ``(P,)``)."""
+    ell = jnp.broadcast_to(jnp.asarray(ell, jnp.float32), x.shape[-1:])
     ok = jnp.isfinite(y)
     n = jnp.maximum(jnp.sum(ok), 1)
     y0 = jnp.where(ok, y, 0.0)
@@ -41,31 +69,55 @@ def posterior(x: jax.Array, y: jax.Array, z: jax.Array):
     sd = jnp.sqrt(jnp.sum(jnp.where(ok, (y0 - mu) ** 2, 0.0)) / n)
     sd = jnp.where(sd > 0, sd, 1.0)
     t = jnp.where(ok, (y0 - mu) / sd, 0.0)  # standardised targets, 0 in empty slots
-    both = ok[:, None] & ok[None, :]
-    d2 = jnp.sum((x[:, None, :] - x[None, :, :]) ** 2, -1)  # (H, H)
-    dz = jnp.sum((z[:, None, :] - x[None, :, :]) ** 2, -1)  # (N, H)
     # an empty slot is an independent unit-variance point with target 0: no influence
-    diag = jnp.diag(jnp.where(ok, NOISE, 1.0))
+    k = jnp.where(ok[:, None] & ok[None, :], jnp.exp(-0.5 * _sq_dist(x, x, ell)), 0.0) \
+        + jnp.diag(jnp.where(ok, NOISE, 1.0))
+    chol = jnp.linalg.cholesky(k)
+    alpha = jax.scipy.linalg.cho_solve((chol, True), t)
+    # log marginal likelihood up to a constant (empty slots add log 1 = 0)
+    lml = -0.5 * t @ alpha - jnp.sum(jnp.log(jnp.diag(chol)))
+    lml = jnp.where(jnp.isfinite(lml), lml, -jnp.inf)
+    return Model(x, ok, ell, chol, alpha, mu, sd, lml, jnp.sum(ok) >= MIN_POINTS)
 
-    def fit(ell):
-        k = jnp.where(both, jnp.exp(-0.5 * d2 / ell**2), 0.0) + diag
-        chol = jnp.linalg.cholesky(k)
-        alpha = jax.scipy.linalg.cho_solve((chol, True), t)
-        # log marginal likelihood up to a constant (empty slots add log 1 = 0)
-        lml = -0.5 * t @ alpha - jnp.sum(jnp.log(jnp.diag(chol)))
-        return lml, chol, alpha
 
-    ells = jnp.asarray(LENGTH_SCALES, jnp.float32)
-    lmls, chols, alphas = jax.vmap(fit)(ells)  # every candidate fitted once
-    best = jnp.argmax(jnp.where(jnp.isfinite(lmls), lmls, -jnp.inf))
-    ell, chol, alpha = ells[best], chols[best], alphas[best]
-    ks = jnp.where(ok[None, :], jnp.exp(-0.5 * dz / ell**2), 0.0)  # (N, H)
-    v = jax.scipy.linalg.solve_triangular(chol, ks.T, lower=True)  # (H, N)
-    var = jnp.maximum(1.0 - jnp.sum(v * v, 0), 0.0)
-    enough = jnp.sum(ok) >= MIN_POINTS
-    mean = jnp.where(enough, mu + sd * (ks @ alpha), 0.0)
-    std = jnp.where(enough, sd * jnp.sqrt(var), 0.0)
-    return mean, std, ell
+def best_fit(x: jax.Array, y: jax.Array, ells: jax.Array) -> Model:
+    """The fit with the highest log marginal likelihood among the length scales ``ells (C,
+    P)`` (each candidate fitted once)."""
+    models = jax.vmap(lambda e: fit(x, y, e))(ells)
+    return jax.tree.map(lambda a: a[jnp.argmax(models.lml)], models)
+
+
+def refine(x: jax.Array, y: jax.Array, ell: jax.Array, p) -> Model:
+    """ARD, one coordinate at a time: the best fit over ``ARD_SCALES`` for parameter ``p``'s
+    length scale, the others kept at ``ell (P,)``."""
+    cands = jnp.asarray(ARD_SCALES, jnp.float32)
+    ells = jnp.broadcast_to(ell, (len(ARD_SCALES),) + ell.shape).at[:, p].set(cands)
+    return best_fit(x, y, ells)
+
+
+def predict(m: Model, z: jax.Array):
+    """``(mean (N,), var (N,), v (H, N))`` at ``z (N, P)``, standardised (the signal's units:
+    ``mu + sd * mean``, ``sd^2 * var``); ``v = L^-1 k(X, z)``. Without a model: mean 0, var
+    1."""
+    ks = jnp.where(m.ok[None, :], jnp.exp(-0.5 * _sq_dist(z, m.x, m.ell)), 0.0)  # (N, H)
+    v = jax.scipy.linalg.solve_triangular(m.chol, ks.T, lower=True)  # (H, N)
+    v = jnp.where(m.enough, v, 0.0)
+    mean = jnp.where(m.enough, ks @ m.alpha, 0.0)
+    return mean, jnp.maximum(1.0 - jnp.sum(v * v, 0), 0.0), v
+
+
+def posterior(x: jax.Array, y: jax.Array, z: jax.Array):
+    """GP posterior at ``z (N, P)`` given points ``x (H, P)`` and signals ``y (H,)`` (both in
+    unit coordinates; a non-finite ``y`` marks an empty slot), one length scale for all
+    parameters, the one of ``LENGTH_SCALES`` with the highest marginal likelihood. Returns
+    ``(mean (N,), std (N,), length_scale ())`` in the signal's units (mean 0, std 0 when fewer
+    than ``MIN_POINTS`` slots are filled)."""
+    ells = jnp.broadcast_to(jnp.asarray(LENGTH_SCALES, jnp.float32)[:, None],
+                            (len(LENGTH_SCALES), x.shape[-1]))
+    m = best_fit(x, y, ells)
+    mean, var, _ = predict(m, z)
+    return (jnp.where(m.enough, m.mu + m.sd * mean, 0.0),
+            jnp.where(m.enough, m.sd * jnp.sqrt(var), 0.0), m.ell[0])
 
 
 def ucb(x: jax.Array, y: jax.Array, z: jax.Array, kappa) -> jax.Array:
@@ -73,3 +125,26 @@ def ucb(x: jax.Array, y: jax.Array, z: jax.Array, kappa) -> jax.Array:
     all 0 without a model."""
     mean, std, _ = posterior(x, y, z)
     return mean + kappa * std
+
+
+def batch_ucb(m: Model, z: jax.Array, allowed: jax.Array, kappa, b: int) -> jax.Array:
+    """GP-BUCB: ``b`` distinct rows of ``z (N, P)`` (``(b,)`` int32, in the order picked),
+    each the allowed, untaken candidate of highest ``mean + kappa * std`` (standardised), the
+    std conditioned on the data and on the earlier picks as if observed (their outcomes do not
+    change the mean; their variance does, by the rank-one updates of sequential conditioning).
+    When no allowed candidate is left, the untaken ones in row order."""
+    mean, var, v = predict(m, z)
+    n = z.shape[0]
+
+    def pick(carry, j):
+        var, u, taken = carry
+        s = jnp.where(allowed & ~taken, mean + kappa * jnp.sqrt(var), -jnp.inf)
+        i = jnp.where(jnp.any(allowed & ~taken), jnp.argmax(s), jnp.argmin(taken))
+        # posterior covariance with the pick, given the data and the earlier picks
+        kzi = jnp.exp(-0.5 * jnp.sum(jnp.square((z - z[i]) / m.ell), -1)) - v.T @ v[:, i] \
+            - u.T @ u[:, i]
+        c = kzi / jnp.sqrt(var[i] + NOISE)
+        return (jnp.maximum(var - c * c, 0.0), u.at[j].set(c), taken.at[i].set(True)), i
+
+    init = (var, jnp.zeros((b, n), jnp.float32), jnp.zeros(n, bool))
+    return jax.lax.scan(pick, init, jnp.arange(b))[1].astype(jnp.int32)
