@@ -452,14 +452,15 @@ def test_batch_ucb_matches_sequential_conditioning():
 
 def _np_screen(st, cand, allowed, shape, kappa, b):
     """reinforce/default's screening in float64: the GP's data are the history ring and the
-    queue of best scenarios (a history row that is also a filled queue row dropped), scaled to
+    queue of best scenarios (a history row that is also a filled queue row or an earlier
+    history row dropped), scaled to
     [0, 1]; parameter ``told mod (movable parameters)`` gets the ARD scale of highest exact
     marginal likelihood; then GP-BUCB over the candidates. Returns (picks, ell)."""
     span = np.maximum(np.array(shape) - 1.0, 1.0)
     hist, hs = np.asarray(st.history), np.asarray(st.history_signal, np.float64)
     q, qs = np.asarray(st.queue[0]), np.asarray(st.queue_signal[0], np.float64)
     dup = np.array([any((r == qr).all() and np.isfinite(v) for qr, v in zip(q, qs))
-                    for r in hist])
+                    or any((r == e).all() for e in hist[:i]) for i, r in enumerate(hist)])
     x = np.concatenate([hist, q]) / span
     y = np.concatenate([np.where(dup, -np.inf, hs), qs])
     x, y = x[np.isfinite(y)], y[np.isfinite(y)]

@@ -317,10 +317,15 @@ class AutoregressiveReinforce(Strategy):
         (in turn, over those with two or more values) refined first."""
         L, K, P = self.learners, max(self.queue, 1), self.n_params
         q = state.queue.reshape(L * K, P)
-        # the GP's data: the last evaluations and the best ones (a repeat counted once)
-        dup = jnp.any(jnp.all(state.history[:, None, :] == q[None, :, :], -1)
-                      & jnp.isfinite(state.queue_signal.reshape(-1))[None, :], -1)
-        x = gp.unit(jnp.concatenate([state.history, q]), self.shape)
+        # the GP's data: the last evaluations and the best ones, a scenario counted once
+        # (repeats are asked once the learner has a collision)
+        hist = state.history
+        H = hist.shape[0]
+        dup = jnp.any(jnp.all(hist[:, None, :] == q[None, :, :], -1)
+                      & jnp.isfinite(state.queue_signal.reshape(-1))[None, :], -1) \
+            | jnp.any(jnp.all(hist[:, None, :] == hist[None, :, :], -1)
+                      & jnp.tril(jnp.ones((H, H), bool), -1), -1)
+        x = gp.unit(jnp.concatenate([hist, q]), self.shape)
         y = jnp.concatenate([jnp.where(dup, -jnp.inf, state.history_signal),
                              state.queue_signal.reshape(-1)])
         movable = jnp.asarray([p for p, n in enumerate(self.shape) if n > 1] or [0])
