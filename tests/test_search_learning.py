@@ -378,6 +378,37 @@ def _np_lml(x, t, ell):
     return -0.5 * t @ np.linalg.solve(k, t) - 0.5 * np.linalg.slogdet(k)[1]
 
 
+def _np_ard_step(x, t, ell, p):
+    """``ell`` with parameter ``p``'s scale the one of ARD_SCALES of highest exact marginal
+    likelihood, and that likelihood."""
+    lmls = []
+    for sc in surrogate.ARD_SCALES:
+        e = np.array(ell, np.float64)
+        e[p] = sc
+        lmls.append(_np_lml(x, t, e))
+    out = np.array(ell, np.float64)
+    out[p] = surrogate.ARD_SCALES[int(np.argmax(lmls))]
+    return out, max(lmls)
+
+
+def _np_bucb(x, t, zs, allowed, ell, kappa, b):
+    """GP-BUCB by refitting, pick by pick: the mean from the data ``(x, t)`` alone, the
+    variance conditioned on the data and on the earlier picks (observed with the nugget), the
+    allowed untaken candidate of highest mean + kappa * std."""
+    mean = _np_kernel(zs, x, ell) @ np.linalg.solve(
+        _np_kernel(x, x, ell) + surrogate.NOISE * np.eye(len(x)), t)
+    picks = []
+    for _ in range(b):
+        xa = np.concatenate([x, zs[picks]])
+        k = _np_kernel(xa, xa, ell) + surrogate.NOISE * np.eye(len(xa))
+        kz = _np_kernel(zs, xa, ell)
+        var = 1.0 - np.einsum("ij,ji->i", kz, np.linalg.solve(k, kz.T))
+        score = np.where(allowed, mean + kappa * np.sqrt(np.maximum(var, 0)), -np.inf)
+        score[picks] = -np.inf
+        picks.append(int(np.argmax(score)))
+    return picks
+
+
 def _gp_data(seed, n=40, shape=(30, 20, 50)):
     """Points on a space whose signal varies fast along parameter 0, slowly along 1 and not
     at all along 2, three empty slots."""
@@ -401,14 +432,9 @@ def test_ard_refine_picks_the_scale_of_highest_marginal_likelihood():
     ell = np.full(3, surrogate.ARD_START)
     for p in (0, 1, 2, 0, 1, 2):
         m = refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), p)
-        lmls = []
-        for s in surrogate.ARD_SCALES:
-            e = ell.copy()
-            e[p] = s
-            lmls.append(_np_lml(xs[ok], t, e))
-        ell[p] = surrogate.ARD_SCALES[int(np.argmax(lmls))]
+        ell, lml = _np_ard_step(xs[ok], t, ell, p)
         np.testing.assert_allclose(np.asarray(m.ell), ell, rtol=1e-6)
-        assert float(m.lml) == pytest.approx(max(lmls), rel=1e-3, abs=1e-2)
+        assert float(m.lml) == pytest.approx(lml, rel=1e-3, abs=1e-2)
     assert ell[2] >= 1.0 and ell[0] < ell[2]
 
 
@@ -430,18 +456,7 @@ def test_batch_ucb_matches_sequential_conditioning():
         m, surrogate.unit(jnp.asarray(cand), shape), jnp.asarray(allowed), kappa, b=b))
     ok = np.isfinite(y)
     x, t = xs[ok], (y[ok] - y[ok].mean()) / y[ok].std()
-    mean = _np_kernel(zs, x, ell) @ np.linalg.solve(
-        _np_kernel(x, x, ell) + surrogate.NOISE * np.eye(len(x)), t)
-    picks = []
-    for _ in range(b):
-        xa = np.concatenate([x, zs[picks]])
-        k = _np_kernel(xa, xa, ell) + surrogate.NOISE * np.eye(len(xa))
-        kz = _np_kernel(zs, xa, ell)
-        var = 1.0 - np.einsum("ij,ji->i", kz, np.linalg.solve(k, kz.T))
-        score = np.where(allowed, mean + kappa * np.sqrt(np.maximum(var, 0)), -np.inf)
-        score[picks] = -np.inf
-        picks.append(int(np.argmax(score)))
-    np.testing.assert_array_equal(got, picks)
+    np.testing.assert_array_equal(got, _np_bucb(x, t, zs, allowed, ell, kappa, b))
     # more picks than allowed candidates: the allowed ones first, then the rest in row order
     few = np.zeros(60, bool)
     few[[5, 40]] = True
@@ -453,9 +468,9 @@ def test_batch_ucb_matches_sequential_conditioning():
 def _np_screen(st, cand, allowed, shape, kappa, b):
     """reinforce/default's screening in float64: the GP's data are the history ring and the
     queue of best scenarios (a history row that is also a filled queue row or an earlier
-    history row dropped), scaled to
-    [0, 1]; parameter ``told mod (movable parameters)`` gets the ARD scale of highest exact
-    marginal likelihood; then GP-BUCB over the candidates. Returns (picks, ell)."""
+    history row dropped), scaled to [0, 1]; parameter ``told mod (movable parameters)`` gets
+    the ARD scale of highest exact marginal likelihood; then GP-BUCB over the candidates.
+    Returns (picks, ell)."""
     span = np.maximum(np.array(shape) - 1.0, 1.0)
     hist, hs = np.asarray(st.history), np.asarray(st.history_signal, np.float64)
     q, qs = np.asarray(st.queue[0]), np.asarray(st.queue_signal[0], np.float64)
@@ -466,27 +481,8 @@ def _np_screen(st, cand, allowed, shape, kappa, b):
     x, y = x[np.isfinite(y)], y[np.isfinite(y)]
     t = (y - y.mean()) / y.std()
     movable = [p for p, n in enumerate(shape) if n > 1]
-    p = movable[int(st.told) % len(movable)]
-    ell = np.asarray(st.ell, np.float64).copy()
-    lmls = []
-    for sc in surrogate.ARD_SCALES:
-        e = ell.copy()
-        e[p] = sc
-        lmls.append(_np_lml(x, t, e))
-    ell[p] = surrogate.ARD_SCALES[int(np.argmax(lmls))]
-    zs = cand / span
-    kxx = _np_kernel(x, x, ell) + surrogate.NOISE * np.eye(len(x))
-    mean = _np_kernel(zs, x, ell) @ np.linalg.solve(kxx, t)
-    picks = []
-    for _ in range(b):
-        xa = np.concatenate([x, zs[picks]])
-        k = _np_kernel(xa, xa, ell) + surrogate.NOISE * np.eye(len(xa))
-        kz = _np_kernel(zs, xa, ell)
-        var = 1.0 - np.einsum("ij,ji->i", kz, np.linalg.solve(k, kz.T))
-        score = np.where(allowed, mean + kappa * np.sqrt(np.maximum(var, 0)), -np.inf)
-        score[picks] = -np.inf
-        picks.append(int(np.argmax(score)))
-    return picks, ell
+    ell, _ = _np_ard_step(x, t, np.asarray(st.ell), movable[int(st.told) % len(movable)])
+    return _np_bucb(x, t, cand / span, allowed, ell, kappa, b), ell
 
 
 @pytest.mark.slow
