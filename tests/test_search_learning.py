@@ -330,6 +330,34 @@ def _np_gp(x, y, z):
     return mean, sd * np.sqrt(np.maximum(var, 0.0)), ell
 
 
+def test_gp_cholesky_and_triangular_solves_match_float64_numpy():
+    """The GP's own linear algebra (plain XLA ops, see surrogate.cholesky) against NumPy's
+    float64 Cholesky factor and solves on squared-exponential kernels with the GP's nugget
+    (a batch, through vmap as the screening uses them); a matrix that is not positive
+    definite gives NaN, as LAPACK's does through jnp.linalg.cholesky."""
+    rng = np.random.default_rng(7)
+    x = rng.random((3, 40, 5))
+    ell = np.array([0.2, 0.5, 1.0])[:, None, None]
+    k = np.exp(-0.5 * (((x[:, :, None] - x[:, None]) / ell[..., None]) ** 2).sum(-1)) \
+        + surrogate.NOISE * np.eye(40)
+    b = rng.standard_normal((3, 40, 6))
+    chol, lo, up = jax.jit(jax.vmap(lambda a, c: (
+        surrogate.cholesky(a), surrogate.solve_lower(surrogate.cholesky(a), c),
+        surrogate.solve_upper(surrogate.cholesky(a), c))))(k.astype(np.float32),
+                                                          b.astype(np.float32))
+    ref = np.linalg.cholesky(k)
+    np.testing.assert_allclose(chol, ref, atol=2e-4)
+    for i in range(3):
+        # the solves, through the float32 factor: residuals against the float64 products
+        c64 = np.asarray(chol[i], np.float64)
+        np.testing.assert_allclose(c64 @ lo[i], b[i], atol=1e-3)
+        np.testing.assert_allclose(c64.T @ up[i], b[i], atol=1e-3)
+        np.testing.assert_allclose(lo[i], np.linalg.solve(ref[i], b[i]), rtol=0.05, atol=0.05)
+    bad = np.eye(4, dtype=np.float32)
+    bad[2, 2] = -1.0
+    assert np.isnan(np.asarray(surrogate.cholesky(jnp.asarray(bad)))).any()
+
+
 @pytest.mark.parametrize("ell_true", [0.1, 0.4])
 def test_gp_surrogate_matches_textbook_regression_with_empty_slots(ell_true):
     """The screening GP (fixed shapes, empty slots masked) against float64 GP regression on
