@@ -486,6 +486,7 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
         barrier("jaxfalsify-compare-parts")
         all_parts = [json.loads((out / f".compare.part-{i:05d}.json").read_text())
                      for i in range(num_processes)]
+        barrier("jaxfalsify-compare-parts-read")  # process 0 deletes them when it is done
         merged = {k: {"stats": sum((p[k]["stats"] for p in all_parts), []),
                       "wall": max(p[k]["wall"] for p in all_parts),
                       "overhead": _median(p[k].get("overhead") for p in all_parts),

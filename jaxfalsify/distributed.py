@@ -1,8 +1,8 @@
 """Multi-process runs on JAX's own distributed runtime (``jax.distributed``).
 
 Every process evaluates its own contiguous share of the work on its local devices and writes
-its own result part; processes meet at barriers (``multihost_utils.sync_global_devices``) and
-process 0 writes the merged summary. On CPU the collectives behind the barriers use gloo.
+its own result part; processes meet at the runtime's named barriers (:func:`barrier`) and
+process 0 writes the merged summary (and removes the parts once every process has read them).
 
 The coordinator address, process count and process id come from flags or from the usual
 environment variables ``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``, ``JAX_PROCESS_ID``.
@@ -73,12 +73,31 @@ def _probe(host: str, port: int, timeout: float) -> None:
             time.sleep(0.25)
 
 
+BARRIER_TIMEOUT_S = 7 * 24 * 3600  # a barrier waits for the slowest process's share of work
+_barriers = 0  # barriers passed by this process (every process passes them in the same order)
+
+
 def barrier(name: str) -> None:
-    """All processes wait here (no-op for a single process)."""
-    if jax.process_count() > 1:
+    """All processes wait here (no-op for a single process), for up to ``BARRIER_TIMEOUT_S``.
+
+    The wait is the distributed runtime's own named barrier (its coordination service, as
+    JAX's array checkpointing uses), not a device collective: it moves no data over gloo's
+    sockets, and two processes at different barriers do not pass each other. A process that
+    dies fails the others' wait through the runtime's heartbeats (about 100 s).
+    """
+    global _barriers
+    if jax.process_count() <= 1:
+        return
+    from jax._src import distributed as runtime
+
+    _barriers += 1
+    client = runtime.global_state.client
+    if client is None:  # not started through jax.distributed.initialize: a collective
         from jax.experimental import multihost_utils
 
         multihost_utils.sync_global_devices(name)
+        return
+    client.wait_at_barrier(f"{name}-{_barriers}", timeout_in_ms=BARRIER_TIMEOUT_S * 1000)
 
 
 def share(n: int, process_id: int, num_processes: int) -> tuple[int, int]:

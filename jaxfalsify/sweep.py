@@ -636,10 +636,11 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
         store.write_json(out / "timing.json", timing, indent=2)
         store.write_json(out / "summary.json", summary, indent=2)
         store.write_status(out, "sweep", "complete", scenarios=space.size)
-        for i in range(num_processes if multi else 0):
-            (out / f".summary.part-{i:05d}.json").unlink(missing_ok=True)
     if multi:
         barrier("jaxfalsify-sweep-summary-written")
+        if process_id == 0:  # every process has read the parts (before the barrier)
+            for i in range(num_processes):
+                (out / f".summary.part-{i:05d}.json").unlink(missing_ok=True)
     shutil.rmtree(ck, ignore_errors=True)
     return {**summary, **timing, "out": str(out)}
 
