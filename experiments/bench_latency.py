@@ -1,7 +1,7 @@
 """Wall time of the commands a user types, cold and warm, side by side in one run.
 
-    python experiments/bench_latency.py                      # about 6 minutes on 2 cores
-    python experiments/bench_latency.py --baseline /tmp/old  # also an older version: ~17 min
+    python experiments/bench_latency.py                      # about 8 minutes on 2 cores
+    python experiments/bench_latency.py --baseline /tmp/old  # also an older version: ~20 min
 
 Every row is a fresh process (``jaxfalsify ...``), timed from outside from start to exit, in a
 scratch folder with its own per-user cache (``JAXFALSIFY_CACHE_DIR``): *cold* rows start from
@@ -12,7 +12,9 @@ parameter value must not. With ``--baseline DIR`` (a checkout of an older commit
 older commit), the same rows run on that code through ``PYTHONPATH``, with its own per-user
 cache and its own flags if it predates ``--evaluations``; each row runs for both versions in
 turn, so load that drifts during the run hits both alike.
-Each row also lists where its time went (the command's own ``timing.json``: start-up, compile,
+Warm rows are the median of 3 runs (the versions alternating), so one noisy run does not
+decide a row; the rows that must not recompile use a new space seed or SUT parameter value in
+each run. Each row also lists where its time went (the command's own ``timing.json``: start-up, compile,
 search, writing, figures), and two floor rows time a bare ``import jax`` and the CLI's imports
 (``import jaxfalsify.cli``) in a fresh interpreter.
 Writes ``experiments/results/bench_latency.json``.
@@ -105,11 +107,30 @@ class Version:
         return r if name else None
 
 
-RUN_ROWS = [("run, figures, cold", [], False), ("run, figures, warm", [], False),
-            ("run --no-figures, warm", ["--no-figures"], False),
-            ("run, another space seed", ["--space-seed", "1", "--no-figures"], True),
-            ("run, another SUT parameter value", ["--sut-param", "full_brake=7.5",
-                                                  "--no-figures"], True)]
+REPEATS = 3  # warm rows: the median of this many runs (each version in turn every time)
+RUN_ROWS = [  # (row, the arguments of each repetition, whether to check for recompilation)
+    ("run, figures, cold", [[]], False),
+    ("run, figures, warm", [[]] * REPEATS, False),
+    ("run --no-figures, warm", [["--no-figures"]] * REPEATS, False),
+    ("run, another space seed",  # a new space seed every repetition
+     [["--space-seed", str(s), "--no-figures"] for s in range(1, REPEATS + 1)], True),
+    ("run, another SUT parameter value",  # a new value every repetition
+     [["--sut-param", f"full_brake={7.5 - 0.5 * i}", "--no-figures"] for i in range(REPEATS)],
+     True)]
+
+
+def median_row(samples: list[dict]) -> dict:
+    """One row from repeated runs: the median wall time (and that run's phases), every
+    sample's time, and whether any of them recompiled."""
+    mid = sorted(samples, key=lambda r: r["seconds"])[len(samples) // 2]
+    r = {**mid, "samples": [x["seconds"] for x in samples]}
+    if "recompiled" in mid:
+        r["recompiled"] = any(x["recompiled"] for x in samples)
+    if len(samples) > 1:
+        print(f"{r['version']:>9}  {r['row'] + ', median':<42} {r['seconds']:7.2f} s"
+              + (f"   recompiled: {'yes' if r['recompiled'] else 'no'}"
+                 if "recompiled" in r else ""), flush=True)
+    return r
 
 
 def main() -> None:
@@ -145,8 +166,13 @@ def main() -> None:
             rows.append({"version": "current", "row": name, "seconds": sec})
             print(f"{'current':>9}  {name:<42} {sec:7.2f} s   (best of 3)", flush=True)
         # each row for every version in turn: load that drifts during the run hits both
-        for name, run_args, check in RUN_ROWS:
-            rows += [r for v in versions if (r := v.row(name, run_args, check))]
+        for name, repetitions, check in RUN_ROWS:
+            samples: dict[str, list] = {v.label: [] for v in versions}
+            for run_args in repetitions:
+                for v in versions:
+                    if r := v.row(name, run_args, check):
+                        samples[v.label].append(r)
+            rows += [median_row(x) for x in samples.values() if x]
         for v in versions:
             v.compare(None)  # fills the cache
         rows += [r for v in versions
