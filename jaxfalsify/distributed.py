@@ -91,13 +91,8 @@ def barrier(name: str) -> None:
     from jax._src import distributed as runtime
 
     _barriers += 1
-    client = runtime.global_state.client
-    if client is None:  # not started through jax.distributed.initialize: a collective
-        from jax.experimental import multihost_utils
-
-        multihost_utils.sync_global_devices(name)
-        return
-    client.wait_at_barrier(f"{name}-{_barriers}", timeout_in_ms=BARRIER_TIMEOUT_S * 1000)
+    runtime.global_state.client.wait_at_barrier(f"{name}-{_barriers}",
+                                                timeout_in_ms=BARRIER_TIMEOUT_S * 1000)
 
 
 def share(n: int, process_id: int, num_processes: int) -> tuple[int, int]:

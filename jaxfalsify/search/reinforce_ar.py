@@ -118,6 +118,11 @@ class ARState:
     ell: jax.Array  # (P,) float32, the GP's length scales (surrogate; fractions of each range)
 
 
+def _equals_an_earlier(eq: jax.Array) -> jax.Array:
+    """``(n,)`` bool from pairwise equality ``eq (n, n)``: item i equals some item j < i."""
+    return jnp.any(eq & jnp.tril(jnp.ones(eq.shape, bool), -1), axis=-1)
+
+
 def scenario_hash(indices: jax.Array) -> jax.Array:
     """A 32-bit hash ``(...)`` uint32 of index vectors ``(..., P)`` (FNV-1a over the indices;
     two distinct scenarios share a hash with probability ~2^-32, which at worst makes a new
@@ -280,9 +285,7 @@ class AutoregressiveReinforce(Strategy):
         allowed = jnp.ones((L, C), bool)
         if M > 1:
             h = scenario_hash(idx).reshape(-1)
-            n = h.shape[0]
-            repeated = jnp.any((h[:, None] == h[None, :])
-                               & jnp.tril(jnp.ones((n, n), bool), -1), axis=-1)
+            repeated = _equals_an_earlier(h[:, None] == h[None, :])
             fresh = (~self._evaluated(h, state) & ~repeated).reshape(L, C)
             # a learner with a collision may repeat, for a share repeat_found of its draws
             free = state.seen[:, None] & (u[..., 2 * P + 2] < params.repeat_found) \
@@ -320,11 +323,9 @@ class AutoregressiveReinforce(Strategy):
         # the GP's data: the last evaluations and the best ones, a scenario counted once
         # (repeats are asked once the learner has a collision)
         hist = state.history
-        H = hist.shape[0]
         dup = jnp.any(jnp.all(hist[:, None, :] == q[None, :, :], -1)
                       & jnp.isfinite(state.queue_signal.reshape(-1))[None, :], -1) \
-            | jnp.any(jnp.all(hist[:, None, :] == hist[None, :, :], -1)
-                      & jnp.tril(jnp.ones((H, H), bool), -1), -1)
+            | _equals_an_earlier(jnp.all(hist[:, None, :] == hist[None, :, :], -1))
         x = gp.unit(jnp.concatenate([hist, q]), self.shape)
         y = jnp.concatenate([jnp.where(dup, -jnp.inf, state.history_signal),
                              state.queue_signal.reshape(-1)])

@@ -183,7 +183,7 @@ def batch_ucb(m: Model, z: jax.Array, allowed: jax.Array, kappa, b: int) -> jax.
         s = jnp.where(allowed & ~taken, mean + kappa * jnp.sqrt(var), -jnp.inf)
         i = jnp.where(jnp.any(allowed & ~taken), jnp.argmax(s), jnp.argmin(taken))
         # posterior covariance with the pick, given the data and the earlier picks
-        kzi = jnp.exp(-0.5 * jnp.sum(jnp.square((z - z[i]) / m.ell), -1)) - v.T @ v[:, i] \
+        kzi = jnp.exp(-0.5 * _sq_dist(z, z[i][None], m.ell)[:, 0]) - v.T @ v[:, i] \
             - u.T @ u[:, i]
         c = kzi / jnp.sqrt(var[i] + NOISE)
         return (jnp.maximum(var - c * c, 0.0), u.at[j].set(c), taken.at[i].set(True)), i
