@@ -175,14 +175,14 @@ def _program(c: Campaign, args_tree, args_avals: tuple, n_seeds: int) -> cache.P
 
         return jax.lax.map(one, (carry_leaves, key_data))
 
-    def example():
-        args_leaves = [jnp.zeros(a.shape, a.dtype) for a in args_avals]
+    def example():  # host zeros: no eager device ops (each would compile a small program)
+        args_leaves = [np.zeros(a.shape, a.dtype) for a in args_avals]
         args = jax.tree.unflatten(args_tree, args_leaves)
-        template = jax.eval_shape(init, jax.random.key(0), args)
-        carry = [jnp.zeros((n_seeds,) + jax.random.key_data(jax.random.key(0)).shape, jnp.uint32)
-                 if _is_key(x) else jnp.zeros((n_seeds,) + x.shape, x.dtype)
-                 for x in jax.tree.leaves(template)]
-        return (carry, jnp.zeros((n_seeds, 2), jnp.uint32), args_leaves, jnp.bool_(True))
+        template = jax.eval_shape(lambda a: init(jax.random.key(0), a), args)
+        kd = jax.eval_shape(lambda: jax.random.key_data(jax.random.key(0))).shape
+        carry = [np.zeros((n_seeds,) + kd, np.uint32) if _is_key(x)
+                 else np.zeros((n_seeds,) + x.shape, x.dtype) for x in jax.tree.leaves(template)]
+        return (carry, np.zeros((n_seeds, 2), np.uint32), args_leaves, np.bool_(True))
 
     key_args = ([jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args_avals],
                 jax.ShapeDtypeStruct((n_seeds,), jnp.uint32))
