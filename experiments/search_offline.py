@@ -86,6 +86,8 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--evaluations", type=int, default=4000)
     ap.add_argument("--opt", action="append", default=[], help="STRATEGY:K=V,K=V[:BATCH]")
+    ap.add_argument("--per-seed", action="store_true",
+                    help="also print each seed's first collision, best and last-quarter mean")
     a = ap.parse_args(argv)
     sp = jf.load_space(a.space)
     sut_params = {k: float(v) for k, v in (s.split("=") for s in a.sut_param)}
@@ -116,6 +118,10 @@ def main(argv=None):
               f" first {q[1]:g} [{q[0]:g},{q[2]:g}] gmax {reached}/{a.seeds} distinct {distinct:g}"
               f" corners {corners:.1e} last-q {np.median(fm):.4f} (>=.9gmax {np.sum(fm >= 0.9 * gmax)})"
               f" {dt:.1f}s", flush=True)
+        if a.per_seed:
+            for i in range(a.seeds):
+                print(f"    seed {i:2d}: first {first[i]:5d}  best/gmax {best[i] / gmax:.4f}"
+                      f"  last-q/gmax {fm[i] / gmax:.4f}")
 
 
 if __name__ == "__main__":

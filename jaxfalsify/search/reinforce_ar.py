@@ -11,7 +11,8 @@ a reward that is flat until the first collision, failures that are rare.
 * **Anchored draws** (``anchored``): like the paper's controller, which reads the previous
   action, most draws are conditioned on an *anchor*, one of the best scenarios found so far
   (``queue`` of them, distinct, best first; the k-th best picked with weight
-  ``anchor_decay^k``). An anchored head keeps the anchor's value with a learnt *stay*
+  ``anchor_decay^k``; ``anchor_decay_found`` once the learner has a collision, so it
+  converges on the best ones). An anchored head keeps the anchor's value with a learnt *stay*
   probability and otherwise moves by a learnt offset and width (starting at about one
   parameter moved per draw, 1.5 value steps wide): a learnt local move. ``global_share`` of
   the draws have no anchor (the controller's own distribution over the whole space);
@@ -86,6 +87,8 @@ class ARParams:
     global_share_found: float = -1.0  # the same once the learner has a collision (< 0: as
     # global_share)
     anchor_decay: float = 0.95  # anchored: the k-th best of the queue is picked ~ decay^k
+    anchor_decay_found: float = -1.0  # the same once the learner has a collision (< 0: as
+    # anchor_decay)
     repeat_found: float = 0.0  # once the learner has a collision: share of its draws that
     # may repeat an evaluated scenario
     uniform_mix: float = 0.0  # share of uniformly random draws (not learnt from)
@@ -257,8 +260,10 @@ class AutoregressiveReinforce(Strategy):
         if self.anchored:  # an anchor from the learner's queue, the k-th best ~ decay^k
             filled = jnp.sum(jnp.isfinite(state.queue_signal), axis=-1)  # (L,)
             K = state.queue.shape[1]
+            decay = jnp.where(state.seen & (params.anchor_decay_found >= 0),
+                              params.anchor_decay_found, params.anchor_decay)  # (L,)
             wk = jnp.where(jnp.arange(K)[None, :] < filled[:, None],
-                           params.anchor_decay ** jnp.arange(K, dtype=jnp.float32), 0.0)
+                           decay[:, None] ** jnp.arange(K, dtype=jnp.float32)[None, :], 0.0)
             pick = categorical_from_uniform(u[..., 2 * P],
                                             jnp.broadcast_to(wk[:, None, :], (L, C, K)))
             anchors = jnp.take_along_axis(state.queue, pick[..., None], axis=1)  # (L, C, P)
