@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from jaxfalsify import search
+from jaxfalsify import pytree, search
 from jaxfalsify.search import autoregressive as ar
 from jaxfalsify.search import base, cmaes, surrogate
 from jaxfalsify.search.reinforce_ar import scenario_hash, top_distinct
@@ -297,6 +297,25 @@ def test_default_anchors_every_draw_once_it_has_a_collision():
 
     assert abs(unanchored_share(before) - 0.25) < 0.03
     assert unanchored_share(after) == 0.0
+
+
+def test_edge_explore_puts_that_share_of_uniform_values_on_the_bounds():
+    """``edge_explore`` q: a value of a uniformly random candidate lies on one of the two
+    bounds with probability q + (1 - q) * 2 / n (n = 10 values: 0.2 without, 0.52 with 0.4),
+    either bound equally often (30 asks x 32 slots x 4 values of uniform candidates, binomial
+    sd <= 0.006). q is traced: one compiled function for both."""
+    shape = (10, 10, 10, 10)
+    strat, p0 = search.make("reinforce/default", shape, resample=2, surrogate=0, hidden=8)
+    state = strat.init(jax.random.key(0), p0)
+    cands = jax.jit(lambda ks, p: jax.vmap(lambda k: strat.candidates(k, state, p))(ks))
+    keys = jax.random.split(jax.random.key(7), 30)
+    for q in (0.0, 0.4):
+        c = cands(keys, pytree.replace(p0, edge_explore=q))
+        vals = np.asarray(c["idx"])[np.asarray(c["explored"])]
+        assert vals.shape[0] >= 900
+        low, high = np.mean(vals == 0), np.mean(vals == 9)
+        assert abs(low + high - (q + (1 - q) * 0.2)) < 0.03, q
+        assert abs(low - high) < 0.03, q
 
 
 @pytest.mark.slow

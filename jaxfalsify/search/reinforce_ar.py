@@ -95,6 +95,8 @@ class ARParams:
     edge_mass: float = 0.0  # anchored: share of a move's mass beyond a bound that stops at
     # the bound's value (1: clipped moves, as an evolution strategy clips; 0: renormalised
     # inside the box)
+    edge_explore: float = 0.0  # share of a uniform draw's values put on a bound (the first
+    # or last value; for failures on the box's faces)
     kappa: float = 1.0  # surrogate: candidates picked by GP mean + kappa * std (standardised)
     zoom: float = 0.0  # anchored: multi-scale moves, the widest as a fraction of a
     # parameter's range (each draw's width is log-uniform between the learnt width and that
@@ -285,8 +287,14 @@ class AutoregressiveReinforce(Strategy):
         explored = u[..., -1] < params.uniform_mix
         if M > 1:  # the last b * E candidates are uniform draws (fallbacks when too few are new)
             explored = explored | (jnp.arange(C) >= Cp)[None, :]
-        idx = jnp.where(explored[..., None], uniform_indices(u[..., P:2 * P], self.shape),
-                        sampled)  # (L, C, P)
+        uni = uniform_indices(u[..., P:2 * P], self.shape)
+        # edge_explore: each value of a uniform draw goes to the first or the last value
+        # with that probability (its own uniform picks which); a separate stream, so 0
+        # changes nothing
+        edge = jnp.where(u[..., P:2 * P] < 0.5, 0, jnp.asarray(self.shape, jnp.int32) - 1)
+        snap = uniform(jax.random.fold_in(key, 1), uni.shape) < params.edge_explore
+        uni = jnp.where(snap, edge, uni)
+        idx = jnp.where(explored[..., None], uni, sampled)  # (L, C, P)
         allowed = jnp.ones((L, C), bool)
         if M > 1:
             h = scenario_hash(idx).reshape(-1)
