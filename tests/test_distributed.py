@@ -40,6 +40,14 @@ def _free_port():
         return s.getsockname()[1]
 
 
+def _wait_all(procs) -> None:
+    """Wait for both processes; on a failure show each one's stderr (the cause is often in
+    the other process)."""
+    errs = [p.communicate(timeout=300)[1] for p in procs]
+    for i, p in enumerate(procs):
+        assert p.returncode == 0, f"process {i}: {errs[i][-1500:]}\nother: {errs[1 - i][-1500:]}"
+
+
 def _two_process_sweep(tmp_path, *extra) -> Path:
     """``jaxfalsify sweep`` of SPACE on 2 processes (CPU, gloo); returns its folder."""
     space = tmp_path / "space.toml"
@@ -53,9 +61,7 @@ def _two_process_sweep(tmp_path, *extra) -> Path:
          str(out), "--quiet", *extra, "--distributed", "--coordinator",
          f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i)],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
-    errs = [p.communicate(timeout=300)[1] for p in procs]
-    for i, p in enumerate(procs):
-        assert p.returncode == 0, f"process {i}: {errs[i][-1500:]}\nother: {errs[1 - i][-1500:]}"
+    _wait_all(procs)
     return out
 
 
@@ -128,9 +134,7 @@ def test_two_process_compare_equals_single_process(tmp_path):
         text=True) for i in range(2)]
     # the single-process comparison runs here meanwhile
     assert main(common + ["--out", str(tmp_path / "single")]) == 0
-    errs = [p.communicate(timeout=300)[1] for p in procs]
-    for i, p in enumerate(procs):
-        assert p.returncode == 0, f"process {i}: {errs[i][-1500:]}\nother: {errs[1 - i][-1500:]}"
+    _wait_all(procs)
     single = json.loads((tmp_path / "single" / "compare.json").read_text())
     multi = json.loads((tmp_path / "multi" / "compare.json").read_text())
     assert multi["processes"] == 2
@@ -176,10 +180,7 @@ def test_two_process_sweep_killed_and_resumed_equals_single_process(tmp_path):
         p.send_signal(signal.SIGKILL)
         p.communicate()
     assert not (out / "summary.json").exists()
-    procs = start(["--resume", str(out)])
-    errs = [p.communicate(timeout=300)[1] for p in procs]
-    for i, p in enumerate(procs):
-        assert p.returncode == 0, f"process {i}: {errs[i][-1500:]}\nother: {errs[1 - i][-1500:]}"
+    _wait_all(start(["--resume", str(out)]))
     parts = sorted(out.glob("sweep.part-*-of-00002.parquet"))
     union = pa.concat_tables([pq.read_table(p) for p in parts]).to_pydict()
     single = sweep_arrays(jf.load_space("paper"))

@@ -394,10 +394,12 @@ def test_gp_cholesky_and_triangular_solves_match_float64_numpy():
     k = np.exp(-0.5 * (((x[:, :, None] - x[:, None]) / ell[..., None]) ** 2).sum(-1)) \
         + surrogate.NOISE * np.eye(40)
     b = rng.standard_normal((3, 40, 6))
-    chol, lo, up = jax.jit(jax.vmap(lambda a, c: (
-        surrogate.cholesky(a), surrogate.solve_lower(surrogate.cholesky(a), c),
-        surrogate.solve_upper(surrogate.cholesky(a), c))))(k.astype(np.float32),
-                                                          b.astype(np.float32))
+    def factor_and_solve(a, c):
+        f = surrogate.cholesky(a)
+        return f, surrogate.solve_lower(f, c), surrogate.solve_upper(f, c)
+
+    chol, lo, up = jax.jit(jax.vmap(factor_and_solve))(k.astype(np.float32),
+                                                       b.astype(np.float32))
     ref = np.linalg.cholesky(k)
     np.testing.assert_allclose(chol, ref, atol=2e-4)
     for i in range(3):
