@@ -502,7 +502,7 @@ def make(spec: str | SUT | Callable = "carla-tm", **params) -> tuple[SUT, Any]:
     """``(sut, params)``: a SUT by name or import path, and its parameters with ``params``
     overriding the defaults (``make("sensor-aeb", ttc_full=0.8)``)."""
     sut = resolve(spec)
-    return sut, with_params(sut, params, where=f"SUT '{sut.name}'")
+    return sut, with_params(sut, params)
 
 
 def params_dict(params: Any) -> dict[str, float]:

@@ -64,6 +64,10 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
     known_p = pytree.field_names(cls.Params)
     known_s = _static_fields(cls)
     for k, v in options.items():
+        if k in ("shape", "batch"):
+            raise ValueError(f"{where}: '{k}' is not a strategy option (" + (
+                "scenarios per update: --batch, or make's batch argument)" if k == "batch"
+                else "it comes from the space)"))
         if k in known_p:
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ValueError(f"{where}: {k}={v!r} is not a finite number")
@@ -114,11 +118,12 @@ def default_batch(name: str) -> int:
     return REGISTRY[canonical(name)].batch
 
 
-def make(name: str, shape: tuple[int, ...], batch: int | None = None,
+def make(name: str, shape: tuple[int, ...], batch: int | None = None, /,
          **overrides) -> tuple[Strategy, Any]:
     """``(strategy, params)`` for a registry entry; ``overrides`` set static options or
     hyperparameters by name (``make("cem", shape, elite_frac=0.2)``). ValueError (one line)
-    naming a bad name, option or value."""
+    naming a bad name, option or value (``shape`` and ``batch`` are not options: an override
+    of that name is refused like any unknown one)."""
     e = REGISTRY[canonical(name)]
     if batch is not None and (isinstance(batch, bool) or not isinstance(batch, int)
                               or batch <= 0):
