@@ -394,6 +394,7 @@ def test_gp_cholesky_and_triangular_solves_match_float64_numpy():
     k = np.exp(-0.5 * (((x[:, :, None] - x[:, None]) / ell[..., None]) ** 2).sum(-1)) \
         + surrogate.NOISE * np.eye(40)
     b = rng.standard_normal((3, 40, 6))
+
     def factor_and_solve(a, c):
         f = surrogate.cholesky(a)
         return f, surrogate.solve_lower(f, c), surrogate.solve_upper(f, c)
