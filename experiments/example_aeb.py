@@ -3,7 +3,7 @@
 Name it wherever a SUT is named, by import path:
 
     jaxfalsify run --sut experiments/example_aeb.py:AEB --sut-param ttc_brake=1.2
-    jaxfalsify sweep --sut experiments/example_aeb.py:AEB --sut-param ttc_brake=1.0,1.5,2.0
+    jaxfalsify sweep --sut experiments/example_aeb.py:AEB --sut-param corridor=0,1,2
 
 or from Python: ``jaxfalsify.evaluate(scenario, sut=AEB, sut_params={"noise": 0.5})``.
 

@@ -65,6 +65,13 @@ class StopFlag:
         return 128 + (self.signum or signal.SIGINT)
 
 
+def _folder(text: str) -> Path:
+    """An output folder argument: a non-empty path (``--out ''`` would be the working folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path (name a folder, e.g. runs/mine)")
+    return Path(text)
+
+
 def _add_sut(p, many=False):
     from jaxfalsify.sut import REGISTRY
 
@@ -113,7 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--checkpoint-every", type=_int("--checkpoint-every", 1),
                    dest="checkpoint_every", help="updates between checkpoints (default: "
                    "about 1/20 of the run)")
-    r.add_argument("--out", type=Path, help="run folder (default runs/<timestamp>-<strategy>)")
+    r.add_argument("--out", type=_folder, help="run folder (default runs/<timestamp>-<strategy>)")
     r.add_argument("--force", action="store_true", help="overwrite an existing run folder")
     r.add_argument("--resume", type=Path, metavar="RUN_DIR",
                    help="continue an interrupted run (its config.toml is used)")
@@ -134,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "1048576 on GPUs/TPUs)")
     s.add_argument("--rows", choices=("all", "collisions", "none"),
                    help="scenarios written to Parquet (default all; none: summary only)")
-    s.add_argument("--out", type=Path, help="output folder (default "
+    s.add_argument("--out", type=_folder, help="output folder (default "
                    "sweeps/<space>-<sut>-s<space-seed>)")
     s.add_argument("--force", action="store_true", help="overwrite an existing sweep in --out")
     s.add_argument("--resume", type=Path, metavar="OUT",
@@ -159,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="STRATEGY:NAME=VALUE",
                    help="an option of one strategy, e.g. cem:elite_frac=0.2 (repeatable)")
     _add_sut(c)
-    c.add_argument("--out", type=Path, help="folder for compare.json/.md "
+    c.add_argument("--out", type=_folder, help="folder for compare.json/.md "
                    "(default runs/compare-<timestamp>)")
     c.add_argument("--jobs", type=_int("--jobs", 1),
                    help="strategies searched side by side (default: one per CPU core, at "
@@ -197,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="controller (default: the ego gets its start, route and cruise "
                    "request; your controller drives it) or replay (it follows its simulated "
                    "trajectory)")
-    x.add_argument("--out", type=Path, required=True, help="output folder")
+    x.add_argument("--out", type=_folder, required=True, help="output folder")
     x.add_argument("--force", action="store_true", help="overwrite existing files in --out")
 
     f = sub.add_parser("figures", help="(re)draw a run's figures and report.md")
@@ -340,8 +347,12 @@ def cmd_compare(args, stop, startup) -> int:
     from jaxfalsify import compare
     from jaxfalsify.progress import timing_line
 
-    names = (tuple(n.strip() for n in args.strategies.split(",") if n.strip())
-             if args.strategies else None)
+    names = None
+    if args.strategies is not None:
+        names = tuple(n.strip() for n in args.strategies.split(",") if n.strip())
+        if not names:
+            raise UsageError(f"--strategies {args.strategies!r}: no strategy named (e.g. "
+                             "--strategies reinforce/default,cmaes)")
     if args.suite is not None:
         return _compare_suite(args, names, stop, startup)
     if args.distributed and not args.out:
@@ -529,6 +540,12 @@ def main(argv=None, startup: float = 0.0) -> int:
         print(f"jaxfalsify: error: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
               file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader of our output went away (`| head`): quietly, as
+        # a program killed by SIGPIPE (files, if any, were complete before printing)
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
     except OSError as e:
         where = f"{e.filename}: " if getattr(e, "filename", None) else ""
         print(f"jaxfalsify: error: {where}{e.strerror or e} (check free space, permissions and "
@@ -561,7 +578,10 @@ def entry() -> None:
     from jaxfalsify.progress import process_age
 
     code = main(startup=process_age())
-    sys.stdout.flush()
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:  # the reader went away before our last lines (see main)
+        code = code or 128 + signal.SIGPIPE
     sys.stderr.flush()
     os._exit(code)
 

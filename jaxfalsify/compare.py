@@ -84,6 +84,10 @@ class CompareConfig:
         check_int("jobs", self.jobs, 0, 256)
         for b in self.budgets:
             check_int("budgets", b, 1, self.evaluations)
+        if isinstance(self.strategies, str) or not all(isinstance(s, str)
+                                                       for s in self.strategies):
+            raise ValueError(f"strategies must be a list of names, e.g. ('random',) (got "
+                             f"{self.strategies!r})")
         if not self.strategies:
             raise ValueError("strategies: none given")
         for s in self.strategies:

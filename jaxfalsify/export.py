@@ -55,9 +55,12 @@ Road frame: our x + ``X_OFFSET`` along the road (OpenDRIVE's road starts at x = 
 from __future__ import annotations
 
 import ast
+import fnmatch
 import math
 import operator
+import os
 import re
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -564,15 +567,18 @@ def write_distribution(path: Path, space, scenario_file: str, kind: str = "deter
 
 
 # ---------------------------------------------------------------- the export command
+EXPORT_FILES = ("crossing.xodr", "best.xosc", "critical_*.xosc", "template.xosc",
+                "logical.xosc", "logical_stochastic.xosc")  # what an export writes (and replaces)
+
+
 def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller") -> list[Path]:
     """Export the run's best scenario (``best``) or all its distinct critical ones
     (``critical``) to ``out``, the ego under the user's controller (``controller``) or
     replaying its simulated trajectory (``replay``), with ``crossing.xodr`` and the logical
     scenario (``logical.xosc``, ``logical_stochastic.xosc``); returns the files written:
     the road, the scenarios, (replay: ``template.xosc``, the controller-mode file the
-    distributions vary), the two distributions."""
-    import jaxfalsify as jf
-
+    distributions vary), the two distributions. An earlier export's files in ``out`` are
+    replaced (``EXPORT_FILES``); other files are left alone."""
     if which not in SCENARIO_CHOICES:
         raise ValueError(f"--scenario {which!r}: expected best or critical")
     if ego not in EGO_MODES:
@@ -584,8 +590,23 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
         rows = [c["row"] for c in analysis.distinct_critical(*analysis.from_episodes(ep, sp))]
         if not rows:
             raise ValueError(f"{run_dir}: the run found no critical scenario to export")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    final = Path(out)
+    final.mkdir(parents=True, exist_ok=True)
+    # written into a temporary folder beside the result, then moved in: a failure leaves the
+    # folder as it was, and a new export replaces an earlier one's files (no stale scenarios)
+    with tempfile.TemporaryDirectory(dir=final, prefix=".export-") as tmp:
+        files = _write_export(Path(tmp), sp, rc, ep, rows, which, ego)
+        for old in final.iterdir():
+            if old.is_file() and any(fnmatch.fnmatch(old.name, pat) for pat in EXPORT_FILES):
+                old.unlink()
+        for f in files:
+            os.replace(f, final / f.name)
+    return [final / f.name for f in files]
+
+
+def _write_export(out: Path, sp, rc, ep, rows, which: str, ego: str) -> list[Path]:
+    import jaxfalsify as jf
+
     world = jf.WORLD
     road = write_road(out / "crossing.xodr", world)
     idx = indices_of(ep, sp, rows)

@@ -27,3 +27,30 @@ def replace(obj, **changes):
 
 def field_names(obj_or_cls) -> tuple[str, ...]:
     return tuple(f.name for f in dataclasses.fields(obj_or_cls))
+
+
+def ranges(obj_or_cls) -> dict[str, str]:
+    """The valid intervals of a parameter class's fields, ``{name: "[lo, hi)"}`` (a class
+    attribute ``RANGES``, merged along the class's bases; fields without one are unbounded)."""
+    cls = obj_or_cls if isinstance(obj_or_cls, type) else type(obj_or_cls)
+    out: dict[str, str] = {}
+    for base in reversed(cls.__mro__):
+        out.update(base.__dict__.get("RANGES", {}))
+    return out
+
+
+def in_range(value: float, interval: str) -> bool:
+    """Whether ``value`` lies in ``interval`` (``"[0, 1)"``, ``"(0, inf)"``: brackets closed,
+    parentheses open)."""
+    lo, hi = (float(x) for x in interval[1:-1].split(","))
+    return ((lo <= value) if interval[0] == "[" else (lo < value)) and \
+        ((value <= hi) if interval[-1] == "]" else (value < hi))
+
+
+def check_ranges(obj_or_cls, values: dict, where: str) -> None:
+    """One-line ValueError for the first of ``values {name: number}`` outside its field's
+    interval (see :func:`ranges`)."""
+    bounds = ranges(obj_or_cls)
+    for name, value in values.items():
+        if name in bounds and not in_range(float(value), bounds[name]):
+            raise ValueError(f"{where}: {name}={value!r} is outside {bounds[name]}")

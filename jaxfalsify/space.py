@@ -321,10 +321,28 @@ class Space:
         return np.asarray([list(v) + [v[-1]] * (width - len(v)) for v in self.table],
                           dtype=np.float32)
 
+    def check_indices(self, indices) -> np.ndarray:
+        """``indices`` as an int64 array ``(..., P)``; one-line ValueError for another last axis,
+        non-integers or an index outside ``[0, n_p)`` (naming the parameter)."""
+        idx = np.asarray(indices)
+        if idx.ndim < 1 or idx.shape[-1] != len(self.shape):
+            raise ValueError(f"index vectors of space '{self.name}' have {len(self.shape)} "
+                             f"entries ({', '.join(self.names)}); got shape {idx.shape}")
+        if idx.size and not np.issubdtype(idx.dtype, np.integer):
+            if not (np.issubdtype(idx.dtype, np.floating) and np.all(idx == np.round(idx))):
+                raise ValueError(f"space '{self.name}': indices must be whole numbers")
+        idx = idx.astype(np.int64)
+        for p, (name, n) in enumerate(zip(self.names, self.shape)):
+            bad = (idx[..., p] < 0) | (idx[..., p] >= n)
+            if np.any(bad):
+                raise ValueError(f"space '{self.name}': index {int(idx[..., p][bad].flat[0])} of "
+                                 f"{name} is outside 0..{n - 1}")
+        return idx
+
     def decode(self, indices) -> dict[str, np.ndarray]:
         """Index vectors ``(..., P)`` int -> ``{name: values (...)}`` float32 (host-side NumPy;
-        use :meth:`Layout.decode` under ``jit``)."""
-        idx = np.asarray(indices)
+        use :meth:`Layout.decode` under ``jit``). ValueError for an index outside its range."""
+        idx = self.check_indices(indices)
         table = self.table_array
         return {n: table[p][idx[..., p]] for p, n in enumerate(self.names)}
 
@@ -344,12 +362,13 @@ class Space:
 
     def ravel(self, indices) -> np.ndarray:
         """Index vectors ``(..., P)`` -> flat scenario numbers ``(...)`` int64 (NumPy)."""
-        idx = np.asarray(indices, np.int64)
+        idx = self.check_indices(indices)
         return np.ravel_multi_index(tuple(np.moveaxis(idx, -1, 0)), self.shape)
 
     def values_at(self, indices) -> dict[str, float]:
         """``{name: value}`` of one index vector ``(P,)`` (host-side, float64 of the table)."""
-        return {n: float(self.table[p][int(indices[p])]) for p, n in enumerate(self.names)}
+        idx = self.check_indices(indices)
+        return {n: float(self.table[p][int(idx[p])]) for p, n in enumerate(self.names)}
 
     def nearest(self, scenario: dict[str, float]) -> np.ndarray:
         """Index vector ``(P,)`` of the concrete values nearest to ``scenario`` (host-side)."""

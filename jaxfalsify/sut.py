@@ -29,6 +29,7 @@ Built-ins:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib
 import importlib.util
 import math
@@ -106,6 +107,9 @@ class CruiseParams:
     accel_max: float = 1.5  # m/s^2, comfortable launch
     decel_max: float = 3.0  # m/s^2, normal (non-emergency) braking
 
+    RANGES = {"cruise_speed": "[0, inf)", "gain": "[0, inf)", "accel_max": "[0, inf)",
+              "decel_max": "[0, inf)"}
+
 
 def cruise_command(speed, p) -> jax.Array:
     """Speed-keeping acceleration command [m/s^2] (``p`` has the :class:`CruiseParams` fields)."""
@@ -136,6 +140,11 @@ class AutopilotParams:
     max_throttle: float = 0.7
     throttle_accel: float = 2.75  # m/s^2 at throttle 1.0 (assumption, calibrated)
     full_brake: float = 6.0  # m/s^2 at brake 1.0 (assumption, calibrated)
+
+    # below_limit < 0: faster than the limit, as in CARLA
+    RANGES = {"speed_limit": "(0, inf)", "below_limit": "(-inf, 100)", "kp": "[0, inf)",
+              "ki": "[0, inf)", "kd": "[0, inf)", "pid_dt": "(0, inf)",
+              "max_throttle": "[0, 1]", "throttle_accel": "(0, inf)", "full_brake": "(0, inf)"}
 
 
 def target_speed(p) -> jax.Array:
@@ -188,6 +197,10 @@ class CarlaTMParams(AutopilotParams):
     walker_time: float = 1.5  # s, WALKER_TIME_EXTENSION
     bbox_multiplier: float = 1.4  # BBOX_EXTENT_MULTIPLIER of the pre-filter
     touch: float = 0.1  # m, the geodesic and box 'touching' threshold
+
+    RANGES = {name: "[0, inf)" for name in (
+        "ext_min", "ext_square_point", "time_horizon", "crawl_speed", "highway_speed",
+        "highway_time", "leading_distance", "walker_time", "touch")} | {"bbox_multiplier": "(0, inf)"}
 
 
 def boundary_extension(speed, p: CarlaTMParams) -> jax.Array:
@@ -300,6 +313,12 @@ class SensorAEBParams(AutopilotParams):
     mu_dry: float = 0.9
     mu_wet: float = 0.55
 
+    RANGES = {"range": "(0, inf)", "fov": "(0, 360]", "latency": "[0, inf)",
+              "dark_latency": "[0, inf)", "glare_altitude": "[0, 90]",
+              "glare_range_loss": "[0, 1]", "rain_range_loss": "[0, 1]",
+              "rain_latency": "[0, inf)", "ttc_partial": "[0, inf)", "ttc_full": "[0, inf)",
+              "partial_brake": "[0, inf)", "mu_dry": "(0, inf)", "mu_wet": "(0, inf)"}
+
 
 def illuminance(weather_index) -> jax.Array:
     """Relative daylight illuminance in [0, 1] of a weather preset (see SensorAEBParams)."""
@@ -408,6 +427,42 @@ def _load_attr(spec: str):
         raise ValueError(f"SUT '{spec}': {mod_name} has no attribute '{attr}'") from None
 
 
+def _example_observation() -> Observation:
+    return Observation(*([jnp.float32(0.0)] * (len(Observation._fields) - 1)),
+                       weather=jnp.int32(0))
+
+
+@functools.lru_cache(maxsize=64)
+def check_traceable(sut: SUT) -> SUT:
+    """``sut`` once its ``init(key, params)`` and ``act(obs, state, params, key)`` trace with
+    its default parameters and return ``(command, state)`` with a scalar command and the
+    state's structure kept (abstract evaluation: nothing is computed or compiled). A user's SUT
+    is checked when it is loaded by import path, so a wrong signature or a bug gives a
+    one-line ValueError naming it before any file is written."""
+    def one_step(key):
+        state = sut.init(key, sut.default_params)
+        out = sut.act(_example_observation(), state, sut.default_params, key)
+        if not (isinstance(out, tuple) and len(out) == 2):
+            raise TypeError(f"act returned {type(out).__name__}, expected (command, state)")
+        cmd, new_state = out
+        if jnp.shape(cmd) != ():
+            raise TypeError(f"act's command has shape {jnp.shape(cmd)}, expected a scalar "
+                            "(m/s^2)")
+        if jax.tree.structure(new_state) != jax.tree.structure(state):
+            raise TypeError("act's new state differs in structure from init's")
+        return cmd
+
+    try:
+        jax.eval_shape(one_step, jax.random.key(0))
+    except Exception as e:  # noqa: BLE001 - a user's code can raise anything when traced
+        hint = (" (a bare act function gets params=None; give the SUT default_params)"
+                if sut.default_params is None and "NoneType" in str(e) else "")
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise ValueError(f"SUT '{sut.name}' fails on a step: {type(e).__name__}: {first}"
+                         f"{hint}") from None
+    return sut
+
+
 def resolve(spec: str | SUT | Callable) -> SUT:
     """A :class:`SUT` from a registry name, an import path, a SUT, or a bare ``act`` function
     (stateless: ``act(obs, state, params, key)``). Raises ValueError listing the known names."""
@@ -425,9 +480,10 @@ def resolve(spec: str | SUT | Callable) -> SUT:
                                      and obj.__code__.co_argcount == 0):
             obj = obj()  # a factory returning a SUT
         if isinstance(obj, SUT):
-            return dataclasses.replace(obj, name=spec) if obj.name != spec else obj
+            return check_traceable(dataclasses.replace(obj, name=spec) if obj.name != spec
+                                   else obj)
         if callable(obj):
-            return SUT(spec, obj, _no_state, None)
+            return check_traceable(SUT(spec, obj, _no_state, None))
         raise ValueError(f"SUT '{spec}' is a {type(obj).__name__}, not a SUT or act function")
     if callable(spec):
         return SUT(getattr(spec, "__name__", "custom"), spec, _no_state, None)
@@ -483,6 +539,7 @@ def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
             raise ValueError(f"{where}: {name}={value!r} is not finite")
     p = sut.default_params
     if dataclasses.is_dataclass(p):
+        pytree.check_ranges(p, params, f"{where}: SUT '{sut.name}'")
         return dataclasses.replace(p, **{k: float(v) for k, v in params.items()})
     return {**p, **{k: float(v) for k, v in params.items()}}
 

@@ -361,10 +361,15 @@ class SweepConfig:
         return self if self.chunk is not None else dataclasses.replace(
             self, chunk=sim.default_chunk())
 
+    def full_sut_params(self) -> dict[str, Any]:
+        """Every SUT parameter: its default, or the value (list of values) given."""
+        defaults = sut_lib.params_dict(sut_lib.resolve(self.sut).default_params)
+        return {**defaults, **dict(self.sut_params)}
+
     def to_toml(self, space: Space, processes: int = 1) -> str:
         doc = {"kind": "sweep", "sut": self.sut, "space_seed": self.space_seed,
                "seed": self.seed, "chunk": self.chunk, "rows": self.rows,
-               "processes": processes, "sut_params": dict(self.sut_params),
+               "processes": processes, "sut_params": self.full_sut_params(),
                "space": space.describe()}
         return cfg.dumps_toml(doc)
 

@@ -65,6 +65,9 @@ def world(tmp_path_factory):
     }
     for name, text in files.items():
         (w / name).write_text(text)
+    (w / "badsut.py").write_text(
+        "import jax.numpy as jnp\n\n\ndef two_args(obs, state):\n    return 0.0, state\n\n\n"
+        "def vector(obs, state, params, key):\n    return jnp.zeros(3), state\n")
     (w / "latin1.toml").write_bytes("seed = 1 # caf\xe9\n".encode("latin-1"))
     (w / "a_folder.toml").mkdir()
     os.mkfifo(w / "fifo.toml")
@@ -227,6 +230,27 @@ CASES = [
     (["simulate", "ped_offset=-100"], "outside the allowed"),
     (["simulate", "ped_change_step=-5"], "outside the allowed"),
     (["simulate", "ego_offset=1e30"], "ego_offset=1e+30 outside the allowed"),
+    # strategy options of the wrong type or outside their declared interval
+    (["run", "--strategy-param", "anchored=maybe"], "anchored='maybe' is not a boolean"),
+    (["run", "--strategy-param", "hidden=1.5"], "hidden=1.5 is not a whole number"),
+    (["run", "--strategy-param", "advantage=3"], "advantage=3 is not a string"),
+    (["run", "--strategy", "cem", "--strategy-param", "elite_frac=1.5"],
+     "elite_frac=1.5 is outside (0, 1]"),
+    (["run", "--strategy-param", "lr=-1"], "lr=-1.0 is outside [0, inf)"),
+    (["run", "--strategy", "anneal", "--strategy-param", "max_step=0"], "outside [1, inf)"),
+    (["compare", "--strategies", "cmaes", "--strategy-param", "cmaes:std_init=0"],
+     "std_init=0.0 is outside (0, inf)"),
+    # SUT parameters outside their declared interval, also in a calibration list
+    (["run", "--sut-param", "speed_limit=-40"], "speed_limit=-40"),
+    (["sweep", "--sut", "sensor-aeb", "--sut-param", "ttc_full=0.8,-1"], "ttc_full=-1"),
+    # a user's SUT that cannot step: traced when loaded, before anything is written
+    (["run", "--sut", "badsut.py:two_args"], "takes 2 positional arguments but 4"),
+    (["sweep", "--sut", "badsut.py:vector"], "expected a scalar"),
+    # empty lists and paths
+    (["compare", "--strategies", ""], "no strategy named"),
+    (["compare", "--strategies", " , "], "no strategy named"),
+    (["run", "--out", ""], "an empty path"),
+    (["sweep", "--out", " "], "an empty path"),
 ]
 
 
@@ -253,3 +277,16 @@ def test_console_script_exit_code_and_stderr(world):
                         "corrupt_state"], capture_output=True, text=True, cwd=world)
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.startswith("jaxfalsify: error: ") and len(r.stderr.splitlines()) == 1
+
+
+def test_broken_pipe_is_quiet(world):
+    """A reader that goes away (``jaxfalsify ... | head``): no error message, the exit status
+    of a process killed by SIGPIPE (128 + 13), as other command-line tools end."""
+    import signal
+
+    proc = subprocess.Popen([sys.executable, "-m", "jaxfalsify.cli", "simulate", "ego_offset=9"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=world)
+    proc.stdout.close()  # nobody reads: the first write fails with EPIPE
+    err = proc.stderr.read().decode()
+    assert proc.wait() == 128 + signal.SIGPIPE, err
+    assert err == ""

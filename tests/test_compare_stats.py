@@ -143,6 +143,11 @@ def test_per_strategy_options_reach_that_strategy_only():
         CompareConfig(strategies=("cem",), strategy_params={"anneal": {"t0": 1.0}}).check()
     with pytest.raises(ValueError, match="no option 'nope'"):
         CompareConfig(strategies=("cem",), strategy_params={"cem": {"nope": 1.0}}).check()
+    # a single name instead of a list (a string is a sequence of letters)
+    with pytest.raises(ValueError, match="strategies must be a list of names"):
+        CompareConfig(strategies="random").check()
+    with pytest.raises(ValueError, match="elite_frac=1.5 is outside"):
+        CompareConfig(strategies=("cem",), strategy_params={"cem": {"elite_frac": 1.5}}).check()
 
 
 def _tiny_compare(tmp_path, name, jobs, stop=None):

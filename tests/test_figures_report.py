@@ -398,3 +398,22 @@ def test_export_refuses_existing_output(run_with_figures, tmp_path, capsys):
     assert "--force" in capsys.readouterr().err
     assert main(["export", str(run_with_figures), "--scenario", "all", "--out",
                  str(tmp_path / "o2")]) == 2
+
+
+def test_export_force_replaces_the_earlier_export(run_with_figures, tmp_path):
+    """``--force`` replaces an earlier export's files (no stale critical_NNN.xosc beside the
+    new best.xosc) and leaves the user's own files alone."""
+    from jaxfalsify import analysis
+    from jaxfalsify.figures import load_run
+
+    sp, _, _, ep = load_run(run_with_figures)
+    n_crit = len(analysis.distinct_critical(*analysis.from_episodes(ep, sp)))
+    out = tmp_path / "osc"
+    assert main(["export", str(run_with_figures), "--scenario", "critical", "--out",
+                 str(out)]) == 0
+    assert len(list(out.glob("critical_*.xosc"))) == n_crit > 0
+    (out / "notes.txt").write_text("mine\n")
+    assert main(["export", str(run_with_figures), "--out", str(out), "--force"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == [
+        "best.xosc", "crossing.xodr", "logical.xosc", "logical_stochastic.xosc", "notes.txt"]
+    assert (out / "notes.txt").read_text() == "mine\n"

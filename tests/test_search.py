@@ -9,7 +9,7 @@ import pytest
 from conftest import run_campaign
 
 import jaxfalsify as jf
-from jaxfalsify import analysis, campaign, search
+from jaxfalsify import analysis, campaign, pytree, search
 from jaxfalsify.search import controller, reinforce
 
 SHAPE = (6, 5, 4)
@@ -82,6 +82,35 @@ def test_registry_options_and_errors():
     with pytest.raises(ValueError, match="signal must be one of"):
         search.make("cmaes", SHAPE, signal="distance")
     assert search.options("reinforce/paper")["alpha"] == pytest.approx(1e-4)
+
+
+def test_option_types_and_intervals():
+    """Static options take the type of their default (a command line gives strings and
+    numbers); hyperparameters must lie in their class's declared interval."""
+    as_python = search.make("reinforce/default", SHAPE, anchored=False, hidden=16)[0]
+    for text in ("false", "False", " FALSE ", 0):
+        assert search.make("reinforce/default", SHAPE, anchored=text, hidden=16.0)[0] == \
+            as_python
+    assert search.make("reinforce/default", SHAPE, anchored="true")[0].anchored is True
+    for bad, needle in [(dict(anchored="maybe"), "not a boolean"),
+                        (dict(anchored=2), "not a boolean"),
+                        (dict(hidden=1.5), "not a whole number"),
+                        (dict(hidden="32"), "not a whole number"),
+                        (dict(advantage=1), "not a string"),
+                        (dict(sigma_min=0.0), r"sigma_min=0.0 is outside \(0, 1\]"),
+                        (dict(global_share=1.01), r"outside \[0, 1\]")]:
+        with pytest.raises(ValueError, match=needle):
+            search.make("reinforce/default", SHAPE, **bad)
+    # the interval notation: brackets closed, parentheses open
+    for value, interval, inside in [(0.0, "(0, 1]", False), (1.0, "(0, 1]", True),
+                                    (0.5, "(0, 1]", True), (1.0, "[0, 1)", False),
+                                    (-5.0, "(-inf, 1)", True), (1e30, "[0, inf)", True)]:
+        assert pytree.in_range(value, interval) is inside, (value, interval)
+    # every entry's own options lie inside the intervals (make would refuse them otherwise)
+    for name in search.REGISTRY:
+        strat, params = search.make(name, SHAPE, 20)
+        for field, interval in pytree.ranges(strat.Params).items():
+            assert pytree.in_range(float(getattr(params, field)), interval), (name, field)
 
 
 def test_grid_enumerates_every_scenario_once():

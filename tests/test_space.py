@@ -1,5 +1,6 @@
 """Logical scenario spaces: built-ins (Table I), index <-> value maps, TOML, and bad input."""
 
+import re
 
 import jax
 import numpy as np
@@ -62,6 +63,26 @@ def test_decode_matches_indexing_batched_and_unbatched(paper):
         np.testing.assert_array_equal(np.asarray(dec[name]), paper.values[p][idx[:, p]])
     one = paper.decode(idx[0])
     assert {k: float(v) for k, v in one.items()} == {k: float(v[0]) for k, v in dec.items()}
+
+
+@pytest.mark.parametrize("idx, needle", [
+    ([10, 0, 0, 0, 0], "index 10 of ego_offset is outside 0..9"),
+    ([-1, 0, 0, 0, 0], "index -1 of ego_offset is outside 0..9"),
+    ([[0, 0, 0, 0, 0], [0, 0, 25, 0, 0]], "index 25 of ped_speed is outside 0..24"),
+    ([1, 2, 3], "have 5 entries"),
+    ([1.5, 0, 0, 0, 0], "whole numbers"),
+])
+def test_host_decode_refuses_indices_outside_the_table(paper, idx, needle):
+    """Host-side decoding checks each index against its parameter's value count (the table's
+    padding or NumPy's wrap-around would otherwise return a wrong value silently)."""
+    assert paper.shape[0] == 10 and paper.shape[2] == 25
+    for f in (paper.decode, paper.ravel):
+        with pytest.raises(ValueError, match=re.escape(needle)):
+            f(idx)
+    # the last valid index of every parameter decodes to its largest table entry
+    last = np.asarray(paper.shape) - 1
+    assert [float(paper.decode(last)[n]) for n in paper.names] == \
+        [float(np.float32(v[-1])) for v in paper.values]
 
 
 def test_enumeration_in_chunks_covers_space_once(paper):

@@ -118,6 +118,12 @@ def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path):
         for f in ("reward", "collision", "min_distance", "steps"):
             np.testing.assert_array_equal(np.asarray(table[f])[mine], alone[f], err_msg=f)
         assert summary["calibrations"][c]["n_collisions"] == int(alone["collision"].sum())
+    # config.toml holds every SUT parameter: the defaults, the given value and the list
+    import tomllib
+    from jaxfalsify import sut as sut_lib
+    recorded = tomllib.loads((out / "config.toml").read_text())["sut_params"]
+    defaults = sut_lib.params_dict(sut_lib.resolve("carla-tm").default_params)
+    assert recorded == {**defaults, "full_brake": [3, 8], "walker_time": 1.5}
     # the weaker brake must matter somewhere, or the test proves nothing
     assert summary["calibrations"][0]["n_collisions"] != summary["calibrations"][1]["n_collisions"]
 

@@ -37,6 +37,24 @@ def test_resolved_by_file_path_and_by_module(monkeypatch):
         sut_lib.resolve(f"{EXAMPLE}:BRAKE")
 
 
+def test_a_sut_that_cannot_step_is_refused_when_loaded(tmp_path):
+    """Loading by import path traces one step (abstractly): the contract's violations give a
+    one-line ValueError naming the SUT; a bare act function that keeps it loads."""
+    mod = tmp_path / "user_suts.py"
+    mod.write_text(
+        "import jax.numpy as jnp\n\n"
+        "def coast(obs, state, params, key):\n    return jnp.float32(0.0), state\n\n"
+        "def grows(obs, state, params, key):\n    return 0.0, (state, state)\n\n"
+        "def needs_params(obs, state, params, key):\n    return -params.brake, state\n\n"
+        "def no_tuple(obs, state, params, key):\n    return 0.0\n")
+    assert sut_lib.resolve(f"{mod}:coast").default_params is None
+    for name, needle in [("grows", "new state differs in structure"),
+                         ("needs_params", "a bare act function gets params=None"),
+                         ("no_tuple", "expected \\(command, state\\)")]:
+        with pytest.raises(ValueError, match=f"SUT '.*:{name}' fails on a step: .*{needle}"):
+            sut_lib.resolve(f"{mod}:{name}")
+
+
 def test_run_records_the_sut_and_its_parameters(tiny, tmp_path):
     out = tmp_path / "run"
     assert main(["run", "--space", str(tiny), "--sut", SPEC, "--sut-param", "noise=0",

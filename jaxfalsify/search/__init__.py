@@ -73,11 +73,36 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
                 raise ValueError(f"{where}: {k}={v!r} is not a finite number")
             params[k] = float(v)
         elif k in known_s:
-            static[k] = v
+            static[k] = _typed(v, _default(cls, k), f"{where}: {k}={v!r}")
         else:
             raise ValueError(f"{where}: no option '{k}' (known: "
                              f"{', '.join(known_s + known_p) or 'none'})")
+    pytree.check_ranges(cls.Params, params, where)
     return static, params
+
+
+def _default(cls, name: str):
+    return next(f.default for f in dataclasses.fields(cls) if f.name == name)
+
+
+def _typed(value, default, what: str):
+    """``value`` as the type of the option's ``default`` (bool: true/false, 1/0; int: a whole
+    number; str); one-line ValueError ``what ...`` otherwise."""
+    if isinstance(default, bool):
+        if isinstance(value, str) and value.strip().lower() in ("true", "false"):
+            return value.strip().lower() == "true"
+        if isinstance(value, (bool, int)) and value in (0, 1):
+            return bool(value)
+        raise ValueError(f"{what} is not a boolean (true or false)")
+    if isinstance(default, int):
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"{what} is not a whole number")
+        return value
+    if isinstance(default, str) and not isinstance(value, str):
+        raise ValueError(f"{what} is not a string")
+    return value
 
 
 register("reinforce/default", AutoregressiveReinforce, batch=32, learners=1, queue=32,

@@ -23,6 +23,8 @@ class AnnealParams:
     p_restart: float = 0.1  # probability of a uniformly random proposal
     max_step: float = 2.0  # largest index move of one parameter
 
+    RANGES = {"t0": "[0, inf)", "decay": "[0, 1]", "p_restart": "[0, 1]", "max_step": "[1, inf)"}
+
 
 @pytree.dataclass
 class AnnealState:

@@ -22,6 +22,8 @@ class CEMParams:
     smoothing: float = 0.7  # step towards the elite's frequencies
     min_prob: float = 0.002  # floor of every value's probability
 
+    RANGES = {"elite_frac": "(0, 1]", "smoothing": "[0, 1]", "min_prob": "[0, 1)"}
+
 
 @pytree.dataclass
 class CEMState:

@@ -38,6 +38,8 @@ class CMAESParams:
     std_init: float = 0.3  # initial step size, in units of each parameter's index range
     margin: float = -1.0  # marginal probability floor; < 0: 1 / (P * batch), 0: no margin
 
+    RANGES = {"std_init": "(0, inf)", "margin": "(-inf, 1)"}
+
 
 @pytree.dataclass
 class CMAESState:

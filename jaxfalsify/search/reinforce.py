@@ -43,6 +43,10 @@ class ReinforceParams:
     eps_floor: float = 0.0  # lowest probability
     eps_off_after: float = 0.0  # episode from which eps = 0
 
+    RANGES = {"lr": "[0, inf)", "alpha": "[0, inf)", "entropy": "[0, inf)",
+              "eps_start": "[0, 1]", "eps_decay": "[0, 1]", "eps_every": "(0, inf)",
+              "eps_floor": "[0, 1]", "eps_off_after": "[0, inf)"}
+
 
 @pytree.dataclass
 class ReinforceState:

@@ -102,6 +102,13 @@ class ARParams:
     # parameter's range (each draw's width is log-uniform between the learnt width and that
     # many times wider; 0: off)
 
+    # a negative *_found value means "as before the first collision"
+    RANGES = {"lr": "[0, inf)", "entropy": "[0, inf)", "entropy_found": "[0, inf)",
+              "sigma_min": "(0, 1]", "global_share": "[0, 1]", "global_share_found": "(-inf, 1]",
+              "anchor_decay": "[0, 1]", "anchor_decay_found": "(-inf, 1]",
+              "repeat_found": "[0, 1]", "uniform_mix": "[0, 1]", "edge_mass": "[0, 1]",
+              "edge_explore": "[0, 1]", "kappa": "[0, inf)", "zoom": "[0, inf)"}
+
 
 @pytree.dataclass
 class ARState:
