@@ -134,7 +134,8 @@ def median_row(samples: list[dict]) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--baseline", type=Path, help="a checkout of an older commit to time too")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results"
                     / "bench_latency.json")

@@ -133,7 +133,8 @@ def sweep_seconds(space_name: str) -> dict:
 
 def main() -> None:
     global CHUNK
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="sizes up to 1e5 only")
     ap.add_argument("--sizes", default=None,
                     help="comma-separated batch sizes (default 1e3..1e7; --quick: ..1e5)")

@@ -81,7 +81,8 @@ def evaluate_grid(grid: dict = GRID, world: sim.World = sim.WORLD):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--top", type=int, default=15)
     a = ap.parse_args(argv)
     t0 = time.perf_counter()

@@ -97,7 +97,8 @@ def main(argv=None) -> None:
     import jaxfalsify as jf
     from jaxfalsify.sweep import sweep_arrays
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--space", required=True)
     ap.add_argument("--sut", default="sensor-aeb")
     ap.add_argument("--sut-param", action="append", default=[], metavar="NAME=VALUE")

@@ -43,7 +43,8 @@ def plateau_episode(curve: np.ndarray, window: int = 100, tol: float = 0.05) -> 
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--evaluations", type=int, default=4000, help="budget per seed (the paper: 4000 episodes)")
     ap.add_argument("--out", type=Path,
@@ -61,7 +62,10 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     curves = np.stack([r.fields["reward"] for r in results])  # (S, N)
     mean = curves.mean(0)
-    ma = np.convolve(mean, np.ones(100) / 100, mode="same")
+    # trailing moving average over the last 100 episodes (fewer at the start, never padded)
+    c = np.concatenate([[0.0], np.cumsum(mean)])
+    i = np.arange(1, len(mean) + 1)
+    ma = (c[i] - c[np.maximum(i - 100, 0)]) / (i - np.maximum(i - 100, 0))
     with open(args.out / "reward_curve.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["episode", *(f"seed{s}" for s in range(args.seeds)), "mean", "mean_ma100"])

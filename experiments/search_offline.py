@@ -1,6 +1,7 @@
 """Strategies against a precomputed sweep (a lookup table instead of the simulator): fast
 iteration on search hyperparameters. The table is an ``.npz`` with ``collision``, ``reward``,
-``robustness`` per scenario in space order (``--make`` sweeps and writes it).
+``robustness`` per scenario in space order (``--table PATH`` sweeps the space and writes it
+there when the file does not exist yet).
 
     python experiments/search_offline.py --space experiments/suite/aeb-2e4.toml \\
         --sut-param ttc_full=2.0 --sut-param ttc_partial=3.0 --table /tmp/aeb-2e4.npz \\

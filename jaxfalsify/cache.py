@@ -84,15 +84,55 @@ def code_hash() -> str:
     return _CODE_HASH
 
 
-def source_hash(fn) -> str | None:
-    """Hash of the file defining ``fn`` (a user SUT's module); None if it has no file."""
-    import inspect
+def _installed_roots() -> tuple[str, ...]:
+    """Folders of the Python installation (standard library, site-packages) and of
+    jaxfalsify itself: code there is identified by versions and :func:`code_hash`."""
+    import sys
+    import sysconfig
 
-    try:
-        src = inspect.getsourcefile(fn)
-        return hashlib.sha256(Path(src).read_bytes()).hexdigest()[:16] if src else None
-    except (TypeError, OSError):
-        return None
+    roots = {sys.prefix, sys.base_prefix, sys.exec_prefix, str(Path(__file__).parent)}
+    roots |= {p for k in ("stdlib", "platstdlib", "purelib", "platlib")
+              if (p := sysconfig.get_paths().get(k))}
+    import site
+
+    roots |= set(getattr(site, "getsitepackages", lambda: [])())
+    roots.add(getattr(site, "getusersitepackages", lambda: "")() or sys.prefix)
+    return tuple(os.path.realpath(r) + os.sep for r in roots if r)
+
+
+def user_code_hash(*objs) -> str | None:
+    """Hash of the user's code a program may run: the source files of every loaded module
+    outside the Python installation and jaxfalsify (a SUT's module and any helper module it
+    imports, a strategy's), with the qualified names of ``objs`` (functions or classes). None
+    if one of ``objs`` has no source file (nothing to key on: such programs are not cached).
+    Conservative: editing any such module gives a new key, never a stale program."""
+    import inspect
+    import sys
+
+    h = hashlib.sha256()
+    for o in objs:
+        try:
+            if not inspect.getsourcefile(o):
+                return None
+        except (TypeError, OSError):
+            return None
+        h.update(f"{o.__module__}.{o.__qualname__}".encode())
+    roots = _installed_roots()
+    files = set()
+    for m in list(sys.modules.values()):
+        f = getattr(m, "__file__", None)
+        if isinstance(f, str) and f.endswith(".py"):
+            real = os.path.realpath(f)
+            if not real.startswith(roots):
+                files.add(real)
+    for f in sorted(files):
+        try:
+            data = Path(f).read_bytes()
+        except OSError:
+            continue
+        h.update(f.encode())
+        h.update(data)
+    return h.hexdigest()[:16]
 
 
 class Program:

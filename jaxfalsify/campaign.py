@@ -147,8 +147,15 @@ def static_key(c: Campaign) -> dict | None:
     sut = sut_lib.cache_key(c.sut)
     if sut is None:
         return None
+    cls = type(c.strategy)
+    strategy = f"{cls.__module__}.{cls.__qualname__}"
+    if not cls.__module__.startswith("jaxfalsify."):  # a user's strategy: key on its code
+        code = cache.user_code_hash(cls)
+        if code is None:
+            return None
+        strategy += f":{code}"
     return {"layout": repr(c.layout), "sut": sut, "strategy": repr(c.strategy),
-            "updates_per_chunk": c.updates_per_chunk}
+            "strategy_code": strategy, "updates_per_chunk": c.updates_per_chunk}
 
 
 @functools.lru_cache(maxsize=64)

@@ -417,8 +417,8 @@ def _search_side_by_side(builds, seeds: list[int], jobs: int, progress: Progress
         if isinstance(e, (campaign.Stopped, KeyboardInterrupt)):
             from jaxfalsify.runs import Interrupted
 
-            raise Interrupted("compare", out, len(finished), len(builds), "strategies "
-                              "(nothing written; rerun the comparison)") from None
+            raise Interrupted("compare", out, len(finished), len(builds), "strategies",
+                              resumable=False) from None
         raise
     ex.shutdown(wait=True)
     progress.close()

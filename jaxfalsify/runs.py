@@ -262,11 +262,13 @@ class Interrupted(Exception):
     """A run or sweep stopped on request (Ctrl-C, SIGTERM, ``stop()``); everything done is
     committed and ``resume`` continues it."""
 
-    def __init__(self, kind: str, out: Path, done: int, total: int, unit: str):
+    def __init__(self, kind: str, out: Path, done: int, total: int, unit: str,
+                 resumable: bool = True):
         self.kind, self.out, self.done, self.total = kind, Path(out), done, total
-        self.resume = f"jaxfalsify {kind} --resume {out}"
-        super().__init__(f"interrupted after {done} of {total} {unit}; {out} is resumable: "
-                         f"{self.resume}")
+        self.resume = f"jaxfalsify {kind} --resume {out}" if resumable else None
+        super().__init__(f"interrupted after {done} of {total} {unit}; " + (
+            f"{out} is resumable: {self.resume}" if resumable
+            else f"nothing was written to {out}; run the {kind} again"))
 
 
 @dataclasses.dataclass

@@ -531,7 +531,9 @@ def run_batch(flat: dict, offsets, key_data, sut: sut_lib.SUT, params, world: Wo
 
 def _resolve(sut, sut_params, world: World):
     s = sut_lib.resolve(sut)
-    return s, sut_lib.with_params(s, sut_params), world.check()
+    params = sut_lib.with_params(s, sut_params)
+    sut_lib.check_traceable(s, params)
+    return s, params, world.check()
 
 
 def seed_key_data(seed: int) -> np.ndarray:

@@ -29,7 +29,6 @@ Built-ins:
 from __future__ import annotations
 
 import dataclasses
-import functools
 import importlib
 import importlib.util
 import math
@@ -39,6 +38,7 @@ from typing import Any, Callable, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxfalsify import metrics, pytree, weather
 
@@ -432,16 +432,27 @@ def _example_observation() -> Observation:
                        weather=jnp.int32(0))
 
 
-@functools.lru_cache(maxsize=64)
-def check_traceable(sut: SUT) -> SUT:
-    """``sut`` once its ``init(key, params)`` and ``act(obs, state, params, key)`` trace with
-    its default parameters and return ``(command, state)`` with a scalar command and the
-    state's structure kept (abstract evaluation: nothing is computed or compiled). A user's SUT
-    is checked when it is loaded by import path, so a wrong signature or a bug gives a
-    one-line ValueError naming it before any file is written."""
+_TRACEABLE: set = set()  # SUTs that passed check_traceable
+
+
+def check_traceable(sut: SUT, params: Any) -> None:
+    """Return once ``sut``'s ``init(key, params)`` and ``act(obs, state, params, key)`` trace
+    with ``params`` (its resolved parameters) and return ``(command, state)`` with a scalar
+    command and the state's structure kept (abstract evaluation: nothing is computed or
+    compiled); else a one-line ValueError naming the SUT. Run on every user SUT (not the
+    built-ins) where a command or library call resolves its parameters, before any file is
+    written; once per SUT and process."""
+    if all(getattr(f, "__module__", "").startswith("jaxfalsify.") for f in (sut.act, sut.init)):
+        return
+    try:
+        if sut in _TRACEABLE:
+            return
+    except TypeError:  # an unhashable act or init: checked every time
+        pass
+
     def one_step(key):
-        state = sut.init(key, sut.default_params)
-        out = sut.act(_example_observation(), state, sut.default_params, key)
+        state = sut.init(key, params)
+        out = sut.act(_example_observation(), state, params, key)
         if not (isinstance(out, tuple) and len(out) == 2):
             raise TypeError(f"act returned {type(out).__name__}, expected (command, state)")
         cmd, new_state = out
@@ -456,11 +467,14 @@ def check_traceable(sut: SUT) -> SUT:
         jax.eval_shape(one_step, jax.random.key(0))
     except Exception as e:  # noqa: BLE001 - a user's code can raise anything when traced
         hint = (" (a bare act function gets params=None; give the SUT default_params)"
-                if sut.default_params is None and "NoneType" in str(e) else "")
+                if params is None and "NoneType" in str(e) else "")
         first = str(e).strip().splitlines()[0] if str(e).strip() else ""
         raise ValueError(f"SUT '{sut.name}' fails on a step: {type(e).__name__}: {first}"
                          f"{hint}") from None
-    return sut
+    try:
+        _TRACEABLE.add(sut)
+    except TypeError:
+        pass
 
 
 def resolve(spec: str | SUT | Callable) -> SUT:
@@ -480,10 +494,9 @@ def resolve(spec: str | SUT | Callable) -> SUT:
                                      and obj.__code__.co_argcount == 0):
             obj = obj()  # a factory returning a SUT
         if isinstance(obj, SUT):
-            return check_traceable(dataclasses.replace(obj, name=spec) if obj.name != spec
-                                   else obj)
+            return dataclasses.replace(obj, name=spec) if obj.name != spec else obj
         if callable(obj):
-            return check_traceable(SUT(spec, obj, _no_state, None))
+            return SUT(spec, obj, _no_state, None)
         raise ValueError(f"SUT '{spec}' is a {type(obj).__name__}, not a SUT or act function")
     if callable(spec):
         return SUT(getattr(spec, "__name__", "custom"), spec, _no_state, None)
@@ -493,8 +506,10 @@ def resolve(spec: str | SUT | Callable) -> SUT:
 
 def cache_key(sut: SUT) -> str | None:
     """What identifies a SUT's code across processes, for the per-user program cache: the
-    built-ins by name, a module-level SUT by its functions' qualified names and its source
-    file's hash. None (never cached) for closures or functions without a source file."""
+    built-ins by name, a module-level SUT by its functions' qualified names and the source of
+    every loaded user module (:func:`jaxfalsify.cache.user_code_hash`: its own file and any
+    helper it imports). None (never cached) for closures or functions without a source
+    file."""
     from jaxfalsify import cache
 
     fns = (sut.act, sut.init)
@@ -502,10 +517,8 @@ def cache_key(sut: SUT) -> str | None:
         return None
     if all(getattr(f, "__module__", "").startswith("jaxfalsify.") for f in fns):
         return f"builtin:{sut.name}"
-    hashes = [cache.source_hash(f) for f in fns]
-    if None in hashes:
-        return None
-    return ":".join([sut.name] + [f"{f.__module__}.{f.__qualname__}" for f in fns] + hashes)
+    code = cache.user_code_hash(*fns)
+    return None if code is None else f"{sut.name}:{code}"
 
 
 def param_names(sut: SUT) -> tuple[str, ...]:
@@ -519,24 +532,49 @@ def param_names(sut: SUT) -> tuple[str, ...]:
     return ()
 
 
+def real_number(value) -> float | None:
+    """``value`` as a float if it is one real number (Python, NumPy or a concrete 0-d JAX
+    array; not a bool), else None."""
+    if isinstance(value, (bool, np.bool_)) or isinstance(value, jax.core.Tracer):
+        return None
+    if isinstance(value, (int, float, np.integer, np.floating)):
+        return float(value)
+    if isinstance(value, (np.ndarray, jax.Array)) and value.ndim == 0 and \
+            (np.issubdtype(value.dtype, np.integer) or np.issubdtype(value.dtype, np.floating)):
+        return float(value)
+    return None
+
+
 def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
     """The SUT's parameters: its defaults, a full parameter pytree, or a mapping of overrides
     ``{name: number}`` applied to the defaults. One-line ValueError naming a bad name/value."""
     if params is None:
         return sut.default_params
-    if not isinstance(params, Mapping):
+    if not isinstance(params, Mapping):  # a full parameter pytree
+        d = sut.default_params
+        if dataclasses.is_dataclass(d) and not isinstance(params, type(d)):
+            raise ValueError(f"{where}: SUT '{sut.name}' takes {type(d).__name__} (got "
+                             f"{type(params).__name__})")
+        if dataclasses.is_dataclass(params):  # its concrete scalar values, in their intervals
+            values = {f: getattr(params, f) for f in pytree.field_names(params)}
+            pytree.check_ranges(params, {f: x for f, v in values.items()
+                                         if (x := real_number(v)) is not None},
+                                f"{where}: SUT '{sut.name}'")
         return params
     if not params:
         return sut.default_params
     known = param_names(sut)
+    params = dict(params)
     for name, value in params.items():
         if name not in known:
             raise ValueError(f"{where}: SUT '{sut.name}' has no parameter '{name}' "
                              f"(known: {', '.join(known) or 'none'})")
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
+        number = real_number(value)
+        if number is None:
             raise ValueError(f"{where}: {name}={value!r} is not a number")
-        if not math.isfinite(value):
+        if not math.isfinite(number):
             raise ValueError(f"{where}: {name}={value!r} is not finite")
+        params[name] = number
     p = sut.default_params
     if dataclasses.is_dataclass(p):
         pytree.check_ranges(p, params, f"{where}: SUT '{sut.name}'")
@@ -559,7 +597,9 @@ def make(spec: str | SUT | Callable = "carla-tm", **params) -> tuple[SUT, Any]:
     """``(sut, params)``: a SUT by name or import path, and its parameters with ``params``
     overriding the defaults (``make("sensor-aeb", ttc_full=0.8)``)."""
     sut = resolve(spec)
-    return sut, with_params(sut, params)
+    p = with_params(sut, params)
+    check_traceable(sut, p)
+    return sut, p
 
 
 def params_dict(params: Any) -> dict[str, float]:

@@ -47,13 +47,17 @@ ROWS = ("all", "collisions", "none")
 
 
 def plan_chunks(size: int, chunk: int = DEFAULT_CHUNK) -> int:
-    """Balanced chunk size: as few chunks as ``chunk`` allows, about equal sizes, rounded up
-    to a multiple of 256 x the local device count — the batch shards evenly, and XLA's CPU
-    loops vectorise fully (an odd batch such as 129,871 ran 4x slower than 130,048)."""
-    align = 256 * jax.local_device_count()
-    n_chunks = max(1, -(-size // chunk))
+    """Balanced chunk size, at most ``chunk``: as few chunks as that allows, about equal
+    sizes, each a multiple of 256 x the local device count — the batch shards evenly, and XLA's
+    CPU loops vectorise fully (an odd batch such as 129,871 ran 4x slower than 130,048). A
+    ``chunk`` below that alignment is rounded to a multiple of the device count only (never
+    below one row per device)."""
+    n_dev = jax.local_device_count()
+    unit = 256 * n_dev if chunk >= 256 * n_dev else n_dev
+    cap = max(unit, chunk // unit * unit)
+    n_chunks = max(1, -(-size // cap))
     per = -(-size // n_chunks)
-    return -(-per // align) * align
+    return -(-per // unit) * unit
 
 
 def sweep_chunk(start, table, params, key, world, *, layout: Layout, sut: sut_lib.SUT,
@@ -202,6 +206,8 @@ def calibrations(sut: sut_lib.SUT, sut_params: Mapping[str, Any]) -> Calibration
     parameter fastest); one-line ValueError naming a bad name or value."""
     fixed, swept = {}, []
     for name, v in dict(sut_params).items():
+        if isinstance(v, np.ndarray) and v.ndim == 1:  # an array of values, like a list
+            v = v.tolist()
         if isinstance(v, (list, tuple)):
             if len(v) == 0:
                 raise ValueError(f"sut_params.{name}: an empty list of values")
@@ -217,6 +223,7 @@ def calibrations(sut: sut_lib.SUT, sut_params: Mapping[str, Any]) -> Calibration
         instances.append(sut_lib.with_params(sut, over, where="sut_params"))
     if len(instances) > 4096:
         raise ValueError(f"sut_params: {len(instances)} calibrations; at most 4096 per sweep")
+    sut_lib.check_traceable(sut, instances[0])
     return Calibrations(sut, tuple(instances),
                         tuple((n, tuple(float(x) for x in vals)) for n, vals in swept))
 

@@ -195,7 +195,9 @@ def test_side_by_side_stop_interrupts_every_strategy_and_writes_nothing(tmp_path
         calls.append(1)
         return len(calls) > 2  # a few chunks in
 
-    with pytest.raises(Interrupted, match=r"interrupted after \d of 3 strategies"):
+    with pytest.raises(Interrupted, match=r"interrupted after \d of 3 strategies; nothing "
+                       r"was written to .*stopped; run the compare again$") as e:
         _tiny_compare(tmp_path, "stopped", jobs=2, stop=stop)
+    assert e.value.resume is None  # compare has no --resume: the message must not offer one
     assert not (tmp_path / "stopped" / "compare.json").exists()
     assert not (tmp_path / "stopped" / "compare.md").exists()

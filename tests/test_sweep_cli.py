@@ -164,3 +164,20 @@ def test_summary_only_sweep_reduces_on_device_like_rows(small_space, tmp_path, m
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     assert SweepConfig().chunk is None  # chosen by execute, after a distributed start-up
     assert SweepConfig().resolved().chunk == jf.sim.default_chunk() == 1048576
+
+
+def test_chunks_never_exceed_the_chunk_given():
+    """``--chunk N`` bounds the scenarios per compiled call (memory): balanced chunks of at
+    most N, aligned to 256 rows where N allows, covering the space in the fewest such chunks."""
+    import itertools
+    import math
+
+    from jaxfalsify.sweep import plan_chunks
+
+    for size, chunk in itertools.product((1, 7, 255, 1000, 60_000, 100_000, 1_000_003),
+                                         (1, 3, 100, 256, 1024, 20_000, 131_072)):
+        c = plan_chunks(size, chunk)
+        assert 1 <= c <= max(chunk, 1), (size, chunk, c)
+        if chunk >= 256:
+            assert c % 256 == 0, (size, chunk, c)
+            assert math.ceil(size / c) == math.ceil(size / (chunk // 256 * 256)), (size, chunk)

@@ -37,9 +37,14 @@ def test_resolved_by_file_path_and_by_module(monkeypatch):
         sut_lib.resolve(f"{EXAMPLE}:BRAKE")
 
 
-def test_a_sut_that_cannot_step_is_refused_when_loaded(tmp_path):
-    """Loading by import path traces one step (abstractly): the contract's violations give a
-    one-line ValueError naming the SUT; a bare act function that keeps it loads."""
+def test_a_sut_that_cannot_step_is_refused_before_it_runs(tmp_path):
+    """A user's SUT is traced for one step (abstractly) with its resolved parameters: the
+    contract's violations give a one-line ValueError naming the SUT; a bare act function
+    that keeps it loads, and a SUT without defaults works with the parameters given."""
+    import jax.numpy as jnp
+
+    from jaxfalsify import pytree
+
     mod = tmp_path / "user_suts.py"
     mod.write_text(
         "import jax.numpy as jnp\n\n"
@@ -52,7 +57,19 @@ def test_a_sut_that_cannot_step_is_refused_when_loaded(tmp_path):
                          ("needs_params", "a bare act function gets params=None"),
                          ("no_tuple", "expected \\(command, state\\)")]:
         with pytest.raises(ValueError, match=f"SUT '.*:{name}' fails on a step: .*{needle}"):
-            sut_lib.resolve(f"{mod}:{name}")
+            sut_lib.make(f"{mod}:{name}")
+    # a SUT object from Python is checked where its parameters are resolved, with them
+    vector = sut_lib.SUT("vector", lambda obs, s, p, k: (jnp.zeros(3), s))
+    with pytest.raises(ValueError, match="SUT 'vector' fails on a step: .*expected a scalar"):
+        jf.evaluate({"ego_offset": 3.0}, sut=vector)
+
+    @pytree.dataclass
+    class Brake:
+        brake: float = 3.0
+
+    braking = sut_lib.SUT("braking", lambda obs, s, p, k: (-p.brake, s))  # no defaults
+    out = jf.evaluate({"ego_offset": 3.0}, sut=braking, sut_params=Brake())
+    assert np.isfinite(float(out.min_distance))
 
 
 def test_run_records_the_sut_and_its_parameters(tiny, tmp_path):
@@ -107,3 +124,53 @@ def test_sweep_and_compare_by_import_path(tiny, tmp_path):
                  "--seeds", "2", "--evaluations", "40", "--out", str(cmp), "--quiet"]) == 0
     result = json.loads((cmp / "compare.json").read_text())
     assert result["sut"] == SPEC and [r["strategy"] for r in result["rows"]] == ["random"]
+
+
+def test_program_cache_keys_on_the_users_code(tmp_path, monkeypatch):
+    """The per-user program cache must never hand back a program built from other code: a
+    user SUT's key changes when a helper module it imports changes (not only its own file),
+    and a user's strategy class is keyed by its module and source, not by its name (a class
+    called RandomSearch is not the built-in one)."""
+    import dataclasses
+    import importlib
+
+    import jax.numpy as jnp
+
+    from jaxfalsify import campaign, search
+    from jaxfalsify.search.base import Strategy
+
+    monkeypatch.syspath_prepend(str(tmp_path))
+    (tmp_path / "decel_helper.py").write_text("DECEL = 5.0\n")
+    (tmp_path / "helper_sut.py").write_text(
+        "import jax.numpy as jnp\nimport decel_helper\nfrom jaxfalsify.sut import SUT\n\n\n"
+        "def act(obs, state, params, key):\n"
+        "    return jnp.float32(-decel_helper.DECEL), state\n\n\n"
+        "def init(key, params):\n    return jnp.bool_(False)\n\n\n"
+        "AEB = SUT('helper-sut', act, init, None, stochastic=False)\n")
+    sut = sut_lib.resolve("helper_sut:AEB")
+    before = sut_lib.cache_key(sut)
+    assert before == sut_lib.cache_key(sut)  # stable while nothing changes
+    (tmp_path / "decel_helper.py").write_text("DECEL = 0.0\n")
+    assert sut_lib.cache_key(sut) != before
+    assert sut_lib.cache_key(sut_lib.resolve("carla-tm")) == "builtin:carla-tm"
+
+    mod = tmp_path / "user_strategy.py"
+    mod.write_text(
+        "import dataclasses\nimport jax.numpy as jnp\nfrom jaxfalsify.search.base import "
+        "Strategy\n\n\n@dataclasses.dataclass(frozen=True)\nclass RandomSearch(Strategy):\n"
+        "    def init(self, key, params):\n        return jnp.int32(0)\n\n"
+        "    def ask(self, key, state, params):\n"
+        "        return jnp.zeros((self.batch, len(self.shape)), jnp.int32), state\n\n"
+        "    def tell(self, key, state, indices, rewards, params):\n        return state\n")
+    user_cls = importlib.import_module("user_strategy").RandomSearch
+    assert issubclass(user_cls, Strategy) and dataclasses.is_dataclass(user_cls)
+    sp = jf.load_space(str(EXAMPLE.parent / "suite" / "island-dash.toml"))
+    builtin = search.make("random", sp.shape, 8)[0]
+    mine = user_cls(shape=builtin.shape, batch=8)
+    assert repr(mine) == repr(builtin)  # the name alone cannot tell them apart
+    key = lambda s: campaign.static_key(  # noqa: E731
+        campaign.Campaign(sp.layout, sut_lib.resolve("carla-tm"), s, 2))
+    assert key(mine) != key(builtin)
+    first = key(mine)
+    mod.write_text(mod.read_text().replace("jnp.int32(0)", "jnp.int32(1)"))
+    assert key(mine) != first
