@@ -432,6 +432,8 @@ def execute(config: CompareConfig, out: Path | str, *, force: bool = False,
     """Run every strategy on seeds 0..seeds-1 and write ``compare.json``/``compare.md`` to
     ``out``. With several processes (``jax.distributed``), process i runs its contiguous share
     of the seeds and writes a part; process 0 merges. Returns the result."""
+    cfg.check_type(config, CompareConfig, "config")
+
 
     clock = Clock(startup_seconds)
     progress = progress or Progress()

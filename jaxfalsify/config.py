@@ -190,3 +190,10 @@ def check_memory(need: float, what: str, fix: str, share: float = 0.5) -> None:
     if need > share * have:
         raise ValueError(f"{what} needs about {need / 2**30:.1f} GiB, more than "
                          f"{share:.0%} of the {have / 2**30:.1f} GiB available; {fix}")
+
+
+def check_type(value, cls: type, name: str) -> None:
+    """One-line ValueError unless ``value`` is a ``cls`` (library entry points' arguments)."""
+    if not isinstance(value, cls):
+        raise ValueError(f"{name} must be a {cls.__module__.split('.')[-1]}.{cls.__name__} "
+                         f"(got {type(value).__name__})")

@@ -354,6 +354,8 @@ def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: 
       :class:`~jaxfalsify.store.CheckpointError` among them) before anything is written;
       :class:`Interrupted`.
     """
+    cfg.check_type(config, RunConfig, "config")
+
     clock = Clock(startup_seconds)
     progress = progress or Progress()
     out = Path(out)

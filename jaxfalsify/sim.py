@@ -431,6 +431,11 @@ def _check_scenario(scenario: dict) -> dict:
     if unknown:
         raise ValueError(f"unknown scenario parameter '{sorted(unknown)[0]}' "
                          f"(known: {', '.join(KNOWN_PARAMETERS)})")
+    for k, v in scenario.items():  # "3" or True would convert silently below
+        kind = np.asarray(v).dtype.kind if not isinstance(v, jax.core.Tracer) else "f"
+        if kind not in "iuf":
+            raise ValueError(f"scenario parameter {k}={v!r}: values must be numbers or "
+                             "arrays of numbers")
     try:
         arrs = {k: np.asarray(v, np.float32) for k, v in scenario.items()}
     except (TypeError, ValueError):
@@ -557,7 +562,17 @@ def _key_data(seed_or_key) -> np.ndarray:
     if isinstance(seed_or_key, jax.Array) and jax.dtypes.issubdtype(seed_or_key.dtype,
                                                                      jax.dtypes.prng_key):
         return np.asarray(jax.random.key_data(seed_or_key))
-    return seed_key_data(seed_or_key)
+    if isinstance(seed_or_key, (bool, np.bool_)) or not (
+            isinstance(seed_or_key, (int, np.integer))
+            or (isinstance(seed_or_key, (np.ndarray, jax.Array)) and seed_or_key.ndim == 0
+                and np.issubdtype(seed_or_key.dtype, np.integer))):
+        raise ValueError(f"key must be a typed PRNG key (jax.random.key) or an integer seed "
+                         f"(got {type(seed_or_key).__name__}"
+                         + (f" of shape {seed_or_key.shape}; a raw uint32 key from "
+                            "jax.random.PRNGKey: wrap it with jax.random.wrap_key_data"
+                            if hasattr(seed_or_key, "shape") and np.ndim(seed_or_key) else "")
+                         + ")")
+    return seed_key_data(int(seed_or_key))
 
 
 def simulate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = WORLD,

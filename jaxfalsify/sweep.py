@@ -498,6 +498,8 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     share of the scenario numbers into ``sweep.part-<i>-of-<n>.parquet`` with its own
     checkpoint; after a barrier, process 0 merges the parts' summaries into ``summary.json``.
     """
+    cfg.check_type(config, SweepConfig, "config")
+
     from jaxfalsify.distributed import barrier
     from jaxfalsify.runs import Interrupted
 

@@ -290,3 +290,41 @@ def test_broken_pipe_is_quiet(world):
     err = proc.stderr.read().decode()
     assert proc.wait() == 128 + signal.SIGPIPE, err
     assert err == ""
+
+
+def test_library_misuse_gives_one_line_errors_naming_the_argument(tmp_path):
+    """The Python API's entry points name a wrong argument in one line instead of failing
+    deep inside JAX: the config's type, a strategy's shape, the key, scenario values, SUT
+    parameters given as NumPy scalars (accepted) or as another SUT's parameter object."""
+    import jax
+    import numpy as np
+
+    import jaxfalsify as jf
+    from jaxfalsify import compare, search
+    from jaxfalsify.sut import CarlaTMParams, SensorAEBParams
+
+    for fn, cls in ((runs.execute, "runs.RunConfig"), (sweep.execute, "sweep.SweepConfig"),
+                    (compare.execute, "compare.CompareConfig")):
+        with pytest.raises(ValueError, match=f"config must be a {cls} \\(got dict\\)"):
+            fn({"strategy": "cem"}, tmp_path / "never")
+    assert not (tmp_path / "never").exists()
+    for shape in ((10, -1), (10, 0, 5), "abc", None, (2.5, 3)):
+        with pytest.raises(ValueError, match="shape must be the values per parameter"):
+            search.make("random", shape, 4)
+    with pytest.raises(ValueError, match="wrap it with jax.random.wrap_key_data"):
+        jf.evaluate({"ego_offset": 3.0}, key=jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match="key must be a typed PRNG key .* \\(got str\\)"):
+        jf.evaluate({"ego_offset": 3.0}, key="abc")
+    for v in ("3", True):
+        with pytest.raises(ValueError, match="ego_offset=.*values must be numbers"):
+            jf.evaluate({"ego_offset": v})
+    with pytest.raises(ValueError, match="takes SensorAEBParams \\(got CarlaTMParams\\)"):
+        jf.evaluate({"ego_offset": 3.0}, sut="sensor-aeb", sut_params=CarlaTMParams())
+    with pytest.raises(ValueError, match="ttc_full=-5.0 is outside \\[0, inf\\)"):
+        jf.evaluate({"ego_offset": 3.0}, sut="sensor-aeb",
+                    sut_params=SensorAEBParams(ttc_full=-5.0))
+    # NumPy scalars are numbers: the same outcome as the Python float
+    a = jf.evaluate({"ego_offset": 3.0}, sut="sensor-aeb", sut_params={"ttc_full": 1.25})
+    b = jf.evaluate({"ego_offset": 3.0}, sut="sensor-aeb",
+                    sut_params={"ttc_full": np.float64(1.25)})
+    assert float(a.min_distance) == float(b.min_distance)

@@ -12,6 +12,8 @@ import dataclasses
 import math
 from typing import Any
 
+import numpy as np
+
 from jaxfalsify import pytree
 from jaxfalsify.search.anneal import Anneal
 from jaxfalsify.search.base import Strategy
@@ -153,9 +155,17 @@ def make(name: str, shape: tuple[int, ...], batch: int | None = None, /,
     if batch is not None and (isinstance(batch, bool) or not isinstance(batch, int)
                               or batch <= 0):
         raise ValueError(f"batch must be a positive integer (got {batch!r})")
+    try:
+        dims = tuple(shape)
+    except TypeError:
+        dims = None
+    if not dims or not all(isinstance(n, (int, np.integer)) and not isinstance(n, bool)
+                           and n >= 1 for n in dims):
+        raise ValueError(f"shape must be the values per parameter, positive integers, e.g. "
+                         f"space.shape (got {shape!r})")
     static, params = _split(e.cls, {**dict(e.options), **overrides},
                             where=f"strategy '{canonical(name)}'")
-    strat = e.cls(shape=tuple(int(n) for n in shape), batch=batch or e.batch, **static)
+    strat = e.cls(shape=tuple(int(n) for n in dims), batch=batch or e.batch, **static)
     return strat, pytree.replace(strat.default_params(), **params)
 
 
