@@ -200,7 +200,8 @@ class CarlaTMParams(AutopilotParams):
 
     RANGES = {name: "[0, inf)" for name in (
         "ext_min", "ext_square_point", "time_horizon", "crawl_speed", "highway_speed",
-        "highway_time", "leading_distance", "walker_time", "touch")} | {"bbox_multiplier": "(0, inf)"}
+        "highway_time", "leading_distance", "walker_time", "touch")}
+    RANGES["bbox_multiplier"] = "(0, inf)"
 
 
 def boundary_extension(speed, p: CarlaTMParams) -> jax.Array:
