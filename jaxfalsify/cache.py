@@ -12,6 +12,7 @@ parameters are traced arguments, so another space seed or calibration hits the s
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -84,17 +85,17 @@ def code_hash() -> str:
     return _CODE_HASH
 
 
+@functools.lru_cache(maxsize=1)
 def _installed_roots() -> tuple[str, ...]:
     """Folders of the Python installation (standard library, site-packages) and of
     jaxfalsify itself: code there is identified by versions and :func:`code_hash`."""
+    import site
     import sys
     import sysconfig
 
     roots = {sys.prefix, sys.base_prefix, sys.exec_prefix, str(Path(__file__).parent)}
     roots |= {p for k in ("stdlib", "platstdlib", "purelib", "platlib")
               if (p := sysconfig.get_paths().get(k))}
-    import site
-
     roots |= set(getattr(site, "getsitepackages", lambda: [])())
     roots.add(getattr(site, "getusersitepackages", lambda: "")() or sys.prefix)
     return tuple(os.path.realpath(r) + os.sep for r in roots if r)

@@ -562,17 +562,15 @@ def _key_data(seed_or_key) -> np.ndarray:
     if isinstance(seed_or_key, jax.Array) and jax.dtypes.issubdtype(seed_or_key.dtype,
                                                                      jax.dtypes.prng_key):
         return np.asarray(jax.random.key_data(seed_or_key))
-    if isinstance(seed_or_key, (bool, np.bool_)) or not (
-            isinstance(seed_or_key, (int, np.integer))
-            or (isinstance(seed_or_key, (np.ndarray, jax.Array)) and seed_or_key.ndim == 0
-                and np.issubdtype(seed_or_key.dtype, np.integer))):
-        raise ValueError(f"key must be a typed PRNG key (jax.random.key) or an integer seed "
-                         f"(got {type(seed_or_key).__name__}"
-                         + (f" of shape {seed_or_key.shape}; a raw uint32 key from "
-                            "jax.random.PRNGKey: wrap it with jax.random.wrap_key_data"
-                            if hasattr(seed_or_key, "shape") and np.ndim(seed_or_key) else "")
-                         + ")")
-    return seed_key_data(int(seed_or_key))
+    if isinstance(seed_or_key, int) and not isinstance(seed_or_key, bool):
+        return seed_key_data(seed_or_key)  # range-checked there (64 bits)
+    arr = np.asarray(seed_or_key)
+    if arr.shape == () and arr.dtype.kind in "iu":
+        return seed_key_data(int(arr))
+    raw = (f" of shape {arr.shape}; a raw uint32 key from jax.random.PRNGKey: wrap it with "
+           "jax.random.wrap_key_data") if arr.ndim else ""
+    raise ValueError(f"key must be a typed PRNG key (jax.random.key) or an integer seed (got "
+                     f"{type(seed_or_key).__name__}{raw})")
 
 
 def simulate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = WORLD,

@@ -433,6 +433,11 @@ def _example_observation() -> Observation:
                        weather=jnp.int32(0))
 
 
+def is_builtin(sut: SUT) -> bool:
+    """Whether ``sut``'s code is jaxfalsify's own (trusted, cached by name)."""
+    return all(getattr(f, "__module__", "").startswith("jaxfalsify.") for f in (sut.act, sut.init))
+
+
 _TRACEABLE: set = set()  # SUTs that passed check_traceable
 
 
@@ -443,7 +448,7 @@ def check_traceable(sut: SUT, params: Any) -> None:
     compiled); else a one-line ValueError naming the SUT. Run on every user SUT (not the
     built-ins) where a command or library call resolves its parameters, before any file is
     written; once per SUT and process."""
-    if all(getattr(f, "__module__", "").startswith("jaxfalsify.") for f in (sut.act, sut.init)):
+    if is_builtin(sut):
         return
     try:
         if sut in _TRACEABLE:
@@ -516,7 +521,7 @@ def cache_key(sut: SUT) -> str | None:
     fns = (sut.act, sut.init)
     if any(getattr(f, "__closure__", True) is not None for f in fns):
         return None
-    if all(getattr(f, "__module__", "").startswith("jaxfalsify.") for f in fns):
+    if is_builtin(sut):
         return f"builtin:{sut.name}"
     code = cache.user_code_hash(*fns)
     return None if code is None else f"{sut.name}:{code}"

@@ -243,7 +243,7 @@ CASES = [
     # SUT parameters outside their declared interval, also in a calibration list
     (["run", "--sut-param", "speed_limit=-40"], "speed_limit=-40"),
     (["sweep", "--sut", "sensor-aeb", "--sut-param", "ttc_full=0.8,-1"], "ttc_full=-1"),
-    # a user's SUT that cannot step: traced when loaded, before anything is written
+    # a user's SUT that cannot step: traced before it runs, before anything is written
     (["run", "--sut", "badsut.py:two_args"], "takes 2 positional arguments but 4"),
     (["sweep", "--sut", "badsut.py:vector"], "expected a scalar"),
     # empty lists and paths
