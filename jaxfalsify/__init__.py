@@ -2,8 +2,11 @@
 
 The simulator, SUTs and metrics are imported here; the run, sweep and compare entry points
 (``jaxfalsify.runs.execute``, ``jaxfalsify.sweep.execute``, ``jaxfalsify.compare.execute``),
-strategies (``jaxfalsify.search``) and host-side outputs are imported on use.
+strategies (``jaxfalsify.search``) and host-side outputs are imported on first use
+(``jaxfalsify.search.make(...)`` works after a bare ``import jaxfalsify``: PEP 562).
 """
+
+import importlib as _importlib
 
 from jaxfalsify import cache as _cache
 from jaxfalsify.metrics import rss_safe_distance
@@ -16,3 +19,20 @@ _cache.enable_compilation_cache()
 __all__ = ["rss_safe_distance", "simulate", "evaluate", "load_space", "Space", "World", "WORLD",
            "Outcome", "Trajectory", "SUT", "Observation"]
 __version__ = "0.2.0"
+
+_SUBMODULES = frozenset({
+    "analysis", "cache", "campaign", "cli", "compare", "config", "distributed", "export",
+    "figures", "metrics", "progress", "pytree", "reference", "replay", "report", "reward",
+    "runs", "search", "sim", "space", "store", "sut", "sweep", "weather"})
+
+
+def __getattr__(name: str):
+    """Submodules not imported at start-up (``runs``, ``search``, ``figures``, ...) load on
+    first access, so ``import jaxfalsify`` stays cheap."""
+    if name in _SUBMODULES:
+        return _importlib.import_module(f"jaxfalsify.{name}")
+    raise AttributeError(f"module 'jaxfalsify' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | _SUBMODULES)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import numpy as np
 
 
 def dataclass(cls):
@@ -23,6 +24,19 @@ def static(default=dataclasses.MISSING, **kw):
 
 def replace(obj, **changes):
     return dataclasses.replace(obj, **changes)
+
+
+def real_number(value) -> float | None:
+    """``value`` as a float if it is one real number (Python, NumPy or a concrete 0-d JAX
+    array; not a bool), else None."""
+    if isinstance(value, (bool, np.bool_)) or isinstance(value, jax.core.Tracer):
+        return None
+    if isinstance(value, (int, float, np.integer, np.floating)):
+        return float(value)
+    if isinstance(value, (np.ndarray, jax.Array)) and value.ndim == 0 and \
+            (np.issubdtype(value.dtype, np.integer) or np.issubdtype(value.dtype, np.floating)):
+        return float(value)
+    return None
 
 
 def field_names(obj_or_cls) -> tuple[str, ...]:

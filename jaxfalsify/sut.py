@@ -38,7 +38,6 @@ from typing import Any, Callable, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxfalsify import metrics, pytree, weather
 
@@ -538,19 +537,6 @@ def param_names(sut: SUT) -> tuple[str, ...]:
     return ()
 
 
-def real_number(value) -> float | None:
-    """``value`` as a float if it is one real number (Python, NumPy or a concrete 0-d JAX
-    array; not a bool), else None."""
-    if isinstance(value, (bool, np.bool_)) or isinstance(value, jax.core.Tracer):
-        return None
-    if isinstance(value, (int, float, np.integer, np.floating)):
-        return float(value)
-    if isinstance(value, (np.ndarray, jax.Array)) and value.ndim == 0 and \
-            (np.issubdtype(value.dtype, np.integer) or np.issubdtype(value.dtype, np.floating)):
-        return float(value)
-    return None
-
-
 def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
     """The SUT's parameters: its defaults, a full parameter pytree, or a mapping of overrides
     ``{name: number}`` applied to the defaults. One-line ValueError naming a bad name/value."""
@@ -564,7 +550,7 @@ def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
         if dataclasses.is_dataclass(params):  # its concrete scalar values, in their intervals
             values = {f: getattr(params, f) for f in pytree.field_names(params)}
             pytree.check_ranges(params, {f: x for f, v in values.items()
-                                         if (x := real_number(v)) is not None},
+                                         if (x := pytree.real_number(v)) is not None},
                                 f"{where}: SUT '{sut.name}'")
         return params
     if not params:
@@ -575,7 +561,7 @@ def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
         if name not in known:
             raise ValueError(f"{where}: SUT '{sut.name}' has no parameter '{name}' "
                              f"(known: {', '.join(known) or 'none'})")
-        number = real_number(value)
+        number = pytree.real_number(value)
         if number is None:
             raise ValueError(f"{where}: {name}={value!r} is not a number")
         if not math.isfinite(number):

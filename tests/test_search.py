@@ -2,6 +2,9 @@
 (shapes, determinism per key, no recompilation, the optimum of a synthetic objective), the
 controller against the LSTM equations in NumPy, REINFORCE's presets, the campaign driver."""
 
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -92,10 +95,18 @@ def test_option_types_and_intervals():
         assert search.make("reinforce/default", SHAPE, anchored=text, hidden=16.0)[0] == \
             as_python
     assert search.make("reinforce/default", SHAPE, anchored="true")[0].anchored is True
+    # NumPy and JAX scalars are numbers like Python's (a sweep over np.linspace, say)
+    strat, params = search.make("reinforce/default", SHAPE, hidden=np.int64(16),
+                                lr=np.float32(0.5), kappa=jnp.asarray(2.0))
+    assert strat.hidden == 16 and isinstance(strat.hidden, int)
+    assert (float(params.lr), float(params.kappa)) == (0.5, 2.0)
     for bad, needle in [(dict(anchored="maybe"), "not a boolean"),
                         (dict(anchored=2), "not a boolean"),
                         (dict(hidden=1.5), "not a whole number"),
                         (dict(hidden="32"), "not a whole number"),
+                        (dict(hidden=np.float32(1.5)), "not a whole number"),
+                        (dict(lr=np.array([0.1, 0.2])), "not a finite number"),
+                        (dict(lr=np.bool_(True)), "not a finite number"),
                         (dict(advantage=1), "not a string"),
                         (dict(sigma_min=0.0), r"sigma_min=0.0 is outside \(0, 1\]"),
                         (dict(global_share=1.01), r"outside \[0, 1\]")]:
@@ -301,3 +312,17 @@ def test_learner_convergence_and_running_best_by_hand():
     want = next(i for i in range(len(m)) if ok[i:].all()) + 1
     assert conv == want and 400 < conv < 600  # during the climb, after 0.26 was found
     assert analysis.learner_converged({**f, "reward": r[:150]}, 100) is None
+
+
+def test_submodules_load_on_first_access():
+    """``import jaxfalsify`` keeps start-up cheap (strategies, runs, figures not imported) yet
+    ``jaxfalsify.search.make`` works as README writes it (a fresh interpreter)."""
+    code = ("import sys, jaxfalsify as jf\n"
+            "before = 'jaxfalsify.search' in sys.modules\n"
+            "strategy, params = jf.search.make('cem', (3, 4), 20, elite_frac=0.2)\n"
+            "print(before, type(strategy).__name__, float(params.elite_frac), 'runs' in dir(jf))\n"
+            "try:\n    jf.no_such_thing\nexcept AttributeError as e:\n    print(e)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.splitlines()
+    assert out == ["False CEM 0.2 True",
+                   "module 'jaxfalsify' has no attribute 'no_such_thing'"]

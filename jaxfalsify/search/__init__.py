@@ -71,9 +71,10 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
                 "scenarios per update: --batch, or make's batch argument)" if k == "batch"
                 else "it comes from the space)"))
         if k in known_p:
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            x = pytree.real_number(v)
+            if x is None or not math.isfinite(x):
                 raise ValueError(f"{where}: {k}={v!r} is not a finite number")
-            params[k] = float(v)
+            params[k] = x
         elif k in known_s:
             static[k] = _typed(v, _default(cls, k), f"{where}: {k}={v!r}")
         else:
@@ -97,11 +98,10 @@ def _typed(value, default, what: str):
             return bool(value)
         raise ValueError(f"{what} is not a boolean (true or false)")
     if isinstance(default, int):
-        if isinstance(value, float) and value.is_integer():
-            value = int(value)
-        if isinstance(value, bool) or not isinstance(value, int):
+        x = pytree.real_number(value)  # Python, NumPy or 0-d JAX numbers
+        if x is None or not x.is_integer():
             raise ValueError(f"{what} is not a whole number")
-        return value
+        return int(x)
     if isinstance(default, str) and not isinstance(value, str):
         raise ValueError(f"{what} is not a string")
     return value
