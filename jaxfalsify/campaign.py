@@ -100,6 +100,13 @@ class Campaign:
         return self.strategy.batch
 
 
+def evaluation_key(seed: int) -> jax.Array:
+    """The typed key a campaign of search seed ``seed`` simulates with: evaluation ``e``
+    (1-based) draws its SUT's randomness from ``fold_in(evaluation_key(seed), e - 1)`` (pass
+    it with ``offsets=e - 1`` to :func:`jaxfalsify.simulate` to re-simulate that draw)."""
+    return jax.random.split(sim.seed_key(seed), 3)[1]  # as init() splits it
+
+
 def make_campaign(c: Campaign):
     """Returns ``(init(key, args) -> carry, run_chunk(carry, args) -> (carry, records))``,
     both pure. ``records`` hold, per update of the chunk, the batch's ``indices (U, B, P)`` and
@@ -107,7 +114,7 @@ def make_campaign(c: Campaign):
     strategy, B = c.strategy, c.batch
 
     def init(key, args: Args):
-        k_init, k_eval, k_run = jax.random.split(key, 3)
+        k_init, k_eval, k_run = jax.random.split(key, 3)  # k_eval: see evaluation_key
         return {"state": strategy.init(k_init, args.strategy_params), "key": k_run,
                 "eval_key": k_eval, "update": jnp.int32(0)}
 

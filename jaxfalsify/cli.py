@@ -97,7 +97,10 @@ def build_parser() -> argparse.ArgumentParser:
     from jaxfalsify import search
     from jaxfalsify.compare import DEFAULT_STRATEGIES
 
+    from jaxfalsify import __version__
+
     p = _Parser(prog="jaxfalsify", description=DESCRIPTION)
+    p.add_argument("--version", action="version", version=f"jaxfalsify {__version__}")
     p.add_argument("--no-cache", action="store_true", dest="no_cache",
                    help="no compilation or ground-truth cache (also JAXFALSIFY_NO_CACHE=1)")
     sub = p.add_subparsers(dest="command", required=True)

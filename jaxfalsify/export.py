@@ -67,7 +67,7 @@ import numpy as np
 
 from jaxfalsify import analysis
 from jaxfalsify import weather as weather_lib
-from jaxfalsify.figures import indices_of, load_run
+from jaxfalsify.figures import indices_of, load_run, resimulate
 from jaxfalsify.sim import STILL, WINDOW
 from jaxfalsify.space import KNOWN_PARAMETERS
 
@@ -617,7 +617,7 @@ def _write_export(out: Path, sp, rc, ep, rows, which: str, ego: str) -> list[Pat
         cruise = True
     except ValueError:
         cruise = False
-    traj = (jf.simulate(full, sut=rc.sut, sut_params=sut_params)
+    traj = (resimulate(sp, rc, ep, rows, world)
             if ego == "replay" or not cruise else None)
     fields = ("t", "ego_x", "ego_y", "ego_speed", "ego_accel", "ped_x", "ped_y", "valid")
     files = [road]

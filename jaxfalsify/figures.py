@@ -147,6 +147,24 @@ def indices_of(ep: dict, space, rows) -> np.ndarray:
     return np.stack([ep[f"{n}_idx"][rows] for n in space.names], -1)
 
 
+def resimulate(sp, rc, ep: dict, rows, world=None):
+    """Trajectories ``(len(rows), T)`` of a run's evaluated ``rows`` as the run simulated
+    them: its space, SUT and SUT parameters, and for a stochastic SUT each evaluation's own
+    draw (the campaign's key, offset by the evaluation number)."""
+    import jaxfalsify as jf
+    from jaxfalsify import sut as sut_lib
+
+    rows = np.asarray(rows)
+    key = 0
+    if sut_lib.resolve(rc.sut).stochastic:
+        from jaxfalsify.campaign import evaluation_key
+
+        key = evaluation_key(rc.seed)
+    return jf.simulate(sp.scenario(indices_of(ep, sp, rows)), sut=rc.sut,
+                       sut_params=dict(rc.sut_params), world=world or jf.WORLD, key=key,
+                       offsets=np.asarray(ep["evaluation"])[rows] - 1)
+
+
 def fig10_rows(ep: dict, n: int = 14, n_collisions: int = 3) -> list[int]:
     """Up to ``n`` evaluated scenarios, ``n_collisions`` of them collisions (paper Fig. 10);
     a fixed draw so redrawing gives the same figure."""
@@ -169,7 +187,7 @@ def _distance_panel(ax, traj, k, title):
     ax.scatter(t[~hr], d[~hr], s=8, color="tab:green", label="low-risk", zorder=2)
     ax.set_title(title)
     ax.set_xlabel("time [s]")
-    ax.set_ylabel("Euclidean distance [m]")
+    ax.set_ylabel("Euclidean distance between the boxes [m]")
     ax.set_ylim(bottom=0)
 
 
@@ -251,8 +269,7 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
     chosen = fig10_rows(ep, N_TRAJECTORIES - 2)
     shown = [rows["best"], typical] + chosen
     shown += [shown[0]] * (N_TRAJECTORIES - len(shown))  # a fixed batch: one compiled program
-    traj = jf.simulate(sp.scenario(indices_of(ep, sp, shown)), sut=rc.sut,
-                       sut_params=dict(rc.sut_params), world=world)
+    traj = resimulate(sp, rc, ep, shown, world)
 
     # Fig. 8/9: the best critical scenario vs a typical non-critical one
     fig = plt.figure(figsize=(12, 5))
@@ -297,7 +314,7 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
                 zorder=3 if hit else 2, label=None if label in labelled else label)
         labelled.add(label)
     ax.set_xlabel("time [s]")
-    ax.set_ylabel("Euclidean distance [m]")
+    ax.set_ylabel("Euclidean distance between the boxes [m]")
     ax.set_title(f"{len(chosen)} evaluated scenarios")
     ax.set_ylim(bottom=0)
     _bottom_legend(fig, ncol=3)

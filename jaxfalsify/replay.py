@@ -41,7 +41,7 @@ import numpy as np
 
 from jaxfalsify import analysis
 from jaxfalsify.config import plain
-from jaxfalsify.figures import indices_of, load_run
+from jaxfalsify.figures import load_run, resimulate
 
 RED, GREEN, BLUE, GREY = (220, 40, 40), (40, 160, 60), (40, 90, 220), (150, 150, 150)
 
@@ -119,8 +119,7 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
                                           colors=[(230, 230, 230)], labels=["crosswalk"]),
             static=True)
 
-    idx = indices_of(ep, sp, [row])
-    traj = jf.simulate(sp.scenario(idx), sut=rc.sut, sut_params=dict(rc.sut_params))
+    traj = resimulate(sp, rc, ep, [row])
     tr = {k: np.asarray(v)[0] for k, v in vars(traj).items()}
     valid = tr["valid"]
     corridor = _tm_polygons(rc, tr, w) if rc.sut == "carla-tm" else None
@@ -154,7 +153,8 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
 
     text = [f"## {scenario} — evaluation {row + 1} of run `{Path(run_dir).name}`", "",
             "| parameter | value |", "|---|---|"]
-    text += [f"| {n} | {ep[n][row]:g} {u} |" for n, u in zip(sp.names, sp.units)]
+    text += [f"| {n} | {analysis.format_value(sp, p, ep[n][row])} {u} |"
+             for p, (n, u) in enumerate(zip(sp.names, sp.units))]
     text += ["", "| outcome | value |", "|---|---|"]
     text += [f"| {f} | {format(plain(ep[f][row]), fmt)} |" for f, fmt in analysis.OUTCOME_ROWS]
     text += ["", f"SUT `{rc.sut}`, strategy `{rc.strategy}`, seed {rc.seed}"]
@@ -168,8 +168,7 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
     if overlay:
         rng = np.random.default_rng(0)
         rows = rng.choice(len(ep["reward"]), min(overlay, len(ep["reward"])), replace=False)
-        ov = jf.simulate(sp.scenario(indices_of(ep, sp, rows)), sut=rc.sut,
-                         sut_params=dict(rc.sut_params))
+        ov = resimulate(sp, rc, ep, rows)
         rec.reset_time()  # and no evaluation number on the overlaid distances
         for j, r in enumerate(rows):
             color = RED if ep["collision"][r] else GREEN

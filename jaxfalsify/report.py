@@ -23,6 +23,26 @@ FIGURES = [("reward_per_episode.png", "Reward per evaluation (paper Fig. 7)"),
             "the evaluations of each stretch of the run")]
 
 
+def simulate_command(sp, rc, ep: dict, row: int) -> list[str]:
+    """``jaxfalsify simulate`` lines for evaluated ``row``: its parameter values, the run's SUT
+    and every SUT parameter that differs from the SUT's default (a space's ``sut.NAME``
+    dimensions as ``--sut-param``); for a stochastic SUT a comment that ``simulate`` draws
+    other noise than the run did."""
+    from jaxfalsify import sut as sut_lib
+
+    scen = [f"{n}={ep[n][row]:.10g}" for n in sp.names if not n.startswith("sut.")]
+    sut = sut_lib.resolve(rc.sut)
+    default = sut_lib.params_dict(sut.default_params)
+    over = {k: v for k, v in rc.sut_params.items() if default.get(k) != v}
+    over.update({n[4:]: ep[n][row] for n in sp.names if n.startswith("sut.")})
+    cmd = " ".join(["jaxfalsify simulate", *scen, "--sut", str(rc.sut)]
+                   + [f"--sut-param {k}={v:.10g}" for k, v in over.items()])
+    if not sut.stochastic:
+        return [cmd]
+    return [f"# a stochastic SUT: simulate draws its own noise (--seed), not evaluation "
+            f"{int(ep['evaluation'][row])}'s; replay shows the run's own draw", cmd]
+
+
 def write_report(run_dir: Path) -> Path:
     run_dir = Path(run_dir)
     sp, rc, s, ep = load_run(run_dir)
@@ -65,8 +85,7 @@ def write_report(run_dir: Path) -> Path:
               f"jaxfalsify figures {run_dir}",
               f"jaxfalsify replay {run_dir} --scenario best --scenarios 14",
               f"jaxfalsify export {run_dir} --scenario best --out {run_dir}/openscenario",
-              "jaxfalsify simulate " + " ".join(f"{n}={ep[n][b]:g}" for n in sp.names)
-              + f" --sut {s['sut']}", "```", "",
+              *simulate_command(sp, rc, ep, b), "```", "",
               f"Files: `config.toml` (resolved configuration), `episodes.parquet` (every "
               f"evaluated scenario), `summary.json`, `critical.csv` "
               f"({int(np.sum(analysis.collided(fields)))} collisions, distinct ones ranked by "

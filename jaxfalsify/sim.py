@@ -573,8 +573,26 @@ def _key_data(seed_or_key) -> np.ndarray:
                      f"{type(seed_or_key).__name__}{raw})")
 
 
+def _offsets(offsets, shape: tuple, n: int) -> np.ndarray:
+    """The scenarios' key offsets ``(n,)`` int32: ``0..n-1`` by default, else ``offsets``
+    (broadcast to the batch ``shape``; whole numbers in int32's range)."""
+    if offsets is None:
+        return np.arange(n, dtype=np.int32)
+    arr = np.asarray(offsets)
+    if arr.dtype.kind not in "iu":
+        raise ValueError(f"offsets must be whole numbers (got dtype {arr.dtype})")
+    try:
+        arr = np.broadcast_to(arr, shape)
+    except ValueError:
+        raise ValueError(f"offsets of shape {arr.shape} do not match the batch shape "
+                         f"{shape}") from None
+    if arr.size and (arr.min() < 0 or arr.max() > np.iinfo(np.int32).max):
+        raise ValueError("offsets must lie in 0..2**31-1")
+    return arr.reshape(-1).astype(np.int32)
+
+
 def simulate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = WORLD,
-             key=0) -> Trajectory:
+             key=0, offsets=None) -> Trajectory:
     """Per-step trajectories of concrete scenarios.
 
     Args:
@@ -586,6 +604,10 @@ def simulate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = 
       world: world constants.
       key: a typed PRNG key or an integer seed (the SUT's randomness; scenario ``i`` of the
         flattened batch draws from ``fold_in(key, i)``).
+      offsets: integers, the batch's shape (broadcast): scenario ``i`` draws from
+        ``fold_in(key, offsets[i])`` instead. A campaign draws evaluation ``e`` (1-based)
+        from ``fold_in(campaign.evaluation_key(seed), e - 1)``, so a stochastic SUT's
+        evaluation is re-simulated with that key and offset ``e - 1``.
     Returns:
       :class:`Trajectory` with fields ``(*batch, T)``.
     """
@@ -599,7 +621,7 @@ def simulate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = 
     check_memory(n * world.horizon * len(Trajectory.__dataclass_fields__) * 4 * 3,
                  f"trajectories of {n} scenarios", "simulate fewer at once (use evaluate for "
                  "outcomes only)")
-    _, traj = run_batch(flat, np.arange(n, dtype=np.int32), _key_data(key), s, params, world,
+    _, traj = run_batch(flat, _offsets(offsets, shape, n), _key_data(key), s, params, world,
                         record=True)
     return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), traj)
 
@@ -615,7 +637,7 @@ def default_chunk() -> int:
 
 
 def evaluate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = WORLD,
-             key=0, chunk_size: int | None = None) -> Outcome:
+             key=0, chunk_size: int | None = None, offsets=None) -> Outcome:
     """Per-scenario outcomes (metrics and the paper's reward) of concrete scenarios.
 
     Arguments as :func:`simulate`. Batches larger than ``chunk_size`` (default
@@ -631,9 +653,10 @@ def evaluate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = 
     flat, shape = _flat(full)
     key = _key_data(key)
     n = int(np.prod(shape, dtype=np.int64))
+    every = _offsets(offsets, shape, n)
     n_dev = jax.local_device_count()
     if n <= chunk_size and n_dev == 1:
-        out, _ = run_batch(flat, np.arange(n, dtype=np.int32), key, s, params, world)
+        out, _ = run_batch(flat, every, key, s, params, world)
     else:
         # equal chunks (a multiple of the device count), the batch split over local devices
         size = min(chunk_size, n)
@@ -643,10 +666,11 @@ def evaluate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = 
         for b in range(0, n, size):
             e = min(b + size, n)
             chunk = {k: v[b:e] for k, v in flat.items()}
-            offsets = np.arange(b, b + size, dtype=np.int32)
+            offsets = every[b:e]
             if e - b < size:
                 chunk = {k: np.pad(v, (0, size - (e - b)), mode="edge")
                          for k, v in chunk.items()}
+                offsets = np.pad(offsets, (0, size - (e - b)), mode="edge")
             if sharding is not None:
                 chunk, offsets = jax.device_put((chunk, offsets), sharding)
             o, _ = run_batch(chunk, offsets, key, s, params, world)

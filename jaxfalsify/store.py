@@ -58,6 +58,15 @@ def _tmp_in(folder: Path, name: str) -> Path:
     return Path(tmp)
 
 
+def _publish(tmp, path: Path) -> None:
+    """Rename a finished temporary file into place with the mode a plain ``open`` would give
+    it (``mkstemp`` creates 0600 files)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    os.replace(tmp, path)
+
+
 def write_atomic(path: Path, data: str | bytes) -> str:
     """Write text or bytes to ``path`` via a temporary file in the same folder and a rename;
     returns the SHA-256 of the bytes written."""
@@ -67,10 +76,7 @@ def write_atomic(path: Path, data: str | bytes) -> str:
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -88,7 +94,7 @@ def atomic_path(path: Path):
     tmp = _tmp_in(path.parent, path.name)
     try:
         yield tmp
-        os.replace(tmp, path)
+        _publish(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()

@@ -163,6 +163,14 @@ def test_replay_recording_reads_back_with_simulated_values(run_with_figures, tmp
     import re
 
     assert not re.search(r"\d\.\d{9,}", text), text
+    # each parameter written as Table II and critical.csv write it (declared decimals)
+    from jaxfalsify import analysis
+
+    for p, (n, unit) in enumerate(zip(sp.names, sp.units)):
+        want = analysis.format_value(sp, p, ep[n][best])
+        assert f"| {n} | {want} {unit} |" in text, (n, want)
+    assert any(sp.parameters[p].decimals and "." in analysis.format_value(sp, p, ep[n][best])
+               for p, n in enumerate(sp.names))  # the check above covers some decimals
 
 
 def test_campaign_recording_holds_every_evaluation_and_the_sampling_distribution(
@@ -417,3 +425,62 @@ def test_export_force_replaces_the_earlier_export(run_with_figures, tmp_path):
     assert sorted(p.name for p in out.iterdir()) == [
         "best.xosc", "crossing.xodr", "logical.xosc", "logical_stochastic.xosc", "notes.txt"]
     assert (out / "notes.txt").read_text() == "mine\n"
+
+
+def test_report_simulate_line_reproduces_the_best_scenario(run_with_figures, capsys):
+    """report.md's `jaxfalsify simulate` line, run as written, gives the run's recorded
+    outcome; with a SUT parameter away from its default the line carries it (and only it)."""
+    import dataclasses
+    import json
+    import shlex
+
+    import jaxfalsify as jf
+    from jaxfalsify import analysis
+    from jaxfalsify.figures import load_run
+    from jaxfalsify.report import simulate_command
+
+    sp, rc, _, ep = load_run(run_with_figures)
+    row = analysis.best(ep)
+    [line] = [x for x in (run_with_figures / "report.md").read_text().splitlines()
+              if x.startswith("jaxfalsify simulate ")]
+    assert line == simulate_command(sp, rc, ep, row)[0] and "--sut-param" not in line
+    capsys.readouterr()
+    assert main(shlex.split(line)[1:]) == 0
+    got = json.loads(capsys.readouterr().out)["outcome"]
+    assert got["reward"] == pytest.approx(ep["reward"][row], abs=1e-6)
+    assert got["collision"] == bool(ep["collision"][row])
+
+    changed = dataclasses.replace(rc, sut_params={**rc.sut_params, "walker_time": 2.5})
+    [line] = simulate_command(sp, changed, ep, row)
+    assert line.count("--sut-param") == 1 and line.endswith("--sut-param walker_time=2.5")
+    assert main(shlex.split(line)[1:]) == 0
+    got = json.loads(capsys.readouterr().out)["outcome"]
+    oracle = jf.evaluate({n: ep[n][row] for n in sp.names}, sut="carla-tm",
+                         sut_params={"walker_time": 2.5})
+    assert got["min_distance"] == pytest.approx(float(oracle.min_distance), abs=1e-6)
+
+
+def test_figures_and_recordings_are_readable_like_other_files(run_with_figures, tmp_path):
+    """Files written through a temporary name get the mode a plain open() gives (umask),
+    not mkstemp's 0600."""
+    import os
+    import stat
+
+    mode = lambda p: stat.S_IMODE(os.stat(p).st_mode)  # noqa: E731
+    umask = os.umask(0)
+    os.umask(umask)
+    want = 0o666 & ~umask
+    assert mode(run_with_figures / "figures" / "reward_per_episode.png") == want
+    assert mode(run_with_figures / "report.md") == want
+    assert main(["replay", str(run_with_figures), "--scenario", "best",
+                 "--save", str(tmp_path / "best.rrd")]) == 0
+    assert mode(tmp_path / "best.rrd") == want
+
+
+def test_python_dash_m_runs_the_cli():
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "jaxfalsify", "--version"], capture_output=True,
+                       text=True)
+    assert r.returncode == 0 and r.stdout.strip().endswith(__import__("jaxfalsify").__version__)
