@@ -136,6 +136,25 @@ def user_code_hash(*objs) -> str | None:
     return h.hexdigest()[:16]
 
 
+def source_hash(*objs) -> str:
+    """Hash of jaxfalsify's source and of the files defining ``objs`` (a user's SUT
+    functions, a strategy class; their qualified names too), for a checkpoint's fingerprint: a
+    run or sweep resumed after that code changed is refused instead of joining two versions'
+    results. Objects without a source file count by their qualified names only."""
+    import inspect
+
+    h = hashlib.sha256(code_hash().encode())
+    for o in objs:
+        h.update(f"{getattr(o, '__module__', '')}.{getattr(o, '__qualname__', '')}".encode())
+        try:
+            f = inspect.getsourcefile(o)
+            if f and not os.path.realpath(f).startswith(_installed_roots()):
+                h.update(Path(f).read_bytes())
+        except (TypeError, OSError):
+            pass
+    return h.hexdigest()[:16]
+
+
 class Program:
     """A compiled program: ``call(*args)`` and the shapes/dtypes of its arguments
     (``in_avals``, a pytree like the arguments)."""
@@ -146,6 +165,9 @@ class Program:
 
     def __call__(self, *args):
         return self.call(*args)
+
+
+SEAL = b"jaxfalsify-export-1\n"  # an exported program's file: SEAL, SHA-256 of the rest, rest
 
 
 def exported_jit(fn, name: str, static: dict | None, key_args: tuple, example_args):
@@ -181,7 +203,11 @@ def exported_jit(fn, name: str, static: dict | None, key_args: tuple, example_ar
     exp = None
     if path.is_file():
         try:
-            exp = export.deserialize(bytearray(path.read_bytes()))
+            blob = path.read_bytes()
+            data = blob[len(SEAL) + 32:]
+            if blob[:len(SEAL)] == SEAL and blob[len(SEAL):len(SEAL) + 32] == \
+                    hashlib.sha256(data).digest():  # else damaged or foreign: rebuilt
+                exp = export.deserialize(bytearray(data))
         except Exception:  # noqa: BLE001 - a damaged cache entry is rebuilt
             exp = None
     if exp is None:
@@ -194,7 +220,8 @@ def exported_jit(fn, name: str, static: dict | None, key_args: tuple, example_ar
             from jaxfalsify.store import write_atomic
 
             path.parent.mkdir(parents=True, exist_ok=True)
-            write_atomic(path, bytes(data))
+            data = bytes(data)
+            write_atomic(path, SEAL + hashlib.sha256(data).digest() + data)
         except OSError:
             pass
     avals = jax.tree.unflatten(exp.in_tree, list(exp.in_avals))[0]

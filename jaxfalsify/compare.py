@@ -96,8 +96,18 @@ class CompareConfig:
             if s not in self.strategies:
                 raise ValueError(f"strategy_params: {s!r} is not among the strategies "
                                  f"({', '.join(self.strategies)})")
-        for s in (self.strategies[0], *self.strategy_params):
-            self.run_config(s).build()  # checks the space, the SUT and the options
+        # every entry built (the space, the SUT, the options, the batch against the space)
+        # before a folder is locked or a ground truth swept
+        builds = [self.run_config(s).build() for s in self.strategies]
+        sp = builds[0].space  # every evaluated scenario's record is kept until the end
+        per_eval = (len(sp.shape) + len(campaign.RECORD_FIELDS)) * 8 * 2
+        from jaxfalsify.space import MAX_SIZE
+
+        n = len(builds)
+        truth = min(sp.size, MAX_SIZE) * 6  # the ground truth: collision, reward, nonfinite
+        cfg.check_memory(self.seeds * self.evaluations * n * per_eval + truth,
+                         f"{n} strateg{'y' if n == 1 else 'ies'} x {self.seeds} seeds x "
+                         f"{self.evaluations} evaluations", "lower --seeds or --evaluations")
 
     def to_toml(self) -> str:
         return cfg.dumps_toml({"kind": "compare", "strategies": list(self.strategies),
@@ -743,6 +753,13 @@ def execute_suite(config: SuiteConfig, out: Path | str, *, force: bool = False,
     clock = Clock(startup_seconds)
     lk = store.open_folder(out, "suite", force=force)
     try:
+        entries = []  # every entry's folder checked before anything is written
+        for k, e in enumerate(config.entries):
+            c = config.compare_config(e)
+            name = c.run_config(c.strategies[0]).build().space.name
+            folder = out / f"{k + 1:02d}-{name}-{sut_lib.resolve(e.sut).name}"[:120]
+            store.check_out(folder, "compare", force=force)
+            entries.append((c, name, folder))
         lk.claim("suite")
         out.mkdir(parents=True, exist_ok=True)
         store.write_atomic(out / "config.toml", cfg.dumps_toml({
@@ -756,11 +773,8 @@ def execute_suite(config: SuiteConfig, out: Path | str, *, force: bool = False,
                 f"{k} = {float(v)!r}" for k, v in e.sut_params.items()) + " }\n")
             for e in config.entries))
         results = []
-        for k, e in enumerate(config.entries):
-            c = config.compare_config(e)
-            name = c.run_config(c.strategies[0]).build().space.name
+        for k, (e, (c, name, folder)) in enumerate(zip(config.entries, entries)):
             progress.phase(f"suite entry {k + 1}/{len(config.entries)}: {name} x {e.sut}")
-            folder = out / f"{k + 1:02d}-{name}-{sut_lib.resolve(e.sut).name}"[:120]
             res = execute(c, folder, force=force, progress=progress, stop=stop)
             results.append(res)
         summary = {"suite": config.name, "budgets": list(config.budgets),

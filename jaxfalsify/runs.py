@@ -30,7 +30,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from jaxfalsify import analysis, campaign, config as cfg, search, store
+from jaxfalsify import analysis, cache, campaign, config as cfg, search, store
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.progress import Clock, Progress, timing_line
 from jaxfalsify.sim import WORLD
@@ -226,9 +226,11 @@ def critical_csv(res: campaign.Result) -> str:
     return buf.getvalue()
 
 
-def fingerprint(rc: RunConfig, p: campaign.Plan) -> dict:
-    """What a checkpoint must have been written under: the resolved config and the plan."""
-    return json.loads(json.dumps({"config": rc.to_toml(), "plan": list(p)}))
+def fingerprint(rc: RunConfig, b: Built) -> dict:
+    """What a checkpoint must have been written under: the resolved config, the plan, and the
+    code (jaxfalsify's, a user SUT's and strategy's files: :func:`jaxfalsify.cache.source_hash`)."""
+    code = cache.source_hash(b.sut.act, b.sut.init, type(b.strategy))
+    return json.loads(json.dumps({"config": rc.to_toml(), "plan": list(b.plan), "code": code}))
 
 
 def restore(ckpt: store.CampaignCheckpoint, b: Built, seed: int):
@@ -252,10 +254,14 @@ SCENARIO_BYTES = 2048  # device memory per scenario of a batch in flight (rollou
 def check_memory(b: Built) -> None:
     """Refuse (one line) a batch whose memory estimate exceeds half the available memory."""
     P = len(b.space.shape)
-    records = b.plan.updates_per_chunk * b.plan.batch * (P + len(campaign.RECORD_FIELDS)) * 8
+    per_eval = (P + len(campaign.RECORD_FIELDS)) * 8
+    records = b.plan.updates_per_chunk * b.plan.batch * per_eval
     state = b.space.size * 4 if b.strategy.__class__.__name__ == "Grid" else 0
     cfg.check_memory(b.plan.batch * SCENARIO_BYTES + records + state,
                      f"a batch of {b.plan.batch} scenarios", "lower --batch")
+    # every evaluation's record is kept on the host, then tabulated (twice the records)
+    cfg.check_memory(b.plan.budget * per_eval * 2, f"{b.plan.budget} evaluations",
+                     "lower --evaluations")
 
 
 class Interrupted(Exception):
@@ -373,7 +379,7 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
              force: bool, progress: Progress, stop, figures: bool, rerun: bool,
              clock: Clock) -> RunOutcome:
     lk.claim("run")  # the holder's pid is readable from the moment the lock is held
-    ckpt = store.CampaignCheckpoint(out / "checkpoint", fingerprint(rc, b.plan))
+    ckpt = store.CampaignCheckpoint(out / "checkpoint", fingerprint(rc, b))
     resumed = None
     if resume:
         on_disk = RunConfig.from_toml(out / "config.toml").resolved()

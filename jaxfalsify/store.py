@@ -34,6 +34,7 @@ import io
 import json
 import os
 import shutil
+import stat
 import tempfile
 import zipfile
 from pathlib import Path
@@ -74,14 +75,27 @@ def write_atomic(path: Path, data: str | bytes) -> str:
     data = data.encode() if isinstance(data, str) else bytes(data)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        _publish(tmp, path)
+        with _naming(path):
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+            _publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
     return sha256(data)
+
+
+@contextlib.contextmanager
+def _naming(path: Path):
+    """An OSError without a file name (a write to an open file on a full disk) gets
+    ``path``'s, so its one-line error says which file could not be written."""
+    try:
+        yield
+    except OSError as e:
+        if e.filename or e.errno is None:
+            raise
+        raise OSError(e.errno, e.strerror, str(path)) from e
 
 
 @contextlib.contextmanager
@@ -93,8 +107,9 @@ def atomic_path(path: Path):
     path = Path(path)
     tmp = _tmp_in(path.parent, path.name)
     try:
-        yield tmp
-        _publish(tmp, path)
+        with _naming(path):
+            yield tmp
+            _publish(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
@@ -249,7 +264,8 @@ class CampaignCheckpoint:
         st = read_json(self.state_path)
         if st.get("fingerprint") != self.fingerprint:
             raise CheckpointError(f"checkpoint {self.state_path} was written by another "
-                                  "configuration (config.toml changed?)")
+                                  "configuration or code (config.toml, the SUT's or "
+                                  "jaxfalsify's source changed?)")
         n = st.get("chunks_done")
         files = st.get("files")
         if isinstance(n, bool) or not isinstance(n, int) or n < 1 or not isinstance(files, dict):
@@ -331,9 +347,31 @@ def folder_kind(out: Path) -> str | None:
     return kind
 
 
+def _checkpoints(out: Path) -> list[Path]:
+    """A run's or sweep's checkpoint folders in ``out`` (exact names: a user's own
+    ``checkpoints/`` is not one)."""
+    out = Path(out)
+    return [p for p in [out / "checkpoint", *out.glob("checkpoint-part-*-of-*")] if p.exists()]
+
+
 def unfinished(out: Path) -> bool:
     out = Path(out)
-    return (out / "status.json").exists() or any(out.glob("checkpoint*"))
+    return (out / "status.json").exists() or bool(_checkpoints(out))
+
+
+def complete(out: Path, kind: str) -> bool:
+    """``out`` holds finished results of ``kind``: its final file, and a status (if any) that
+    says complete. A run that failed while writing its outputs (summary.json written, figures
+    not) is unfinished and can be resumed."""
+    out = Path(out)
+    if not (out / FINISHED[kind]).exists():
+        return False
+    try:
+        return json.loads((out / "status.json").read_text()).get("state") == "complete"
+    except FileNotFoundError:
+        return True  # a compare or suite writes no status
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False) -> None:
@@ -345,20 +383,22 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
     flag = f"--resume {out}" if resume else f"--out {out}"
     if out.exists() and not out.is_dir():
         raise FolderError(f"{flag} exists and is not a folder")
+    if out.is_symlink() and not out.exists():
+        raise FolderError(f"{flag} is a link to nothing ({os.readlink(out)})")
     have = folder_kind(out)
     if resume:
         if have is None:
             raise FolderError(f"--resume {out}: no config.toml there (not a {kind} folder)")
         if have != kind:
             raise FolderError(f"--resume {out}: that folder holds a {have}, not a {kind}")
-        if (out / FINISHED[kind]).exists():
+        if complete(out, kind):
             raise FolderError(f"--resume {out}: the {kind} is already complete "
                               f"({FINISHED[kind]})")
     else:
         if have is not None and have != kind:
             raise FolderError(f"--out {out} holds a {have}; a {kind} is never written into it "
                               "(choose another folder)")
-        if (out / FINISHED[kind]).exists() and not force:
+        if complete(out, kind) and not force:
             raise FolderError(f"--out {out} already holds {FINISHED[kind]}; pass --force to "
                               "overwrite")
         if kind not in ("compare", "suite") and unfinished(out) and not force:
@@ -375,14 +415,26 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
 
 
 def clear(out: Path, kind: str) -> None:
-    """Remove a folder's earlier results, status and checkpoints (``--force``)."""
+    """Remove a folder's earlier results, status and checkpoints (``--force``): the files of
+    those names, its checkpoint folders, and where ``config.toml`` says the folder holds a
+    run, that run's figures and recordings by name; a user's own files (``checkpoints/``,
+    ``figures/plot.png``) stay."""
     out = Path(out)
+    ours = folder_kind(out) == kind
     for name in RESULT_FILES[kind] + ("status.json", "config.toml"):
         (out / name).unlink(missing_ok=True)
     for p in out.glob(".summary.part-*.json"):
         p.unlink(missing_ok=True)
-    for p in list(out.glob("checkpoint*")) + [out / "figures"]:
+    for p in _checkpoints(out):
         shutil.rmtree(p, ignore_errors=True)
+    if ours and kind == "run":  # the earlier run's figures and the recordings replay wrote
+        from jaxfalsify.report import FIGURES
+
+        for p in [*(out / "figures" / f for f, _ in FIGURES), out / "campaign.rrd",
+                  *out.glob("replay-*.rrd")]:
+            p.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # only if nothing else is in it
+            (out / "figures").rmdir()
     for p in out.glob("sweep.part-*.parquet"):
         p.unlink(missing_ok=True)
 
@@ -398,7 +450,14 @@ class FolderLock:
 
     def acquire(self, kind: str) -> "FolderLock":
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:  # never through a link: claim() truncates the file
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        except OSError as e:
+            raise FolderError(f"{self.path}: cannot be used as the folder's lock file "
+                              f"({e.strerror}; a link or a folder there?)") from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise FolderError(f"{self.path} is not a plain file; remove it")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

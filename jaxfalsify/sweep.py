@@ -29,6 +29,7 @@ import json
 import math
 import shutil
 import time
+import zipfile
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -416,7 +417,8 @@ def _layout(config: SweepConfig, space: Space, calib: Calibrations, out: Path,
     planned = plan_chunks(max(end - begin, 1), max(256, config.chunk // calib.count))
     fingerprint = json.loads(json.dumps(
         {"config": config.to_toml(space, num_processes), "chunk": planned,
-         "range": [begin, end], "world": repr(world)}))
+         "range": [begin, end], "world": repr(world),
+         "code": cache.source_hash(calib.sut.act, calib.sut.init)}))
     return begin, end, planned, out / checkpoint_name(process_id, num_processes), fingerprint
 
 
@@ -432,7 +434,8 @@ def _load_progress(ck: Path, fingerprint: dict, n_calib: int, begin: int, end: i
     st = store.read_json(where)
     if st.get("fingerprint") != fingerprint:
         raise store.CheckpointError(f"checkpoint {where} was written by another sweep "
-                                    "configuration")
+                                    "configuration or code (the SUT's or jaxfalsify's source "
+                                    "changed?)")
     try:
         done = int(st["chunks_done"])
         reds = [Reducer(**{k: t[k] for k in Reducer.FIELDS}) for t in st["totals"]]
@@ -464,14 +467,14 @@ def _load_progress(ck: Path, fingerprint: dict, n_calib: int, begin: int, end: i
             n = len(cols["scenario"]) // n_calib
             for i, red in enumerate(again):
                 red.add({k: v[i * n:(i + 1) * n] for k, v in cols.items()})
-        for red, got in zip(again, reds):
-            same = (red.n, red.collisions, red.nonfinite, red.best_ties) == \
-                (got.n, got.collisions, got.nonfinite, got.best_ties) and \
-                red.best_reward == got.best_reward and \
-                (red.best_row or {}).get("scenario") == (got.best_row or {}).get("scenario")
-            if not same:
-                raise store.CheckpointError(f"checkpoint {where}: its totals disagree with "
-                                            "its rows files (edited)")
+        def canonical(r: Reducer) -> str:
+            return json.dumps(json.loads(json.dumps(r.state(), default=cfg.plain)),
+                              sort_keys=True)
+
+        if any(canonical(red) != canonical(got) for red, got in zip(again, reds)):
+            raise store.CheckpointError(f"checkpoint {where}: its totals disagree with its "
+                                        "rows files (edited)")
+        reds = again  # what the verified rows add up to, not what state.json says
     return done, reds, files
 
 
@@ -796,8 +799,8 @@ def ground_truth(space: Space, sut="carla-tm", sut_params=None,
                 got = {k: z[k] for k in TRUTH_FIELDS}
             if all(len(v) == space.size for v in got.values()):
                 return got
-        except (OSError, ValueError, KeyError):
-            pass
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            pass  # a damaged entry (a flipped bit fails the zip's CRC) is swept again
     got = sweep_arrays(space, s, None if params is None else
                        {k: v for k, v in sut_lib.params_dict(params).items()},
                        world, fields=TRUTH_FIELDS)

@@ -70,6 +70,11 @@ def world(tmp_path_factory):
         "def vector(obs, state, params, key):\n    return jnp.zeros(3), state\n")
     (w / "latin1.toml").write_bytes("seed = 1 # caf\xe9\n".encode("latin-1"))
     (w / "a_folder.toml").mkdir()
+    (w / "lock_is_folder" / ".lock").mkdir(parents=True)  # a folder where the lock goes
+    (w / "victim.txt").write_text("the user's file\n")
+    (w / "lock_is_link").mkdir()
+    os.symlink(w / "victim.txt", w / "lock_is_link" / ".lock")  # never followed
+    os.symlink(w / "nowhere", w / "dangling")  # --out through a link to nothing
     os.mkfifo(w / "fifo.toml")
     # a finished run and sweep
     assert main(["run", "--space", str(w / "tiny.toml"), "--strategy", "random",
@@ -233,6 +238,8 @@ CASES = [
     # strategy options of the wrong type or outside their declared interval
     (["run", "--strategy-param", "anchored=maybe"], "anchored='maybe' is not a boolean"),
     (["run", "--strategy-param", "hidden=1.5"], "hidden=1.5 is not a whole number"),
+    (["run", "--strategy-param", "hidden=1e30"], "hidden=1e+30 is outside [1, 1024]"),
+    (["run", "--strategy-param", "memory=99999999999"], "memory=99999999999 is outside"),
     (["run", "--strategy-param", "advantage=3"], "advantage=3 is not a string"),
     (["run", "--strategy", "cem", "--strategy-param", "elite_frac=1.5"],
      "elite_frac=1.5 is outside (0, 1]"),
@@ -251,6 +258,16 @@ CASES = [
     (["compare", "--strategies", " , "], "no strategy named"),
     (["run", "--out", ""], "an empty path"),
     (["sweep", "--out", " "], "an empty path"),
+    # every strategy of a comparison is built before its folder or a ground truth
+    (["compare", "--space", "tiny.toml", "--strategies", "random,grid", "--seeds", "2",
+      "--evaluations", "64", "--out", "cmp_new"], "batch=200 exceeds the space's 32 scenarios"),
+    (["compare", "--strategies", "random", "--seeds", "10000", "--evaluations", "1000000",
+      "--out", "cmp_new"], "lower --seeds or --evaluations"),
+    (["run", "--evaluations", "1000000000", "--out", "run_new"], "lower --evaluations"),
+    # the lock file: never a folder, never followed through a link
+    (["run", "--space", "tiny.toml", "--out", "lock_is_folder"], "lock file"),
+    (["run", "--space", "tiny.toml", "--out", "lock_is_link"], "lock file"),
+    (["run", "--space", "tiny.toml", "--out", "dangling"], "is a link to nothing"),
 ]
 
 

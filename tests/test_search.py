@@ -109,7 +109,10 @@ def test_option_types_and_intervals():
                         (dict(lr=np.bool_(True)), "not a finite number"),
                         (dict(advantage=1), "not a string"),
                         (dict(sigma_min=0.0), r"sigma_min=0.0 is outside \(0, 1\]"),
-                        (dict(global_share=1.01), r"outside \[0, 1\]")]:
+                        (dict(global_share=1.01), r"outside \[0, 1\]"),
+                        (dict(hidden=10**30), r"hidden=10{30} is outside \[1, 1024\]"
+                         .replace("10{30}", str(10**30))),
+                        (dict(memory=99999999999), r"memory=99999999999 is outside")]:
         with pytest.raises(ValueError, match=needle):
             search.make("reinforce/default", SHAPE, **bad)
     # the interval notation: brackets closed, parentheses open
@@ -122,6 +125,8 @@ def test_option_types_and_intervals():
         strat, params = search.make(name, SHAPE, 20)
         for field, interval in pytree.ranges(strat.Params).items():
             assert pytree.in_range(float(getattr(params, field)), interval), (name, field)
+        for field, interval in pytree.ranges(type(strat)).items():  # static sizes
+            assert pytree.in_range(float(getattr(strat, field)), interval), (name, field)
 
 
 def test_grid_enumerates_every_scenario_once():

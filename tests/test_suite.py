@@ -131,3 +131,12 @@ def test_compare_suite_end_to_end(tmp_path, capsys):
     assert main(["compare", "--suite", str(suite), "--space", "paper",
                  "--out", str(tmp_path / "b")]) == 2
     assert not (tmp_path / "b").exists()
+    # a suite that stopped after its first entries, rerun with other flags: refused by an
+    # entry's folder before anything (the suite's config.toml included) is rewritten
+    (tmp_path / "o" / "suite.json").unlink()
+    config = (tmp_path / "o" / "config.toml").read_bytes()
+    capsys.readouterr()
+    assert main(["compare", "--suite", str(suite), "--seeds", "3", "--out",
+                 str(tmp_path / "o")]) == 2
+    assert "already holds compare.json" in capsys.readouterr().err
+    assert (tmp_path / "o" / "config.toml").read_bytes() == config

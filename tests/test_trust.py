@@ -25,11 +25,13 @@ import tempfile
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
+import jaxfalsify as jf
 from jaxfalsify import runs, store, sweep
 from jaxfalsify.cli import main
 from conftest import TINY_SPACE
@@ -246,8 +248,14 @@ def damage(folder: Path, foreign: Path, kind: str, rng: np.random.Generator) -> 
     if kind == "reseal_edit":  # a consistent forgery of the numbers, seal recomputed
         doc = json.loads((ck / "state.json").read_text())
         if "totals" in doc and rng.random() < 0.7:
-            field = pick(["collisions", "nonfinite", "best_ties"])
-            doc["totals"][0][field] += int(rng.choice([1, 7]))
+            field = pick(["collisions", "nonfinite", "best_ties", "best_row"])
+            if field == "best_row":  # the scenario kept, its outcome or values forged
+                name = pick(["reward", "collision", "min_distance", "ped_speed"])
+                row = doc["totals"][0]["best_row"]
+                row[name] = (not row[name]) if isinstance(row[name], bool) else 9.9
+                field = f"best_row.{name}"
+            else:
+                doc["totals"][0][field] += int(rng.choice([1, 7]))
             what = f"totals.{field}"
         else:
             what = pick([k for k in ("chunks_done", "evaluations_done", "scenarios_done")
@@ -311,6 +319,24 @@ def test_resealed_forged_totals_are_refused(checkpoints, seed):
     """A consistent forgery (numbers edited, the record's seal recomputed) of a sweep's
     running totals: the totals are recomputed from the verified rows files on resume."""
     _resume_damaged(checkpoints, "sweep", "reseal_edit", seed)
+
+
+@pytest.mark.parametrize("name", ["reward", "collision", "ped_speed"])
+def test_resealed_forged_best_row_is_refused(checkpoints, name):
+    """The best row of a sweep's totals forged (the scenario kept, its outcome or a value
+    edited) and the seal recomputed: refused, never a summary with the forged row."""
+    base = checkpoints["base"]
+    tmp = Path(tempfile.mkdtemp(dir=base))
+    shutil.copytree(base / "sweep", tmp / "sweep")
+    ck = tmp / "sweep" / "checkpoint" / "state.json"
+    doc = json.loads(ck.read_text())
+    row = doc["totals"][0]["best_row"]
+    row[name] = (not row[name]) if isinstance(row[name], bool) else 0.9
+    store.write_commit(ck, {k: v for k, v in doc.items() if k not in ("sha256", "format")})
+    code, err = cli(["sweep", "--resume", tmp / "sweep", "--quiet"])
+    assert_one_line_error(code, err)
+    assert "totals disagree with its rows files" in err, err
+    shutil.rmtree(tmp)
 
 
 @pytest.mark.slow
@@ -394,3 +420,133 @@ def test_a_full_disk_during_the_search_marks_the_run_failed(tmp_path, monkeypatc
     assert len(err) == 1 and "No space left on device" in err[0]
     status = json.loads((out / "status.json").read_text())
     assert status["state"] == "failed" and "No space left" in status["error"]
+
+
+# ------------------------------------------------------------ the per-user cache, damaged
+def test_a_damaged_cached_program_is_rebuilt_not_run(tmp_path, monkeypatch):
+    """A bit flipped anywhere in an exported program of the per-user cache: the entry fails
+    its SHA-256 and is exported again, so the program computes what the code says (a flip
+    inside a constant used to run silently with the wrong constant)."""
+    import jax.numpy as jnp
+
+    from jaxfalsify import cache
+
+    monkeypatch.setenv("JAXFALSIFY_CACHE_DIR", str(tmp_path))
+    table = np.linspace(0.0, 1.0, 64, dtype=np.float32)  # a constant baked into the program
+
+    def fn(x):
+        return x * jnp.asarray(table) + 1.0
+
+    x = np.arange(64, dtype=np.float32)
+    want = x.astype(np.float64) * table + 1.0
+    aval = (jax.ShapeDtypeStruct((64,), jnp.float32),)
+    prog = lambda: cache.exported_jit(fn, "damage", {"t": 1}, aval, lambda: (x,))  # noqa: E731
+    ref = np.asarray(prog()(x))
+    np.testing.assert_allclose(ref, want, rtol=1e-6)  # (XLA may fuse the multiply-add)
+    [entry] = list((tmp_path / "exports").glob("damage-*.bin"))
+    sealed = entry.read_bytes()
+    rng = np.random.default_rng(0)
+    for i in rng.choice(len(sealed), 12, replace=False):
+        b = bytearray(sealed)
+        b[int(i)] ^= 1 << int(rng.integers(8))
+        entry.write_bytes(bytes(b))
+        np.testing.assert_array_equal(np.asarray(prog()(x)), ref, err_msg=f"byte {i}")
+        assert entry.read_bytes() == sealed  # exported again, sealed again
+
+
+def test_a_damaged_ground_truth_entry_is_swept_again(tmp_path, monkeypatch):
+    from jaxfalsify.sweep import ground_truth
+
+    monkeypatch.setenv("JAXFALSIFY_CACHE_DIR", str(tmp_path))
+    space = tmp_path / "tiny.toml"
+    space.write_text(TINY_SPACE)
+    sp = jf.load_space(str(space))
+    first = ground_truth(sp, "carla-tm", None)
+    [entry] = list((tmp_path / "truth").glob("*.npz"))
+    b = bytearray(entry.read_bytes())
+    b[len(b) // 3] ^= 0x10
+    entry.write_bytes(bytes(b))
+    again = ground_truth(sp, "carla-tm", None)  # was: zipfile.BadZipFile (Bad CRC-32)
+    for k in first:
+        np.testing.assert_array_equal(again[k], first[k])
+
+
+# ----------------------------------------------------------------- --force and resume
+def test_force_keeps_a_users_own_folders(tmp_path):
+    """--force clears jaxfalsify's files and folders only: a user's `checkpoints/` and
+    `figures/` in a folder that never held a run are not a run's checkpoint or figures."""
+    out = tmp_path / "mine"
+    (out / "checkpoints").mkdir(parents=True)
+    (out / "checkpoints" / "model.pt").write_text("weights")
+    (out / "figures").mkdir()
+    (out / "figures" / "plot.png").write_text("png")
+    space = tmp_path / "tiny.toml"
+    space.write_text(TINY_SPACE)
+    args = ["run", "--space", space, "--strategy", "random", "--evaluations", "16", "--batch",
+            "8", "--out", out, "--quiet", "--no-figures"]
+    assert cli(args)[0] == 0  # not an unfinished run: nothing to resume or force
+    assert cli(args + ["--force"])[0] == 0
+    assert (out / "checkpoints" / "model.pt").read_text() == "weights"
+    assert (out / "figures" / "plot.png").read_text() == "png"
+
+
+def test_force_removes_the_earlier_runs_recordings(tmp_path):
+    out = tmp_path / "run"
+    space = tmp_path / "tiny.toml"
+    space.write_text(TINY_SPACE)
+    args = ["run", "--space", space, "--strategy", "random", "--evaluations", "16", "--batch",
+            "8", "--out", out, "--quiet", "--no-figures"]
+    assert cli(args)[0] == 0
+    for name in ("replay-best.rrd", "campaign.rrd"):
+        (out / name).write_bytes(b"an earlier run's recording")
+    assert cli(args + ["--force"])[0] == 0
+    assert not (out / "replay-best.rrd").exists() and not (out / "campaign.rrd").exists()
+
+
+def test_a_run_that_failed_while_writing_resumes(tmp_path, monkeypatch):
+    """The search finished, summary.json was written, the figures failed: status.json says
+    failed and how to resume, and the resume finishes the outputs (identical results)."""
+    from jaxfalsify import figures
+
+    space = tmp_path / "tiny.toml"
+    space.write_text(TINY_SPACE)
+    rc = runs.RunConfig(space=str(space), strategy="random", evaluations=32, batch=8)
+    runs.execute(rc, tmp_path / "ref", figures=False)
+
+    def broken(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(figures, "make_figures", broken)
+    with pytest.raises(KeyboardInterrupt):
+        runs.execute(rc, tmp_path / "run")
+    status = json.loads((tmp_path / "run" / "status.json").read_text())
+    assert status["state"] == "failed" and (tmp_path / "run" / "summary.json").exists()
+    monkeypatch.undo()
+    code, err = cli(["run", "--resume", tmp_path / "run", "--quiet", "--no-figures"])
+    assert code == 0, err
+    assert json.loads((tmp_path / "run" / "status.json").read_text())["state"] == "complete"
+    assert (tmp_path / "run" / "summary.json").read_bytes() == \
+        (tmp_path / "ref" / "summary.json").read_bytes()
+    assert cli(["run", "--resume", tmp_path / "run", "--quiet"])[1].strip().endswith(
+        "already complete (summary.json)")
+
+
+def test_a_failed_write_names_its_file(tmp_path, monkeypatch):
+    """A write that fails inside an open file (ENOSPC carries no file name) is reported with
+    the path being written, and leaves neither the file nor its temporary behind."""
+    class Full(io.BytesIO):
+        def write(self, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    real = os.fdopen
+    monkeypatch.setattr(os, "fdopen", lambda fd, mode: (os.close(fd), Full())[1])
+    with pytest.raises(OSError) as e:
+        store.write_atomic(tmp_path / "summary.json", "{}")
+    assert e.value.filename == str(tmp_path / "summary.json") and e.value.errno == errno.ENOSPC
+    monkeypatch.setattr(os, "fdopen", real)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(OSError) as e:
+        with store.atomic_path(tmp_path / "figure.png"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert e.value.filename == str(tmp_path / "figure.png")
+    assert list(tmp_path.iterdir()) == []

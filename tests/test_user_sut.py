@@ -146,6 +146,28 @@ def test_a_stochastic_runs_draws_are_resimulated_as_evaluated(tiny, tmp_path):
     assert "ttc_brake" not in report.split("## Reproduce")[1]  # a default: not repeated
 
 
+def test_resume_after_the_suts_code_changed_is_refused(tiny, tmp_path):
+    """A checkpoint records the code it was written under (jaxfalsify's and the SUT's file):
+    resuming after the SUT's file changed is refused instead of joining two versions'
+    results; unchanged, the resume completes."""
+    from jaxfalsify import runs, store
+
+    mine = tmp_path / "my_aeb.py"
+    mine.write_text(EXAMPLE.read_text())
+    rc = runs.RunConfig(space=str(tiny), sut=f"{mine}:AEB", strategy="random", evaluations=32,
+                        batch=8, checkpoint_every=1, sut_params={"noise": 0.0})
+    calls = iter(range(100))
+    for name in ("edited", "kept"):
+        with pytest.raises(runs.Interrupted):
+            runs.execute(rc, tmp_path / name, stop=lambda: next(calls) >= 2, figures=False)
+        calls = iter(range(100))
+    mine.write_text(EXAMPLE.read_text().replace("brake: float = 7.0", "brake: float = 3.5"))
+    with pytest.raises(store.CheckpointError, match="the SUT's or jaxfalsify's source"):
+        runs.execute(rc, tmp_path / "edited", resume=True, figures=False)
+    mine.write_text(EXAMPLE.read_text())
+    assert runs.execute(rc, tmp_path / "kept", resume=True, figures=False).result.n == 32
+
+
 @pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_sweep_and_compare_by_import_path(tiny, tmp_path):
     out = tmp_path / "sw"

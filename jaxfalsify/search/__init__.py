@@ -81,6 +81,10 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
             raise ValueError(f"{where}: no option '{k}' (known: "
                              f"{', '.join(known_s + known_p) or 'none'})")
     pytree.check_ranges(cls.Params, params, where)
+    bounds = pytree.ranges(cls)  # static sizes, e.g. hidden
+    for k, v in static.items():
+        if k in bounds and not pytree.in_range(float(v), bounds[k]):
+            raise ValueError(f"{where}: {k}={options[k]!r} is outside {bounds[k]}")
     return static, params
 
 
@@ -98,6 +102,8 @@ def _typed(value, default, what: str):
             return bool(value)
         raise ValueError(f"{what} is not a boolean (true or false)")
     if isinstance(default, int):
+        if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+            return int(value)  # exact, however large
         x = pytree.real_number(value)  # Python, NumPy or 0-d JAX numbers
         if x is None or not x.is_integer():
             raise ValueError(f"{what} is not a whole number")

@@ -75,6 +75,7 @@ class Reinforce(Strategy):
     signal: str = "reward"  # or "shaped": learn from base.shaped_signal (robustness + reward)
 
     Params = ReinforceParams
+    RANGES = {"hidden": "[1, 1024]"}  # static sizes (see AutoregressiveReinforce.RANGES)
 
     def __post_init__(self):
         check_signal(self.signal)

@@ -180,6 +180,10 @@ class AutoregressiveReinforce(Strategy):
     surrogate: int = 0
 
     Params = ARParams
+    # sizes a CPU can hold and a campaign can compile (refused before any folder is written)
+    RANGES = {"hidden": "[1, 1024]", "learners": "[1, 1024]", "queue": "[0, 4096]",
+              "resample": "[1, 256]", "explore": "[1, 256]", "memory": "[1, 1048576]",
+              "surrogate": "[0, 1024]"}
 
     def __post_init__(self):
         if self.advantage not in ADVANTAGES:
