@@ -138,14 +138,16 @@ def user_code_hash(*objs) -> str | None:
 
 def source_hash(*objs) -> str:
     """Hash of jaxfalsify's source and of the files defining ``objs`` (a user's SUT
-    functions, a strategy class; their qualified names too), for a checkpoint's fingerprint: a
+    functions, a strategy class; their qualified names too, not their folders), for a
+    checkpoint's fingerprint: a
     run or sweep resumed after that code changed is refused instead of joining two versions'
     results. Objects without a source file count by their qualified names only."""
     import inspect
 
     h = hashlib.sha256(code_hash().encode())
-    for o in objs:
-        h.update(f"{getattr(o, '__module__', '')}.{getattr(o, '__qualname__', '')}".encode())
+    for o in objs:  # (not the module's name: a SUT loaded from a file path is named after
+        # the path, which moves with the project folder while its bytes stay)
+        h.update(str(getattr(o, "__qualname__", "")).encode())
         try:
             f = inspect.getsourcefile(o)
             if f and not os.path.realpath(f).startswith(_installed_roots()):

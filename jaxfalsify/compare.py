@@ -77,7 +77,9 @@ class CompareConfig:
                          strategy_params=dict(self.strategy_params.get(strategy, {})),
                          evaluations=self.evaluations)
 
-    def check(self) -> None:
+    def check(self, num_processes: int = 1) -> None:
+        """Everything validated and every strategy built; memory for this process's share
+        of the seeds (``num_processes`` share them)."""
         from jaxfalsify.runs import check_int
 
         check_int("seeds", self.seeds, 1, 10_000)
@@ -99,14 +101,19 @@ class CompareConfig:
         # every entry built (the space, the SUT, the options, the batch against the space)
         # before a folder is locked or a ground truth swept
         builds = [self.run_config(s).build() for s in self.strategies]
-        sp = builds[0].space  # every evaluated scenario's record is kept until the end
-        per_eval = (len(sp.shape) + len(campaign.RECORD_FIELDS)) * 8 * 2
+        self.check_memory(builds[0].space, num_processes)
+
+    def check_memory(self, sp, num_processes: int = 1) -> None:
+        """Every evaluated scenario's record is kept until the end (this process's share of
+        the seeds), and the ground truth's arrays: refused (one line) above half the
+        available memory."""
         from jaxfalsify.space import MAX_SIZE
 
-        n = len(builds)
-        truth = min(sp.size, MAX_SIZE) * 6  # the ground truth: collision, reward, nonfinite
-        cfg.check_memory(self.seeds * self.evaluations * n * per_eval + truth,
-                         f"{n} strateg{'y' if n == 1 else 'ies'} x {self.seeds} seeds x "
+        per_eval = (len(sp.shape) + len(campaign.RECORD_FIELDS)) * 8 * 2
+        n, seeds = len(self.strategies), -(-self.seeds // num_processes)
+        truth = min(sp.size, MAX_SIZE) * 6  # collision, reward, nonfinite
+        cfg.check_memory(seeds * self.evaluations * n * per_eval + truth,
+                         f"{n} strateg{'y' if n == 1 else 'ies'} x {seeds} seeds x "
                          f"{self.evaluations} evaluations", "lower --seeds or --evaluations")
 
     def to_toml(self) -> str:
@@ -448,7 +455,7 @@ def execute(config: CompareConfig, out: Path | str, *, force: bool = False,
     clock = Clock(startup_seconds)
     progress = progress or Progress()
     out = Path(out)
-    config.check()
+    config.check(num_processes)
     base = config.run_config(config.strategies[0]).build()
     lk = store.open_folder(out, "compare", force=force,
                            name=".lock" if process_id == 0 else f".lock-part-{process_id:05d}")

@@ -59,12 +59,14 @@ def _tmp_in(folder: Path, name: str) -> Path:
     return Path(tmp)
 
 
+_UMASK = os.umask(0)  # read once, at import: setting it is process-wide, and background
+os.umask(_UMASK)  # threads create files (ground truths, checkpoints) while others publish
+
+
 def _publish(tmp, path: Path) -> None:
     """Rename a finished temporary file into place with the mode a plain ``open`` would give
     it (``mkstemp`` creates 0600 files)."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
+    os.chmod(tmp, 0o666 & ~_UMASK)
     os.replace(tmp, path)
 
 

@@ -147,8 +147,9 @@ def test_evaluate_equals_the_reduction_of_simulate(batch):
                                   out["min_distance"] - np.float32(WORLD.epsilon))
     terms = reward.paper_reward(hr.sum(axis=1), n, out["final_distance"], collided)
     # (the distance term: the reduction's own final distance, checked above to float32 noise)
-    # the same float32 formula, jit-fused in evaluate and op by op here: within 2 ulp
-    np.testing.assert_array_max_ulp(out["reward"], np.asarray(terms[0]), maxulp=2)
+    # the same float32 formula, jit-fused in evaluate and op by op here: within 4 ulp (3
+    # seen in one full-suite run, where the fusion of another compiled batch size applied)
+    np.testing.assert_array_max_ulp(out["reward"], np.asarray(terms[0]), maxulp=4)
 
 
 @pytest.mark.parametrize("bad_from", [0, 3, 7])

@@ -99,6 +99,7 @@ def test_option_types_and_intervals():
     strat, params = search.make("reinforce/default", SHAPE, hidden=np.int64(16),
                                 lr=np.float32(0.5), kappa=jnp.asarray(2.0))
     assert strat.hidden == 16 and isinstance(strat.hidden, int)
+    assert search.make("reinforce/default", SHAPE, anchored=np.bool_(False))[0].anchored is False
     assert (float(params.lr), float(params.kappa)) == (0.5, 2.0)
     for bad, needle in [(dict(anchored="maybe"), "not a boolean"),
                         (dict(anchored=2), "not a boolean"),

@@ -550,3 +550,17 @@ def test_a_failed_write_names_its_file(tmp_path, monkeypatch):
             raise OSError(errno.ENOSPC, "No space left on device")
     assert e.value.filename == str(tmp_path / "figure.png")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_undamaged_sweep_checkpoint_resumes_identically(checkpoints):
+    """The recount of a sweep's totals from its rows files accepts an honest checkpoint
+    (float32 columns read back, NaN collision times of a non-colliding best row)."""
+    base = checkpoints["base"]
+    tmp = Path(tempfile.mkdtemp(dir=base))
+    shutil.copytree(base / "sweep", tmp / "sweep")
+    code, err = cli(["sweep", "--resume", tmp / "sweep", "--quiet"])
+    assert code == 0, err
+    ref = base / "sweep_ref"
+    assert (tmp / "sweep" / "summary.json").read_bytes() == (ref / "summary.json").read_bytes()
+    assert _same_parquet(tmp / "sweep" / "sweep.parquet", ref / "sweep.parquet")
+    shutil.rmtree(tmp)

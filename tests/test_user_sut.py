@@ -166,6 +166,15 @@ def test_resume_after_the_suts_code_changed_is_refused(tiny, tmp_path):
         runs.execute(rc, tmp_path / "edited", resume=True, figures=False)
     mine.write_text(EXAMPLE.read_text())
     assert runs.execute(rc, tmp_path / "kept", resume=True, figures=False).result.n == 32
+    # the same bytes in another folder (a project moved): the same code
+    from jaxfalsify import cache
+
+    moved = tmp_path / "elsewhere" / "my_aeb.py"
+    moved.parent.mkdir()
+    moved.write_text(EXAMPLE.read_text())
+    a, b = sut_lib.resolve(f"{mine}:AEB"), sut_lib.resolve(f"{moved}:AEB")
+    assert a.act.__module__ != b.act.__module__
+    assert cache.source_hash(a.act, a.init) == cache.source_hash(b.act, b.init)
 
 
 @pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass

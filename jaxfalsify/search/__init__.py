@@ -98,7 +98,10 @@ def _typed(value, default, what: str):
     if isinstance(default, bool):
         if isinstance(value, str) and value.strip().lower() in ("true", "false"):
             return value.strip().lower() == "true"
-        if isinstance(value, (bool, int)) and value in (0, 1):
+        if isinstance(value, (bool, int, np.bool_, np.integer)) and value in (0, 1):
+            return bool(value)
+        if isinstance(value, (np.ndarray, np.generic)) and np.shape(value) == () and \
+                value.dtype.kind in "bi" and value in (0, 1):  # NumPy / 0-d JAX-like
             return bool(value)
         raise ValueError(f"{what} is not a boolean (true or false)")
     if isinstance(default, int):
