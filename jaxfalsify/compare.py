@@ -111,7 +111,9 @@ class CompareConfig:
 
         per_eval = (len(sp.shape) + len(campaign.RECORD_FIELDS)) * 8 * 2
         n, seeds = len(self.strategies), -(-self.seeds // num_processes)
-        truth = min(sp.size, MAX_SIZE) * 6  # collision, reward, nonfinite
+        # the ground truth's collision, reward and nonfinite per scenario (a sample of
+        # TRUTH_SAMPLE for a space too large to sweep)
+        truth = (sp.size if sp.size <= MAX_SIZE else TRUTH_SAMPLE) * 6
         cfg.check_memory(seeds * self.evaluations * n * per_eval + truth,
                          f"{n} strateg{'y' if n == 1 else 'ies'} x {seeds} seeds x "
                          f"{self.evaluations} evaluations", "lower --seeds or --evaluations")
