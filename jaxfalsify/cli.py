@@ -94,10 +94,8 @@ def _distributed_flags(p) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from jaxfalsify import search
+    from jaxfalsify import __version__, search
     from jaxfalsify.compare import DEFAULT_STRATEGIES
-
-    from jaxfalsify import __version__
 
     p = _Parser(prog="jaxfalsify", description=DESCRIPTION)
     p.add_argument("--version", action="version", version=f"jaxfalsify {__version__}")

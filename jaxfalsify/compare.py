@@ -452,8 +452,6 @@ def execute(config: CompareConfig, out: Path | str, *, force: bool = False,
     ``out``. With several processes (``jax.distributed``), process i runs its contiguous share
     of the seeds and writes a part; process 0 merges. Returns the result."""
     cfg.check_type(config, CompareConfig, "config")
-
-
     clock = Clock(startup_seconds)
     progress = progress or Progress()
     out = Path(out)

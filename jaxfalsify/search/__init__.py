@@ -81,10 +81,7 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
             raise ValueError(f"{where}: no option '{k}' (known: "
                              f"{', '.join(known_s + known_p) or 'none'})")
     pytree.check_ranges(cls.Params, params, where)
-    bounds = pytree.ranges(cls)  # static sizes, e.g. hidden
-    for k, v in static.items():
-        if k in bounds and not pytree.in_range(float(v), bounds[k]):
-            raise ValueError(f"{where}: {k}={options[k]!r} is outside {bounds[k]}")
+    pytree.check_ranges(cls, {k: options[k] for k in static}, where)  # sizes, e.g. hidden
     return static, params
 
 
@@ -98,10 +95,8 @@ def _typed(value, default, what: str):
     if isinstance(default, bool):
         if isinstance(value, str) and value.strip().lower() in ("true", "false"):
             return value.strip().lower() == "true"
-        if isinstance(value, (bool, int, np.bool_, np.integer)) and value in (0, 1):
-            return bool(value)
-        if isinstance(value, (np.ndarray, np.generic)) and np.shape(value) == () and \
-                value.dtype.kind in "bi" and value in (0, 1):  # NumPy / 0-d JAX-like
+        if not isinstance(value, str) and np.ndim(value) == 0 and \
+                np.asarray(value).dtype.kind in "biu" and value in (0, 1):  # Python or NumPy
             return bool(value)
         raise ValueError(f"{what} is not a boolean (true or false)")
     if isinstance(default, int):
