@@ -133,6 +133,7 @@ class RunConfig:
         b = built or self.build()
         return dataclasses.replace(
             self, space=b.space.describe(), strategy=search.canonical(self.strategy),
+            sut=sut_lib.recorded_spec(self.sut),
             batch=b.strategy.batch, sut_params=sut_lib.params_dict(b.sut_params),
             strategy_params=_strategy_options(b))
 

@@ -427,6 +427,16 @@ def _load_attr(spec: str):
         raise ValueError(f"SUT '{spec}': {mod_name} has no attribute '{attr}'") from None
 
 
+def recorded_spec(spec: str) -> str:
+    """The SUT name as a run records it: a file path ``path/file.py:attr`` made absolute, so
+    ``--resume`` and ``--config`` find the same file from any working folder; registry names
+    and module import paths unchanged."""
+    mod_name, _, attr = spec.rpartition(":")
+    if spec in REGISTRY or not mod_name.endswith(".py") or Path(mod_name).is_absolute():
+        return spec
+    return f"{Path(mod_name).resolve()}:{attr}"
+
+
 def _example_observation() -> Observation:
     return Observation(*([jnp.float32(0.0)] * (len(Observation._fields) - 1)),
                        weather=jnp.int32(0))

@@ -365,9 +365,10 @@ class SweepConfig:
         return sp, calibrations(sut, check_mapping("sut_params", self.sut_params))
 
     def resolved(self) -> "SweepConfig":
-        """This config with the default chunk chosen for JAX's backend."""
-        return self if self.chunk is not None else dataclasses.replace(
-            self, chunk=sim.default_chunk())
+        """This config with the default chunk chosen for JAX's backend and a SUT file path
+        made absolute (:func:`jaxfalsify.sut.recorded_spec`)."""
+        return dataclasses.replace(self, chunk=self.chunk or sim.default_chunk(),
+                                   sut=sut_lib.recorded_spec(self.sut))
 
     def full_sut_params(self) -> dict[str, Any]:
         """Every SUT parameter: its default, or the value (list of values) given."""
@@ -529,12 +530,12 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     clock = Clock(startup_seconds)
     progress = progress or Progress()
     space, calib = config.build()
+    out = Path(out) if out is not None else default_out(space, config.sut, config.space_seed)
     config = config.resolved()
     check_sweepable(space)
     from jaxfalsify.runs import check_space_sut
 
     check_space_sut(space, calib.sut)
-    out = Path(out) if out is not None else default_out(space, config.sut, config.space_seed)
     rows_bytes = 0 if config.rows == "none" else (  # host-side columns of one chunk
         max(256, config.chunk // calib.count) * calib.count
         * (len(space.shape) * 2 + len(OUTCOME_FIELDS) + 4) * 16)

@@ -96,6 +96,33 @@ def test_run_records_the_sut_and_its_parameters(tiny, tmp_path):
     assert (out / "summary.json").read_bytes() == (again_out / "summary.json").read_bytes()
 
 
+def test_a_relative_sut_path_resumes_from_another_folder(tiny, tmp_path, monkeypatch):
+    """config.toml records a SUT file named by a relative path as an absolute one, so a run
+    interrupted in one working folder resumes from another and ends with the files of an
+    uninterrupted run (the oracle: the same run made in one go with the absolute path)."""
+    from jaxfalsify import runs
+
+    calls = iter(range(10_000))
+    monkeypatch.chdir(EXAMPLE.parent.parent)
+    rc = runs.RunConfig(space=str(tiny), sut="experiments/example_aeb.py:AEB",
+                        sut_params={"noise": 0.0}, strategy="random", evaluations=48,
+                        batch=8, checkpoint_every=1)
+    with pytest.raises(runs.Interrupted):
+        runs.execute(rc, tmp_path / "cut", stop=lambda: next(calls) >= 2, figures=False)
+    monkeypatch.chdir(tmp_path)
+    again = runs.resume_config("cut")
+    assert again.sut == SPEC
+    runs.execute(again, "cut", resume=True, figures=False)
+    runs.execute(runs.RunConfig(**{**rc.__dict__, "sut": SPEC}), "whole", figures=False)
+    for f in ("config.toml", "summary.json", "episodes.parquet"):
+        assert (tmp_path / "cut" / f).read_bytes() == (tmp_path / "whole" / f).read_bytes(), f
+    # a sweep records it the same way
+    from jaxfalsify.sweep import SweepConfig
+
+    monkeypatch.chdir(EXAMPLE.parent)
+    assert SweepConfig(sut="example_aeb.py:AEB").resolved().sut == SPEC
+
+
 def test_noise_uses_the_key(tiny):
     """The SUT's key: another seed gives another draw of the sensor noise."""
     sp = jf.load_space(str(tiny))
