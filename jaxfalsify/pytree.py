@@ -7,6 +7,7 @@ The same habit as gymnax's ``EnvParams`` / flax's ``struct.dataclass``, on plain
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import numpy as np
@@ -32,7 +33,10 @@ def real_number(value) -> float | None:
     if isinstance(value, (bool, np.bool_)) or isinstance(value, jax.core.Tracer):
         return None
     if isinstance(value, (int, float, np.integer, np.floating)):
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:  # an int beyond float64: infinite for every check after
+            return math.inf if value > 0 else -math.inf
     if isinstance(value, (np.ndarray, jax.Array)) and value.ndim == 0 and \
             (np.issubdtype(value.dtype, np.integer) or np.issubdtype(value.dtype, np.floating)):
         return float(value)

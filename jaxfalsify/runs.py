@@ -60,8 +60,10 @@ def build_space(space: Any, space_seed: int) -> Space:
     raise ValueError(f"space must be a name, a TOML path or a table (got {space!r})")
 
 
-def check_space_sut(sp: Space, sut: sut_lib.SUT) -> None:
-    """ValueError naming a space parameter ``sut.NAME`` the SUT does not have."""
+def check_space_sut(sp: Space, sut: sut_lib.SUT, given: Any = ()) -> None:
+    """ValueError naming a space parameter ``sut.NAME`` the SUT does not have, or one also
+    given a value (``given``: the names of ``--sut-param``/``sut_params``), which the space's
+    values would silently override."""
     from jaxfalsify.space import SUT_PREFIX, is_sut_parameter
 
     known = sut_lib.param_names(sut)
@@ -69,6 +71,9 @@ def check_space_sut(sp: Space, sut: sut_lib.SUT) -> None:
         if is_sut_parameter(n) and n[len(SUT_PREFIX):] not in known:
             raise ValueError(f"space parameter {n}: the SUT '{sut.name}' has no parameter "
                              f"'{n[len(SUT_PREFIX):]}' (it has: {', '.join(known) or 'none'})")
+        if is_sut_parameter(n) and n[len(SUT_PREFIX):] in given:
+            raise ValueError(f"--sut-param {n[len(SUT_PREFIX):]}: the space already varies it "
+                             f"(its parameter {n}); give its values in one place")
 
 
 def check_mapping(key: str, m) -> dict:
@@ -117,9 +122,9 @@ class RunConfig:
         if not isinstance(self.sut, str) or not isinstance(self.strategy, str):
             raise ValueError("sut and strategy must be names")
         sp = build_space(self.space, self.space_seed)
-        sut, sut_params = sut_lib.make(self.sut, **check_mapping("sut_params",
-                                                                 self.sut_params))
-        check_space_sut(sp, sut)
+        given = check_mapping("sut_params", self.sut_params)
+        sut, sut_params = sut_lib.make(self.sut, **given)
+        check_space_sut(sp, sut, given)
         name = search.canonical(self.strategy)
         strat, strat_params = search.make(name, sp.shape, self.batch,
                                           **check_mapping("strategy_params",

@@ -48,6 +48,7 @@ KNOWN_PARAMETERS: dict[str, dict[str, Any]] = {
 }
 
 DISTRIBUTIONS = ("uniform", "normal", "integers", "values")
+FLOAT32_MAX = float(np.finfo(np.float32).max)  # larger values become inf in the simulator
 MAX_SAMPLES = 100_000  # concrete values per parameter (search heads cost O(values))
 MAX_SIZE = 2**31 - 1  # concrete scenarios a sweep enumerates (int32 scenario numbers)
 MAX_SEARCH_SIZE = 10**18  # concrete scenarios a space may have (searched, never enumerated)
@@ -168,8 +169,13 @@ def make_parameter(name: str, distribution: str, args: tuple, samples: int,
     for i, a in enumerate(args):
         if isinstance(a, bool) or not isinstance(a, (int, float)):
             raise ValueError(f"{key}: argument {a!r} is not a number")
-        if not math.isfinite(a):
-            raise ValueError(f"{key}: argument {a!r} is not finite")
+        try:
+            finite = math.isfinite(a) and abs(float(a)) <= FLOAT32_MAX
+        except OverflowError:  # an int beyond float64
+            finite = False
+        if not finite:
+            raise ValueError(f"{key}: argument {str(a)[:40]} is not finite in float32 (the "
+                             "simulator's precision)")
     if distribution == "values" and len(args) == 0:
         raise ValueError(f"{key}.values is empty")
     if isinstance(samples, bool) or not isinstance(samples, int) or samples <= 0:
@@ -191,6 +197,9 @@ def make_parameter(name: str, distribution: str, args: tuple, samples: int,
         if distribution == "integers":
             if low != int(low) or high != int(high):
                 raise ValueError(f"{key}: integers needs integer low/high (got {low}, {high})")
+            if max(abs(low), abs(high)) > 2**24:
+                raise ValueError(f"{key}: integers needs |low|, |high| <= {2**24:,} (exact in "
+                                 f"float32; got {low:g}, {high:g})")
             if samples > int(high) - int(low) + 1:
                 raise ValueError(f"{key}.samples={samples} exceeds the {int(high) - int(low) + 1} "
                                  f"integers in [{int(low)}, {int(high)}]")
@@ -407,7 +416,7 @@ def build(name: str, parameters: list[Parameter], seed: int) -> Space:
         vals = p.discretise(int(seed))
         spec = parameter_spec(p.name)
         lo, hi = spec["domain"]
-        bad = vals[(vals < lo) | (vals > hi) | ~np.isfinite(vals)]
+        bad = vals[(vals < lo) | (vals > hi) | ~(np.abs(vals) <= FLOAT32_MAX)]
         if bad.size:
             raise ValueError(f"parameters.{p.name}: value {bad[0]:g} outside the allowed "
                              f"[{lo:g}, {hi:g}] {spec['unit']}; narrow the distribution")
@@ -491,9 +500,14 @@ def space_from_dict(doc: dict[str, Any], seed: int = 0, default_name: str = "cus
     for n, s in params.items():  # [parameters.sut.NAME] tables: SUT parameters
         if n == "sut" and isinstance(s, dict) and s and all(isinstance(v, dict)
                                                            for v in s.values()):
-            flat.update({SUT_PREFIX + k: v for k, v in s.items()})
+            items = [(SUT_PREFIX + k, v) for k, v in s.items()]
         else:
-            flat[n] = s
+            items = [(n, s)]
+        for k, v in items:
+            if k in flat:  # [parameters."sut.X"] and [parameters.sut.X] both
+                raise ValueError(f"parameters.{k}: declared twice (as [parameters.\"{k}\"] "
+                                 f"and [parameters.sut.{k[len(SUT_PREFIX):]}])")
+            flat[k] = v
     parsed = [parse_parameter(n, s, f"parameters.{n}") for n, s in flat.items()]
     return build(check_name(doc.get("name", default_name)), parsed, seed)
 

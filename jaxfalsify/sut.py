@@ -375,6 +375,9 @@ def _sensor_init(key, params):
 REGISTRY: dict[str, SUT] = {}
 
 
+FLOAT32_MAX = float(jnp.finfo(jnp.float32).max)  # larger values become inf in the simulator
+
+
 def register(sut: SUT) -> SUT:
     """Add a SUT to the registry under ``sut.name`` (replacing one of the same name)."""
     if not isinstance(sut, SUT):
@@ -573,9 +576,12 @@ def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
                              f"(known: {', '.join(known) or 'none'})")
         number = pytree.real_number(value)
         if number is None:
-            raise ValueError(f"{where}: {name}={value!r} is not a number")
+            raise ValueError(f"{where}: {name}={value!r:.40} is not a number")
         if not math.isfinite(number):
-            raise ValueError(f"{where}: {name}={value!r} is not finite")
+            raise ValueError(f"{where}: {name}={value!r:.40} is not finite")
+        if abs(number) > FLOAT32_MAX:
+            raise ValueError(f"{where}: {name}={value!r} is beyond float32's range (the "
+                             "simulator computes in float32)")
         params[name] = number
     p = sut.default_params
     if dataclasses.is_dataclass(p):

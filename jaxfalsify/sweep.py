@@ -194,9 +194,10 @@ class Calibrations:
         return jax.tree.map(lambda *xs: np.asarray(xs, np.float32), *self.instances)
 
     def columns(self) -> dict[str, np.ndarray]:
-        """The swept parameters' value per calibration, ``{name: (C,) float32}``."""
+        """The swept parameters' value per calibration as given, ``{name: (C,) float64}``
+        (the simulator computes with their float32 roundings)."""
         return {name: np.asarray([sut_lib.params_dict(p)[name] for p in self.instances],
-                                 np.float32) for name, _ in self.swept}
+                                 np.float64) for name, _ in self.swept}
 
     def describe(self, c: int) -> dict[str, float]:
         return {name: float(v[c]) for name, v in self.columns().items()}
@@ -227,6 +228,17 @@ def calibrations(sut: sut_lib.SUT, sut_params: Mapping[str, Any]) -> Calibration
     sut_lib.check_traceable(sut, instances[0])
     return Calibrations(sut, tuple(instances),
                         tuple((n, tuple(float(x) for x in vals)) for n, vals in swept))
+
+
+def check_columns(space: Space, calib: Calibrations) -> None:
+    """ValueError for a swept SUT parameter named like another column of ``sweep.parquet``
+    (it would be overwritten)."""
+    taken = {"calibration", "scenario", *space.names, *(f"{n}_idx" for n in space.names),
+             *OUTCOME_FIELDS}
+    for name, _ in calib.swept:
+        if name in taken:
+            raise ValueError(f"--sut-param {name}: sweep.parquet has a column '{name}' already; "
+                             "sweep that SUT parameter as a space parameter sut.NAME instead")
 
 
 def check_sweepable(space: Space) -> None:
@@ -535,12 +547,14 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     check_sweepable(space)
     from jaxfalsify.runs import check_space_sut
 
-    check_space_sut(space, calib.sut)
+    check_space_sut(space, calib.sut, dict(config.sut_params))
+    check_columns(space, calib)
     rows_bytes = 0 if config.rows == "none" else (  # host-side columns of one chunk
         max(256, config.chunk // calib.count) * calib.count
         * (len(space.shape) * 2 + len(OUTCOME_FIELDS) + 4) * 16)
-    work_bytes = config.chunk * 2048 if jax.default_backend() == "cpu" else 0  # else on the GPU
-    cfg.check_memory(rows_bytes + work_bytes, f"a sweep chunk of {config.chunk} scenarios",
+    rollouts = max(config.chunk, 256 * calib.count)  # one call's (iter_sweep's floor of 256)
+    work_bytes = rollouts * 2048 if jax.default_backend() == "cpu" else 0  # else on the GPU
+    cfg.check_memory(rows_bytes + work_bytes, f"a sweep chunk of {rollouts} rollouts",
                      "lower --chunk")
     lk = store.open_folder(out, "sweep", force=force, resume=resume,
                            name=".lock" if process_id == 0 else f".lock-part-{process_id:05d}")

@@ -62,12 +62,24 @@ def world(tmp_path_factory):
         "space_name_long.toml": f'name = "{"x" * 300}"\n[parameters.ped_speed]\nvalues = [1.2]\n',
         "space_name_slash.toml": 'name = "../up"\n[parameters.ped_speed]\nvalues = [1.2]\n',
         "nested.toml": "x = " + "[" * 5000 + "]" * 5000 + "\n",
+        "space_sut_twice.toml": ('[parameters."sut.ttc_full"]\nvalues = [1.0]\n'
+                                 "[parameters.sut.ttc_full]\nvalues = [2.0]\n"),
+        "space_sut_dim.toml": "[parameters.sut.ttc_full]\nvalues = [0.5, 1.5]\n",
+        "space_int_overflow.toml": ("[parameters.weather]\ndistribution = 'integers'\nlow = 0\n"
+                                    "high = 100000000000000000000\nsamples = 3\n"),
+        "space_bigint_values.toml": "[parameters.ped_speed]\nvalues = [1" + "0" * 400 + "]\n",
+        "space_beyond_float32.toml": "[parameters.sut.ttc_full]\nvalues = [1.0, 1e39]\n",
     }
     for name, text in files.items():
         (w / name).write_text(text)
     (w / "badsut.py").write_text(
         "import jax.numpy as jnp\n\n\ndef two_args(obs, state):\n    return 0.0, state\n\n\n"
         "def vector(obs, state, params, key):\n    return jnp.zeros(3), state\n")
+    (w / "clash.py").write_text(  # a SUT parameter named like a sweep.parquet column
+        "from jaxfalsify import pytree\nfrom jaxfalsify.sut import SUT\n\n\n"
+        "@pytree.dataclass\nclass P:\n    steps: float = 1.0\n\n\n"
+        "def act(obs, state, p, key):\n    return -p.steps, state\n\n\n"
+        "AEB = SUT('clash', act, default_params=P())\n")
     (w / "latin1.toml").write_bytes("seed = 1 # caf\xe9\n".encode("latin-1"))
     (w / "a_folder.toml").mkdir()
     (w / "lock_is_folder" / ".lock").mkdir(parents=True)  # a folder where the lock goes
@@ -193,7 +205,21 @@ CASES = [
     (["sweep", "--resume", "sweep_done"], "already complete"),
     (["sweep", "--resume", "sweep_unfinished", "--sut", "none"], "--sut cannot be combined"),
     # sizes and ranges checked before anything is allocated
-    (["sweep", "--space", "space_huge_integers.toml"], "outside the allowed"),
+    (["sweep", "--space", "space_huge_integers.toml"], "16,777,216"),
+    (["sweep", "--space", "space_int_overflow.toml"], "16,777,216"),
+    (["sweep", "--space", "space_bigint_values.toml"], "not finite in float32"),
+    (["sweep", "--space", "space_beyond_float32.toml", "--sut", "sensor-aeb"],
+     "not finite in float32"),
+    (["sweep", "--space", "space_sut_twice.toml", "--sut", "sensor-aeb"], "declared twice"),
+    (["sweep", "--space", "space_sut_dim.toml", "--sut", "sensor-aeb", "--sut-param",
+      "ttc_full=0.1,3.0"], "the space already varies it"),
+    (["run", "--space", "space_sut_dim.toml", "--sut", "sensor-aeb", "--sut-param",
+      "ttc_full=3.0"], "the space already varies it"),
+    (["sweep", "--sut", "sensor-aeb", "--sut-param", "ttc_full=1,1e39"],
+     "beyond float32's range"),
+    (["sweep", "--sut", "sensor-aeb", "--sut-param", "ttc_full=1" + "0" * 400], "not finite"),
+    (["sweep", "--space", "tiny.toml", "--sut", "clash.py:AEB", "--sut-param", "steps=1,2"],
+     "has a column 'steps' already"),
     (["sweep", "--space", "space_huge_samples.toml"], "exceeds 100,000 values"),
     (["run", "--space", "space_huge_product.toml"], "at most 1e+18"),
     (["compare", "--strategy-param", "elite_frac=0.2"], "expected STRATEGY:NAME=VALUE"),

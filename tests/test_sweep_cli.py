@@ -103,15 +103,17 @@ def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path):
     """``--sut-param NAME=V1,V2`` evaluates calibrations x scenarios in one compiled call;
     each calibration's rows equal a separate sweep with that value."""
     out = tmp_path / "cal"
-    assert main(["sweep", "--space", str(small_space), "--sut-param", "full_brake=3,8",
+    assert main(["sweep", "--space", str(small_space), "--sut-param", "full_brake=3.1,8",
                  "--sut-param", "walker_time=1.5", "--out", str(out), "--quiet"]) == 0
     table = pq.read_table(out / "sweep.parquet").to_pydict()
     summary = json.loads((out / "summary.json").read_text())
     sp = jf.load_space(str(small_space))
     assert summary["n_calibrations"] == 2 and len(table["scenario"]) == 2 * sp.size
-    for c, brake in enumerate((3.0, 8.0)):
+    for c, brake in enumerate((3.1, 8.0)):
         mine = np.asarray(table["calibration"]) == c
-        assert np.all(np.asarray(table["full_brake"])[mine] == brake)
+        # the value as given (float64), not its float32 rounding 3.0999999
+        assert np.all(np.asarray(table["full_brake"], np.float64)[mine] == brake)
+        assert summary["calibrations"][c]["full_brake"] == brake
         alone = sweep_arrays(sp, "carla-tm", {"full_brake": brake, "walker_time": 1.5})
         got = np.asarray(table["scenario"])[mine]
         np.testing.assert_array_equal(got, np.arange(sp.size))
@@ -123,7 +125,7 @@ def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path):
     from jaxfalsify import sut as sut_lib
     recorded = tomllib.loads((out / "config.toml").read_text())["sut_params"]
     defaults = sut_lib.params_dict(sut_lib.resolve("carla-tm").default_params)
-    assert recorded == {**defaults, "full_brake": [3, 8], "walker_time": 1.5}
+    assert recorded == {**defaults, "full_brake": [3.1, 8], "walker_time": 1.5}
     # the weaker brake must matter somewhere, or the test proves nothing
     assert summary["calibrations"][0]["n_collisions"] != summary["calibrations"][1]["n_collisions"]
 
