@@ -92,8 +92,13 @@ class CompareConfig:
                              f"{self.strategies!r})")
         if not self.strategies:
             raise ValueError("strategies: none given")
+        seen: dict[str, str] = {}
         for s in self.strategies:
-            search.canonical(s)
+            c = search.canonical(s)
+            if c in seen:  # one row per strategy: a second would be dropped silently
+                raise ValueError(f"strategies: {s!r} given twice"
+                                 + (f" ({seen[c]!r} names it too)" if seen[c] != s else ""))
+            seen[c] = s
         for s in self.strategy_params:
             if s not in self.strategies:
                 raise ValueError(f"strategy_params: {s!r} is not among the strategies "
@@ -113,7 +118,7 @@ class CompareConfig:
         n, seeds = len(self.strategies), -(-self.seeds // num_processes)
         # the ground truth's collision, reward and nonfinite per scenario (a sample of
         # TRUTH_SAMPLE for a space too large to sweep)
-        truth = (sp.size if sp.size <= MAX_SIZE else TRUTH_SAMPLE) * 6
+        truth = (sp.size if sp.size <= MAX_SIZE else TRUTH_SAMPLE) * 32  # peak, float64 copies
         cfg.check_memory(seeds * self.evaluations * n * per_eval + truth,
                          f"{n} strateg{'y' if n == 1 else 'ies'} x {seeds} seeds x "
                          f"{self.evaluations} evaluations", "lower --seeds or --evaluations")
@@ -122,7 +127,8 @@ class CompareConfig:
         return cfg.dumps_toml({"kind": "compare", "strategies": list(self.strategies),
                                "seeds": self.seeds, "evaluations": self.evaluations,
                                "jobs": self.resolved_jobs(), "space_seed": self.space_seed,
-                               "sut": self.sut,
+                               "budgets": list(self.budgets), "overhead": self.overhead,
+                               "sut": sut_lib.recorded_spec(self.sut),
                                "sut_params": dict(self.sut_params),
                                "strategy_params": {k: dict(v) for k, v
                                                    in self.strategy_params.items()},
@@ -729,14 +735,20 @@ def load_suite(path: Path | str, seeds: int | None = None,
             raise ValueError(f"{key}.space must be a space name or a .toml path")
         sp = e["space"]
         if sp.endswith(".toml") and not Path(sp).is_absolute():
-            sp = str(path.parent / sp)
+            sp = str((path.parent / sp).resolve())
+        sut = e.get("sut", "carla-tm")
+        if not isinstance(sut, str):
+            raise ValueError(f"{key}.sut must be a SUT name or an import path")
+        mod, _, attr = sut.rpartition(":")
+        if mod.endswith(".py") and not Path(mod).is_absolute():  # like the space
+            sut = f"{(path.parent / mod).resolve()}:{attr}"
         sut_params = e.get("sut_params", {})
         if not isinstance(sut_params, dict):
             raise ValueError(f"{key}.sut_params must be a table of NAME = VALUE")
         exclude = e.get("exclude", [])
         if not isinstance(exclude, list) or not all(isinstance(x, str) for x in exclude):
             raise ValueError(f"{key}.exclude must be a list of strategy names")
-        out.append(SuiteEntry(sp, e.get("sut", "carla-tm"), sut_params,
+        out.append(SuiteEntry(sp, sut, sut_params,
                               e.get("space_seed", 0), tuple(exclude)))
     budgets = doc.get("budgets", [250, 1000, 4000])
     if not isinstance(budgets, list) or not budgets:
@@ -764,7 +776,7 @@ def execute_suite(config: SuiteConfig, out: Path | str, *, force: bool = False,
         for k, e in enumerate(config.entries):
             c = config.compare_config(e)
             name = c.run_config(c.strategies[0]).build().space.name
-            folder = out / f"{k + 1:02d}-{name}-{sut_lib.resolve(e.sut).name}"[:120]
+            folder = out / f"{k + 1:02d}-{name}-{sut_lib.folder_name(e.sut)}"[:120]
             store.check_out(folder, "compare", force=force)
             entries.append((c, name, folder))
         lk.claim("suite")

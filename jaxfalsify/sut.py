@@ -440,6 +440,15 @@ def recorded_spec(spec: str) -> str:
     return f"{Path(mod_name).resolve()}:{attr}"
 
 
+def folder_name(spec: str) -> str:
+    """A SUT name usable in a folder name: ``file.py:AEB`` -> ``file-AEB``, ``pkg.mod:AEB``
+    -> ``pkg.mod-AEB``, registry names unchanged."""
+    mod, _, attr = spec.rpartition(":")
+    if mod.endswith(".py"):
+        mod = Path(mod).stem
+    return (f"{mod}-{attr}" if mod else spec).replace("/", "_").replace("\\", "_")
+
+
 def _example_observation() -> Observation:
     return Observation(*([jnp.float32(0.0)] * (len(Observation._fields) - 1)),
                        weather=jnp.int32(0))

@@ -412,8 +412,7 @@ class SweepConfig:
 
 
 def default_out(space: Space, sut_name: str, space_seed: int) -> Path:
-    sut = sut_name.replace("/", "_").replace(":", "_")
-    return Path("sweeps") / f"{Path(space.name).stem}-{sut}-s{space_seed}"
+    return Path("sweeps") / f"{Path(space.name).stem}-{sut_lib.folder_name(sut_name)}-s{space_seed}"
 
 
 def checkpoint_name(process_id: int = 0, num_processes: int = 1) -> str:

@@ -158,7 +158,7 @@ def _tiny_compare(tmp_path, name, jobs, stop=None):
     space = tmp_path / "tiny.toml"
     space.write_text(TINY_SPACE)
     cfg = CompareConfig(strategies=("random", "cem", "anneal"), seeds=2, evaluations=48,
-                        space=str(space), overhead=False, jobs=jobs)
+                        space=str(space), overhead=False, jobs=jobs, budgets=(16,))
     return execute(cfg, tmp_path / name, stop=stop)
 
 
@@ -176,7 +176,10 @@ def test_strategies_side_by_side_give_the_same_results(tmp_path):
     assert drop(one["rows"]) == drop(three["rows"])
     for a, b in zip(one["budgets"], three["budgets"]):
         assert drop(a["rows"]) == drop(b["rows"])
-    assert "jobs = 3" in (tmp_path / "three" / "config.toml").read_text()
+    import tomllib
+
+    recorded = tomllib.loads((tmp_path / "three" / "config.toml").read_text())
+    assert (recorded["jobs"], recorded["budgets"], recorded["overhead"]) == (3, [16], False)
     assert "3 strategies side by side" in (tmp_path / "three" / "compare.md").read_text()
     assert json.loads((tmp_path / "one" / "compare.json").read_text())["rows"][0]["per_seed"]
 

@@ -3,6 +3,7 @@ scenario, spaces too large to sweep (searched, with a sampled estimate instead o
 truth), and ``jaxfalsify compare --suite``."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -97,6 +98,27 @@ def test_a_space_too_large_to_sweep_is_searched_with_a_sampled_estimate(tmp_path
     assert lo <= out["collision_share"] <= hi and out["global_max_reward"] is None
     assert out["rows"][0]["seeds_reaching_global_max"] is None
     assert "estimated from 8,192 uniform scenarios" in (tmp_path / "c" / "compare.md").read_text()
+
+
+def test_a_suites_relative_paths_are_the_suite_files(tmp_path, monkeypatch):
+    """A suite entry's space and SUT file, given relative, are found next to the suite file
+    from any working folder; the entry's folder is named by the SUT file's stem."""
+    import shutil
+
+    from jaxfalsify import sut as sut_lib
+    from jaxfalsify.compare import load_suite
+
+    sub = (tmp_path / "sub").resolve()
+    sub.mkdir()
+    (sub / "tiny.toml").write_text(TINY_SPACE)
+    shutil.copy(Path(__file__).parent.parent / "experiments" / "example_aeb.py", sub / "mine.py")
+    (sub / "suite.toml").write_text('strategies = ["random"]\n[[entry]]\nspace = "tiny.toml"\n'
+                                    'sut = "mine.py:AEB"\n')
+    monkeypatch.chdir(tmp_path)
+    entry = load_suite("sub/suite.toml").entries[0]
+    assert entry.space == str(sub / "tiny.toml") and entry.sut == f"{sub / 'mine.py'}:AEB"
+    assert "ttc_brake" in sut_lib.param_names(sut_lib.resolve(entry.sut))
+    assert sut_lib.folder_name(entry.sut) == "mine-AEB"
 
 
 @pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
