@@ -192,7 +192,7 @@ def make_parameter(name: str, distribution: str, args: tuple, samples: int,
             raise ValueError(f"{key}.sd must be > 0 (got {args[1]})")
     else:
         low, high = args
-        if not low < high:
+        if not (low < high or (distribution == "integers" and low == high)):
             raise ValueError(f"{key}: empty or inverted range low={low} high={high}")
         if distribution == "integers":
             if low != int(low) or high != int(high):
@@ -457,6 +457,8 @@ def parse_parameter(name: str, spec: Any, where: str) -> Parameter:
     if unit != parameter_spec(name)["unit"]:
         raise ValueError(f"{where}.unit: '{name}' is in {parameter_spec(name)['unit']!r}, "
                          f"not {unit!r}")
+    if "decimals" in spec and ("values" in spec or spec.get("distribution") == "integers"):
+        raise ValueError(f"{where}.decimals applies to uniform and normal draws only")
     if "values" in spec:
         dist = spec.get("distribution", "values")
         if dist != "values":

@@ -728,7 +728,8 @@ def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts
         summary.update(rows[0])
         summary["sut_params"] = sut_lib.params_dict(calib.instances[0])
     else:
-        summary["calibrations"] = [{"calibration": c, **calib.describe(c), **r}
+        summary["calibrations"] = [{"calibration": c, **calib.describe(c), **r,
+                                    "sut_params": sut_lib.params_dict(calib.instances[c])}
                                    for c, r in enumerate(rows)]
         summary["n_calibrations"] = calib.count
         summary["n_scenarios"] = space.size

@@ -153,9 +153,21 @@ BAD = [
     ({"parameters": {"weather": {"distribution": "integers", "low": 0, "high": 3,
                                  "samples": 5}}}, "exceeds"),
     ({"parameters": {"ped_speed": {"unit": "km/h", "values": [1]}}}, "km/h"),
+    ({"parameters": {"weather": {"distribution": "integers", "low": 3, "high": 2,
+                                 "samples": 1}}}, "empty or inverted"),
+    ({"parameters": {"weather": {"distribution": "integers", "low": 0, "high": 3,
+                                 "samples": 2, "decimals": 2}}}, "decimals applies"),
+    ({"parameters": {"ped_speed": {"values": [1.0], "decimals": 2}}}, "decimals applies"),
+    ({"parameters": {"ped_speed": {"values": [1e39]}}}, "not finite in float32"),
     ({"parameters": {}}, "parameters"),
     ({"params": {}}, "params"),
 ]
+
+
+def test_an_integer_range_of_one_value():
+    sp = space_from_dict({"parameters": {"weather": {"distribution": "integers", "low": 3,
+                                                     "high": 3, "samples": 1}}})
+    assert sp.shape == (1,) and sp.table == ((3.0,),)
 
 
 @pytest.mark.parametrize("doc, needle", BAD)

@@ -114,6 +114,8 @@ def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path):
         # the value as given (float64), not its float32 rounding 3.0999999
         assert np.all(np.asarray(table["full_brake"], np.float64)[mine] == brake)
         assert summary["calibrations"][c]["full_brake"] == brake
+        every = summary["calibrations"][c]["sut_params"]  # every parameter, fixed ones too
+        assert (every["full_brake"], every["walker_time"]) == (brake, 1.5)
         alone = sweep_arrays(sp, "carla-tm", {"full_brake": brake, "walker_time": 1.5})
         got = np.asarray(table["scenario"])[mine]
         np.testing.assert_array_equal(got, np.arange(sp.size))
