@@ -304,12 +304,12 @@ def truth_summary(sp, b, budget: int | None = None) -> dict:
     hits = sp.unravel(np.nonzero(t["collision"])[0])
     multi = shape > 1
     # the failure set lies away from every edge of the index box (an interior island)
-    interior = bool(n_coll and np.all((hits[:, multi] > 0)
+    interior = bool(n_coll and multi.any() and np.all((hits[:, multi] > 0)
                                       & (hits[:, multi] < shape[multi] - 1)))
     out = {"n_scenarios": int(len(r)), "n_collisions": n_coll,
            "collision_share": n_coll / len(r), "global_max_reward": gmax,
            "global_min_reward": float(finite.min()) if finite.size else gmax,
-           "global_max_ties": int(np.sum(r == gmax)),
+           "global_max_ties": int(np.sum(r >= gmax - TOL)),  # as a seed 'reaches' it
            "failures_interior": interior,
            "failure_index_range": ({n: [int(hits[:, p].min()), int(hits[:, p].max())]
                                     for p, n in enumerate(sp.names)} if n_coll else None),
