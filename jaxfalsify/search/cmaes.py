@@ -16,8 +16,11 @@ stalls with its mean far outside the box (the clipped candidates of plain CMA-ES
 the bounds); ``margin = 0`` turns the correction off (plain CMA-ES with rounding). ``margin``
 < 0 means the paper's default ``1 / (P * lambda)``.
 
-evosax minimises, so it sees ``-signal``; a -inf (NaN rollout, beyond budget) becomes a large
-finite penalty. ``signal``: ``shaped`` (default; :func:`jaxfalsify.search.base.shaped_signal`,
+evosax minimises and weights candidates by rank, so it sees each candidate's ordinal rank
+(0 for the highest signal), ties broken at random and a -inf (NaN rollout, beyond budget) last:
+evosax's own ranking (``rankdata``) gives tied candidates one averaged, truncated rank, hence
+the same weight, where Hansen's algorithm uses every weight once; on a plateau of equal
+signals that shrank the step size towards 0. ``signal``: ``shaped`` (default; :func:`jaxfalsify.search.base.shaped_signal`,
 the robustness that falsification tools give CMA-ES, until a collision) or ``reward``.
 """
 
@@ -29,8 +32,6 @@ from jax.scipy.special import ndtr, ndtri
 
 from jaxfalsify import pytree
 from jaxfalsify.search.base import Strategy, check_signal
-
-PENALTY = 1e3
 
 
 @pytree.dataclass
@@ -92,11 +93,20 @@ class CMAES(Strategy):
 
     def tell(self, key, state, indices, rewards, params):
         es = self._es()
-        fitness = jnp.where(jnp.isfinite(rewards), -rewards, PENALTY)
-        es_state, _ = es.tell(key, state.pop, fitness, state.es, self._es_params(es, params))
+        es_state, _ = es.tell(key, state.pop, ordinal_ranks(key, rewards), state.es,
+                              self._es_params(es, params))
         mean, A = margin_correction(es_state.mean, es_state.std, jnp.diag(es_state.C), state.A,
                                     self.shape, self._margin(params))
         return CMAESState(es_state.replace(mean=mean), state.pop, A)
+
+
+def ordinal_ranks(key, rewards: jax.Array) -> jax.Array:
+    """``(B,)`` float32 ranks 0..B-1 of ``rewards (B,)``, 0 for the highest; equal rewards in
+    a random order (from ``key``), -inf and NaN last."""
+    r = jnp.where(jnp.isnan(rewards), -jnp.inf, rewards)
+    order = jnp.lexsort((jax.random.uniform(jax.random.fold_in(key, 1), r.shape), -r))
+    return jnp.zeros(r.shape, jnp.float32).at[order].set(jnp.arange(r.shape[0],
+                                                                     dtype=jnp.float32))
 
 
 def margin_correction(mean, sigma, c_diag, A, shape, margin):
