@@ -289,7 +289,10 @@ CASES = [
     (["sweep", "--out", " "], "an empty path"),
     # every strategy of a comparison is built before its folder or a ground truth
     (["compare", "--space", "tiny.toml", "--strategies", "random,grid", "--seeds", "2",
-      "--evaluations", "64", "--out", "cmp_new"], "batch=200 exceeds the space's 32 scenarios"),
+      "--strategy-param", "grid:batch=64", "--evaluations", "64", "--out", "cmp_new"],
+     "batch"),
+    (["run", "--space", "tiny.toml", "--strategy", "grid", "--batch", "64", "--out",
+      "cmp_new"], "batch=64 exceeds the space's 32 scenarios"),
     (["compare", "--strategies", "random", "--seeds", "10000", "--evaluations", "1000000",
       "--out", "cmp_new"], "lower --seeds or --evaluations"),
     (["run", "--evaluations", "1000000000", "--out", "run_new"], "lower --evaluations"),

@@ -332,3 +332,15 @@ def test_submodules_load_on_first_access():
                          check=True).stdout.splitlines()
     assert out == ["False CEM 0.2 True",
                    "module 'jaxfalsify' has no attribute 'no_such_thing'"]
+
+
+def test_grid_default_batch_fits_a_small_space():
+    """grid's default batch (200) shrinks to a smaller space's size, so a first batch visits
+    every scenario once; a batch given explicitly above the size is still refused."""
+    strat, params = search.make("grid", (4, 8))
+    assert strat.batch == 32
+    idx, _ = strat.ask(jax.random.key(0), strat.init(jax.random.key(0), params), params)
+    assert len({tuple(i) for i in np.asarray(idx).tolist()}) == 32
+    assert search.make("grid", (40, 8))[0].batch == 200
+    with pytest.raises(ValueError, match="batch=33 exceeds the space's 32 scenarios"):
+        search.make("grid", (4, 8), 33)

@@ -169,6 +169,8 @@ def make(name: str, shape: tuple[int, ...], batch: int | None = None, /,
                          f"space.shape (got {shape!r})")
     static, params = _split(e.cls, {**dict(e.options), **overrides},
                             where=f"strategy '{canonical(name)}'")
+    if batch is None and getattr(e.cls, "BATCH_AT_MOST_SIZE", False):
+        batch = min(e.batch, math.prod(int(n) for n in dims))  # grid on a small space
     strat = e.cls(shape=tuple(int(n) for n in dims), batch=batch or e.batch, **static)
     return strat, pytree.replace(strat.default_params(), **params)
 

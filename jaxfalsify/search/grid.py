@@ -25,6 +25,8 @@ class GridState:
 
 @dataclasses.dataclass(frozen=True)
 class Grid(Strategy):
+    BATCH_AT_MOST_SIZE = True  # search.make's default batch shrinks to a smaller space's size
+
     def __post_init__(self):
         size = int(np.prod(self.shape))
         if size > MAX_SIZE:
