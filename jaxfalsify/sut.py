@@ -589,7 +589,7 @@ def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
         if not math.isfinite(number):
             raise ValueError(f"{where}: {name}={value!r:.40} is not finite")
         if abs(number) > FLOAT32_MAX:
-            raise ValueError(f"{where}: {name}={value!r} is beyond float32's range (the "
+            raise ValueError(f"{where}: {name}={value!r:.40} is beyond float32's range (the "
                              "simulator computes in float32)")
         params[name] = number
     p = sut.default_params

@@ -412,7 +412,8 @@ class SweepConfig:
 
 
 def default_out(space: Space, sut_name: str, space_seed: int) -> Path:
-    return Path("sweeps") / f"{Path(space.name).stem}-{sut_lib.folder_name(sut_name)}-s{space_seed}"
+    sut = sut_lib.folder_name(sut_name)
+    return Path("sweeps") / f"{Path(space.name).stem}-{sut}-s{space_seed}"
 
 
 def checkpoint_name(process_id: int = 0, num_processes: int = 1) -> str:

@@ -20,8 +20,8 @@ evosax minimises and weights candidates by rank, so it sees each candidate's ord
 (0 for the highest signal), ties broken at random and a -inf (NaN rollout, beyond budget) last:
 evosax's own ranking (``rankdata``) gives tied candidates one averaged, truncated rank, hence
 the same weight, where Hansen's algorithm uses every weight once; on a plateau of equal
-signals that shrank the step size towards 0. ``signal``: ``shaped`` (default; :func:`jaxfalsify.search.base.shaped_signal`,
-the robustness that falsification tools give CMA-ES, until a collision) or ``reward``.
+signals that shrank the step size towards 0. ``signal``: ``shaped`` (default;
+:func:`jaxfalsify.search.base.shaped_signal`, the robustness that falsification tools give CMA-ES, until a collision) or ``reward``.
 """
 
 import dataclasses
