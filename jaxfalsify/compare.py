@@ -463,6 +463,17 @@ def execute(config: CompareConfig, out: Path | str, *, force: bool = False,
     out = Path(out)
     config.check(num_processes)
     base = config.run_config(config.strategies[0]).build()
+    from jaxfalsify import cache
+    from jaxfalsify.distributed import agree
+
+    agree("comparison configuration", store.sha256(json.dumps({  # not --jobs: per host
+        "strategies": list(config.strategies), "seeds": config.seeds,
+        "evaluations": config.evaluations, "budgets": list(config.budgets),
+        "overhead": config.overhead, "space": base.space.describe(),
+        "space_seed": config.space_seed, "sut_params": sut_lib.params_dict(base.sut_params),
+        "strategy_params": {k: dict(v) for k, v in config.strategy_params.items()},
+        "processes": num_processes, "code": cache.source_hash(base.sut.act, base.sut.init)},
+        sort_keys=True, default=str).encode()))
     lk = store.open_folder(out, "compare", force=force,
                            name=".lock" if process_id == 0 else f".lock-part-{process_id:05d}")
     try:

@@ -95,6 +95,37 @@ def barrier(name: str) -> None:
                                                 timeout_in_ms=BARRIER_TIMEOUT_S * 1000)
 
 
+AGREE_TIMEOUT_S = 120  # how long a process waits for another's configuration
+
+
+def agree(what: str, value: str) -> None:
+    """ValueError (one line) unless every process passes the same ``value`` (no-op for a
+    single process): each publishes it in the coordination service's key-value store, then
+    reads every process's, so processes started with different flags (another space seed,
+    chunk, seed count or process count) stop before any work instead of merging mismatched
+    results. ``what`` names the value in the message."""
+    global _barriers
+    if jax.process_count() <= 1:
+        return
+    from jax._src import distributed as runtime
+
+    client = runtime.global_state.client
+    _barriers += 1
+    key = f"jaxfalsify-agree-{_barriers}"
+    client.key_value_set(f"{key}/{jax.process_index()}", value)
+    for i in range(jax.process_count()):
+        try:
+            theirs = client.blocking_key_value_get(f"{key}/{i}", AGREE_TIMEOUT_S * 1000)
+        except Exception:  # noqa: BLE001 - the runtime's timeout error
+            raise ValueError(f"process {i} did not report its {what} within "
+                             f"{AGREE_TIMEOUT_S} s (started with another --num-processes?)"
+                             ) from None
+        if theirs != value:
+            raise ValueError(f"process {i} was started with another {what} than process "
+                             f"{jax.process_index()}: start every process with the same "
+                             "flags") from None
+
+
 def share(n: int, process_id: int, num_processes: int) -> tuple[int, int]:
     """This process's contiguous share ``[begin, end)`` of n items."""
     return n * process_id // num_processes, n * (process_id + 1) // num_processes

@@ -556,6 +556,12 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     work_bytes = rollouts * 2048 if jax.default_backend() == "cpu" else 0  # else on the GPU
     cfg.check_memory(rows_bytes + work_bytes, f"a sweep chunk of {rollouts} rollouts",
                      "lower --chunk")
+    from jaxfalsify.distributed import agree
+
+    agree("sweep configuration", store.sha256("\n".join(  # the SUT by its code, not its path
+        [ln for ln in config.to_toml(space, num_processes).splitlines()
+         if not ln.startswith("sut = ")]
+        + [cache.source_hash(calib.sut.act, calib.sut.init)]).encode()))
     lk = store.open_folder(out, "sweep", force=force, resume=resume,
                            name=".lock" if process_id == 0 else f".lock-part-{process_id:05d}")
     try:
@@ -663,7 +669,7 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
     clock.add("sweep", search_s)
     with clock("writing"):
         n_chunks = -(-(end - begin) // planned)
-        if config.rows != "none":
+        if config.rows != "none" and n_chunks:  # an empty share writes no part file
             _merge_rows([(ck / f"rows-{c:06d}.parquet", files.get(f"rows-{c:06d}.parquet"))
                          for c in range(n_chunks)], out / name)
         part = {"process_id": process_id,
@@ -737,10 +743,18 @@ def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts
     summary.update({
         "processes": num_processes, "rows": config.rows,
         "parts": [] if config.rows == "none" else
-        ([f"sweep.part-{i:05d}-of-{num_processes:05d}.parquet" for i in range(num_processes)]
+        ([f"sweep.part-{i:05d}-of-{num_processes:05d}.parquet" for i in range(num_processes)
+          if _nonempty_share(space.size, i, num_processes)]  # none for an empty share
          if num_processes > 1 else ["sweep.parquet"]),
         "versions": cfg.versions()})
     return summary
+
+
+def _nonempty_share(n: int, process_id: int, num_processes: int) -> bool:
+    from jaxfalsify.distributed import share
+
+    begin, end = share(n, process_id, num_processes)
+    return end > begin
 
 
 def _merge_rows(files: list[tuple[Path, dict | None]], final: Path) -> None:

@@ -202,3 +202,57 @@ def test_an_unreachable_coordinator_fails_in_time_with_one_line():
     out = r.stdout.strip().splitlines()
     assert out and out[-1].startswith("ERR --coordinator 127.0.0.1:"), (r.stdout, r.stderr[-500:])
     assert "not reachable within 3 s" in out[-1]
+
+
+def _two_processes(tmp_path, args_of) -> list:
+    """Start 2 ``jaxfalsify`` processes (CPU, gloo) with ``args_of(i)``; returns
+    ``[(returncode, stderr)]``."""
+    port = _free_port()
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    procs = [subprocess.Popen(
+        [sys.executable, "-m", "jaxfalsify.cli", *args_of(i), "--distributed", "--coordinator",
+         f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i)],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    return [(p.returncode, err) for p in procs for err in [p.communicate(timeout=300)[1]]]
+
+
+@pytest.mark.slow
+@ON_CPU
+def test_processes_started_with_other_flags_stop_before_any_work(tmp_path):
+    """Another --space-seed on one process (sweep) or another --seeds (compare): every process
+    exits 2 with one line naming the mismatch, and no folder is written."""
+    space = tmp_path / "space.toml"
+    space.write_text(SPACE.replace("values = [1.0, 1.237, 1.5, 1.808, 2.0]",
+                                   "distribution = 'uniform'\nlow = 1.0\nhigh = 2.0\n"
+                                   "samples = 5"))
+    sweep = lambda i: ["sweep", "--space", str(space), "--out", str(tmp_path / "s"),  # noqa
+                       "--quiet", "--space-seed", str(i)]
+    compare = lambda i: ["compare", "--space", str(space), "--out", str(tmp_path / "c"),  # noqa
+                         "--strategies", "random", "--evaluations", "16", "--quiet",
+                         "--seeds", str(2 + 2 * i)]
+    for args_of, folder in ((sweep, "s"), (compare, "c")):
+        for code, err in _two_processes(tmp_path, args_of):
+            lines = err.strip().splitlines()
+            assert code == 2 and len(lines) == 1, err[-1500:]
+            assert "was started with another" in lines[0] and "configuration" in lines[0]
+        assert not (tmp_path / folder).exists()
+
+
+@pytest.mark.slow
+@ON_CPU
+def test_a_process_without_scenarios_writes_no_part(tmp_path):
+    """More processes than scenarios: the empty share writes no Parquet part and summary.json
+    lists only the parts that exist, each readable, together the single-process sweep."""
+    space = tmp_path / "one.toml"
+    space.write_text("[parameters.ped_speed]\nvalues = [1.237]\n")
+    out = tmp_path / "one"
+    for code, err in _two_processes(tmp_path, lambda i: ["sweep", "--space", str(space),
+                                                         "--out", str(out), "--quiet"]):
+        assert code == 0, err[-1500:]
+    parts = json.loads((out / "summary.json").read_text())["parts"]
+    assert parts == ["sweep.part-00001-of-00002.parquet"]
+    assert sorted(p.name for p in out.glob("sweep.part-*")) == parts
+    rows = pq.read_table(out / parts[0]).to_pydict()
+    alone = sweep_arrays(jf.load_space(str(space)))
+    assert rows["scenario"] == [0] and rows["reward"] == [float(alone["reward"][0])]
