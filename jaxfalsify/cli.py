@@ -584,6 +584,9 @@ def entry() -> None:
     except BrokenPipeError:  # the reader went away before our last lines (see main)
         code = code or 128 + signal.SIGPIPE
     sys.stderr.flush()
+    from jaxfalsify.distributed import leave
+
+    leave()  # process 0 of a multi-process command waits for the others to leave first
     os._exit(code)
 
 

@@ -11,6 +11,8 @@ environment variables ``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``, ``JAX_
 from __future__ import annotations
 
 import os
+import sys
+import time
 
 import jax
 
@@ -113,6 +115,7 @@ def agree(what: str, value: str) -> None:
     _barriers += 1
     key = f"jaxfalsify-agree-{_barriers}"
     client.key_value_set(f"{key}/{jax.process_index()}", value)
+    other = None
     for i in range(jax.process_count()):
         try:
             theirs = client.blocking_key_value_get(f"{key}/{i}", AGREE_TIMEOUT_S * 1000)
@@ -120,10 +123,35 @@ def agree(what: str, value: str) -> None:
             raise ValueError(f"process {i} did not report its {what} within "
                              f"{AGREE_TIMEOUT_S} s (started with another --num-processes?)"
                              ) from None
-        if theirs != value:
-            raise ValueError(f"process {i} was started with another {what} than process "
-                             f"{jax.process_index()}: start every process with the same "
-                             "flags") from None
+        if theirs != value and other is None:
+            other = i
+    if other is not None:  # (the console script's leave() orders the processes' exits)
+        raise ValueError(f"process {other} was started with another {what} than process "
+                         f"{jax.process_index()}: start every process with the same flags")
+
+
+LEAVE_TIMEOUT_S = 10
+LEAVE_GRACE_S = 0.5
+
+
+def leave() -> None:
+    """Called as a process of a multi-process command exits (the console script does; no-op
+    otherwise): process 0 hosts the coordination service, and its exit aborts a peer still
+    in a call to it (a barrier's reply, an error), so every other process says it is leaving
+    and process 0 waits for them (at most ``LEAVE_TIMEOUT_S`` each: a dead peer costs that)."""
+    runtime = sys.modules.get("jax._src.distributed")
+    client = getattr(getattr(runtime, "global_state", None), "client", None)
+    if client is None or jax.process_count() <= 1:
+        return
+    try:
+        if jax.process_index() != 0:
+            client.key_value_set(f"jaxfalsify-left/{jax.process_index()}", "1")
+            return
+        for i in range(1, jax.process_count()):
+            client.blocking_key_value_get(f"jaxfalsify-left/{i}", LEAVE_TIMEOUT_S * 1000)
+        time.sleep(LEAVE_GRACE_S)  # each said so just before its os._exit: let it happen
+    except Exception:  # noqa: BLE001 - a peer or the service already gone: nothing to wait for
+        pass
 
 
 def share(n: int, process_id: int, num_processes: int) -> tuple[int, int]:
