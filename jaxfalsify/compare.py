@@ -750,9 +750,7 @@ def load_suite(path: Path | str, seeds: int | None = None,
         sut = e.get("sut", "carla-tm")
         if not isinstance(sut, str):
             raise ValueError(f"{key}.sut must be a SUT name or an import path")
-        mod, _, attr = sut.rpartition(":")
-        if mod.endswith(".py") and not Path(mod).is_absolute():  # like the space
-            sut = f"{(path.parent / mod).resolve()}:{attr}"
+        sut = sut_lib.recorded_spec(sut, path.parent)  # a file next to the suite, like the space
         sut_params = e.get("sut_params", {})
         if not isinstance(sut_params, dict):
             raise ValueError(f"{key}.sut_params must be a table of NAME = VALUE")

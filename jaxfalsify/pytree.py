@@ -27,6 +27,9 @@ def replace(obj, **changes):
     return dataclasses.replace(obj, **changes)
 
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)  # larger values become inf in the simulator
+
+
 def real_number(value) -> float | None:
     """``value`` as a float if it is one real number (Python, NumPy or a concrete 0-d JAX
     array; not a bool), else None."""

@@ -27,6 +27,7 @@ import numpy as np
 
 from jaxfalsify import weather
 from jaxfalsify.config import check_keys
+from jaxfalsify.pytree import FLOAT32_MAX
 
 # Scenario parameters the simulator understands: unit, default, allowed domain, integer-valued.
 # A space need not declare all of them; undeclared ones take the default.
@@ -48,7 +49,6 @@ KNOWN_PARAMETERS: dict[str, dict[str, Any]] = {
 }
 
 DISTRIBUTIONS = ("uniform", "normal", "integers", "values")
-FLOAT32_MAX = float(np.finfo(np.float32).max)  # larger values become inf in the simulator
 MAX_SAMPLES = 100_000  # concrete values per parameter (search heads cost O(values))
 MAX_SIZE = 2**31 - 1  # concrete scenarios a sweep enumerates (int32 scenario numbers)
 MAX_SEARCH_SIZE = 10**18  # concrete scenarios a space may have (searched, never enumerated)

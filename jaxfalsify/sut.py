@@ -375,9 +375,6 @@ def _sensor_init(key, params):
 REGISTRY: dict[str, SUT] = {}
 
 
-FLOAT32_MAX = float(jnp.finfo(jnp.float32).max)  # larger values become inf in the simulator
-
-
 def register(sut: SUT) -> SUT:
     """Add a SUT to the registry under ``sut.name`` (replacing one of the same name)."""
     if not isinstance(sut, SUT):
@@ -430,14 +427,15 @@ def _load_attr(spec: str):
         raise ValueError(f"SUT '{spec}': {mod_name} has no attribute '{attr}'") from None
 
 
-def recorded_spec(spec: str) -> str:
-    """The SUT name as a run records it: a file path ``path/file.py:attr`` made absolute, so
-    ``--resume`` and ``--config`` find the same file from any working folder; registry names
-    and module import paths unchanged."""
+def recorded_spec(spec: str, folder: Path | None = None) -> str:
+    """The SUT name as a run records it: a file path ``path/file.py:attr`` made absolute (a
+    relative one taken from ``folder``, default the working folder), so ``--resume`` and
+    ``--config`` find the same file from any working folder; registry names and module import
+    paths unchanged."""
     mod_name, _, attr = spec.rpartition(":")
     if spec in REGISTRY or not mod_name.endswith(".py") or Path(mod_name).is_absolute():
         return spec
-    return f"{Path(mod_name).resolve()}:{attr}"
+    return f"{((folder or Path.cwd()) / mod_name).resolve()}:{attr}"
 
 
 def folder_name(spec: str) -> str:
@@ -588,7 +586,7 @@ def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
             raise ValueError(f"{where}: {name}={value!r:.40} is not a number")
         if not math.isfinite(number):
             raise ValueError(f"{where}: {name}={value!r:.40} is not finite")
-        if abs(number) > FLOAT32_MAX:
+        if abs(number) > pytree.FLOAT32_MAX:
             raise ValueError(f"{where}: {name}={value!r:.40} is beyond float32's range (the "
                              "simulator computes in float32)")
         params[name] = number
