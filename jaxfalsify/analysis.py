@@ -34,12 +34,13 @@ def first_collision(fields: dict) -> int | None:
     return int(hits[0]) + 1 if hits.size else None
 
 
-def best_reached(fields: dict) -> int:
-    """First evaluation after which the running best stays within 1 % of its final value."""
+def best_reached(fields: dict) -> int | None:
+    """First evaluation after which the running best stays within 1 % of its final value;
+    None when no evaluation has a finite reward."""
     run = np.maximum.accumulate(ranked_reward(fields))
     final = run[-1]
     if not np.isfinite(final):
-        return len(run)
+        return None
     return int(np.argmax(run >= final - 0.01 * abs(final))) + 1
 
 

@@ -331,9 +331,14 @@ def cmd_sweep(args, stop, startup) -> int:
     for r in rows:
         label = ("calibration " + ", ".join(f"{k}={r[k]:g}" for k in r if k in
                                             dict(config.sut_params)) + ": ") if "calibration" in r else ""
+        head = (f"{label}{r['n_scenarios']:,} scenarios, {r['n_collisions']:,} collisions "
+                f"({r['collision_rate']:.3g}); ")
+        if r["global_max_reward"] is None:
+            print(head + f"no finite reward: all {r['n_nonfinite']:,} rollouts non-finite (the "
+                  "SUT returned NaN or inf)")
+            continue
         best = r["global_max_scenario"] or {}
-        print(f"{label}{r['n_scenarios']:,} scenarios, {r['n_collisions']:,} collisions "
-              f"({r['collision_rate']:.3g}); global maximum reward {r['global_max_reward']:.4f}"
+        print(head + f"global maximum reward {r['global_max_reward']:.4f}"
               f" reached by {r['global_max_ties']} scenario(s), first at "
               + ", ".join(f"{k}={v:g}" for k, v in best.get("values", {}).items()))
     from jaxfalsify.progress import timing_line
@@ -380,10 +385,12 @@ def cmd_compare(args, stop, startup) -> int:
     if pid != 0:
         print(f"process {pid}: done")
         return 0
-    if result.get("global_max_reward") is not None:
+    if result.get("n_collisions") is not None:
+        gmax = result["global_max_reward"]
+        top = (f"global max reward {gmax:.4f} ({result['global_max_ties']} scenarios)"
+               if gmax is not None else "no finite reward (every rollout non-finite)")
         print(f"{result['space']} space, {result['sut']}, {args.evaluations} evaluations, "
-              f"{config.seeds} seeds; global max reward {result['global_max_reward']:.4f} "
-              f"({result['global_max_ties']} scenarios), {result['n_collisions']:,} critical of "
+              f"{config.seeds} seeds; {top}, {result['n_collisions']:,} critical of "
               f"{result['n_scenarios']:,} scenarios")
     else:
         print(f"{result['space']} space, {result['sut']}, {args.evaluations} evaluations, "

@@ -297,8 +297,9 @@ def truth_summary(sp, b, budget: int | None = None) -> dict:
         return sampled_truth(sp, b, budget)
     t = ground_truth(sp, b.sut, b.sut_params)
     r = np.where(np.isnan(t["reward"]), -np.inf, t["reward"]).astype(np.float64)
-    gmax = float(r.max())
     finite = r[np.isfinite(r)]
+    # None when no rollout has a finite reward (a SUT that returns NaN or inf everywhere)
+    gmax = float(finite.max()) if finite.size else None
     n_coll = int(np.sum(t["collision"]))
     shape = np.asarray(sp.shape)
     hits = sp.unravel(np.nonzero(t["collision"])[0])
@@ -307,9 +308,11 @@ def truth_summary(sp, b, budget: int | None = None) -> dict:
     interior = bool(n_coll and multi.any() and np.all((hits[:, multi] > 0)
                                       & (hits[:, multi] < shape[multi] - 1)))
     out = {"n_scenarios": int(len(r)), "n_collisions": n_coll,
-           "collision_share": n_coll / len(r), "global_max_reward": gmax,
-           "global_min_reward": float(finite.min()) if finite.size else gmax,
-           "global_max_ties": int(np.sum(r >= gmax - TOL)),  # as a seed 'reaches' it
+           "collision_share": n_coll / len(r), "n_nonfinite": int(len(r) - finite.size),
+           "global_max_reward": gmax,
+           "global_min_reward": float(finite.min()) if finite.size else None,
+           # as a seed 'reaches' it
+           "global_max_ties": int(np.sum(r >= gmax - TOL)) if finite.size else 0,
            "failures_interior": interior,
            "failure_index_range": ({n: [int(hits[:, p].min()), int(hits[:, p].max())]
                                     for p, n in enumerate(sp.names)} if n_coll else None),
@@ -632,13 +635,17 @@ def table_markdown(result: dict) -> str:
     u = result.get("uniform_first_collision")
     if u:
         lines += ["", uniform_line(result, u, budget)]
-    if result.get("global_max_reward") is not None:
+    if result.get("n_collisions") is None:
+        lines.append("No ground truth (the space is too large to sweep): no global maximum; "
+                     "the share of collisions is estimated from a uniform sample.")
+    elif result.get("global_max_reward") is None:
+        lines.append(f"No scenario of the space has a finite reward (all "
+                     f"{result['n_scenarios']:,} rollouts non-finite: the SUT returned NaN or "
+                     "inf): no global maximum to normalise against.")
+    else:
         lines.append("Best, normalised: (best - global min) / (global max - global min) over "
                      f"the space ({result['global_min_reward']:.4f} .. "
                      f"{result['global_max_reward']:.4f}), median over seeds with a finite best.")
-    else:
-        lines.append("No ground truth (the space is too large to sweep): no global maximum; "
-                     "the share of collisions is estimated from a uniform sample.")
     return "\n".join(lines)
 
 

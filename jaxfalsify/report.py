@@ -63,10 +63,12 @@ def write_report(run_dir: Path) -> Path:
              f"| evaluations | {s['evaluations']} (batch {s['batch']}) |",
              f"| collisions | {s['n_collisions']} ({s['n_distinct_critical']} distinct) |",
              f"| first collision at evaluation | {fc if fc is not None else 'none found'} |",
-             f"| best reward | {s['best']['reward']:.4f}, first evaluated at "
-             f"{s['best']['evaluation']} |",
+             (f"| best reward | {s['best']['reward']:.4f}, first evaluated at "
+              f"{s['best']['evaluation']} |" if s["best_reached_evaluation"] is not None else
+              f"| best reward | none finite: all {s['n_nonfinite']} evaluations non-finite "
+              "(the SUT returned NaN or inf) |"),
              f"| running best within 1 % of it from evaluation | "
-             f"{s['best_reached_evaluation']} |",
+             f"{s['best_reached_evaluation'] or '-'} |",
              f"| learner converged at evaluation | "
              f"{s.get('learner_converged_evaluation') or '-'} (moving mean reward within 5 % "
              "of its final value) |",

@@ -502,10 +502,12 @@ def run_lines(s: dict) -> list[str]:
              f"scenarios, the first at evaluation {fc}" if fc is not None else
              "no collision found (the best scenario below is not critical)")
     conv = s.get("learner_converged_evaluation")
-    return [f"{s['evaluations']} evaluations: {found}.",
-            f"Best reward {s['best']['reward']:.4f}, first evaluated at "
+    best = (f"Best reward {s['best']['reward']:.4f}, first evaluated at "
             f"{s['best']['evaluation']}; the running best was within 1 % of it from evaluation "
-            f"{s['best_reached_evaluation']}.",
+            f"{s['best_reached_evaluation']}." if s["best_reached_evaluation"] is not None else
+            f"No finite reward: all {s['n_nonfinite']} evaluations non-finite (the SUT "
+            "returned NaN or inf; see 'Numerical guards' in README).")
+    return [f"{s['evaluations']} evaluations: {found}.", best,
             "Learner converged at evaluation " + (
                 f"{conv} (from there its moving mean reward over 100 evaluations stays within "
                 "5 % of the reward range of its final value)." if conv is not None else

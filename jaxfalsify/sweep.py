@@ -303,7 +303,7 @@ class Reducer:
             self.best_reward = float(r[i])
             self.best_row = {k: cfg.plain(v[i]) for k, v in cols.items()}
             self.best_ties = int(np.sum(r == r[i]))
-        elif r[i] == self.best_reward:
+        elif r[i] == self.best_reward and math.isfinite(r[i]):
             self.best_ties += int(np.sum(r == r[i]))
 
 
@@ -324,7 +324,7 @@ def _add_reduced(reds: list[Reducer], space: Space, calib: Calibrations, b: int,
             red.best_reward = top
             red.best_row = {k: cfg.plain(v[c]) for k, v in row.items()}
             red.best_ties = int(res["ties"][c])
-        elif top == red.best_reward:
+        elif top == red.best_reward and math.isfinite(top):
             red.best_ties += int(res["ties"][c])
 
 

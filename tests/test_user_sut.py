@@ -11,6 +11,7 @@ import pytest
 
 import jaxfalsify as jf
 from jaxfalsify import sut as sut_lib
+from jaxfalsify import report
 from jaxfalsify.cli import main
 from jaxfalsify.sweep import sweep_arrays
 from conftest import TINY_SPACE
@@ -270,3 +271,38 @@ def test_program_cache_keys_on_the_users_code(tmp_path, monkeypatch):
     first = key(mine)
     mod.write_text(mod.read_text().replace("jnp.int32(0)", "jnp.int32(1)"))
     assert key(mine) != first
+
+
+def test_a_sut_that_is_never_finite_gets_a_summary_not_a_traceback(tiny, tmp_path, capsys):
+    """Every rollout NaN (the SUT commands NaN): the sweep and compare report no global
+    maximum (None, zero ties) and count the non-finite rollouts instead of failing."""
+    f = tmp_path / "nan_aeb.py"
+    f.write_text("import jax.numpy as jnp\nfrom jaxfalsify import sut\n\n"
+                 "def act(obs, state, params, key):\n"
+                 "    return jnp.float32(jnp.nan) * obs.ego_speed, state\n\n"
+                 "AEB = sut.SUT('nan-aeb', act, lambda key, params: jnp.int32(0),\n"
+                 "              sut.AutopilotParams())\n")
+    size = jf.load_space(str(tiny)).size
+    assert main(["sweep", "--space", str(tiny), "--sut", f"{f}:AEB", "--out",
+                 str(tmp_path / "sw"), "--quiet"]) == 0
+    s = json.loads((tmp_path / "sw" / "summary.json").read_text())
+    assert (s["n_nonfinite"], s["n_collisions"]) == (size, 0)
+    assert (s["global_max_reward"], s["global_max_ties"], s["global_max_scenario"]) == \
+        (None, 0, None)
+    assert f"all {size} rollouts non-finite" in capsys.readouterr().out
+    assert main(["compare", "--space", str(tiny), "--sut", f"{f}:AEB", "--strategies",
+                 "random", "--seeds", "2", "--evaluations", "10", "--out",
+                 str(tmp_path / "cmp"), "--quiet"]) == 0
+    c = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert (c["n_nonfinite"], c["global_max_reward"], c["global_max_ties"]) == (size, None, 0)
+    assert [s["best"] for s in c["rows"][0]["per_seed"]] == [None, None]
+    md = (tmp_path / "cmp" / "compare.md").read_text()
+    assert "No scenario of the space has a finite reward" in md
+    assert main(["run", "--space", str(tiny), "--sut", f"{f}:AEB", "--strategy", "random",
+                 "--evaluations", "20", "--no-figures", "--out", str(tmp_path / "run")]) == 0
+    r = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert (r["n_nonfinite"], r["best"]["reward"], r["best_reached_evaluation"]) == \
+        (20, None, None)
+    assert "No finite reward: all 20 evaluations non-finite" in capsys.readouterr().out
+    report.write_report(tmp_path / "run")
+    assert "none finite: all 20 evaluations" in (tmp_path / "run" / "report.md").read_text()
