@@ -56,8 +56,11 @@ def time_to_collision(gap_x: ArrayLike, gap_y: ArrayLike, closing_x: ArrayLike,
                       closing_y: ArrayLike, span_x: ArrayLike, span_y: ArrayLike) -> jnp.ndarray:
     """Constant-velocity time until two boxes overlap [s]; inf if they never do.
 
-    Each axis overlaps during [gap/closing, (gap + span)/closing] (from 0 while it already
-    overlaps); the boxes collide at the start of the intersection of the two intervals.
+    Each axis closing (``closing > 0``) overlaps during [gap/closing, (gap + span)/closing]
+    (from 0 while it already overlaps); an axis opening (``closing < 0``) that overlaps now does
+    so until its gap reaches 0, at -gap/|closing|, and one that does not never will; a static
+    axis overlaps forever or never. The boxes collide at the start of the intersection of the
+    two intervals.
 
     Args:
       gap_x, gap_y: signed gaps (see :func:`box_gaps`) [m].
@@ -67,9 +70,12 @@ def time_to_collision(gap_x: ArrayLike, gap_y: ArrayLike, closing_x: ArrayLike,
     inf = jnp.float32(jnp.inf)
 
     def interval(gap, closing, span):
-        inv = jnp.where(closing > 1e-6, 1.0 / jnp.maximum(closing, 1e-6), inf)
-        start = jnp.where(gap <= 0, 0.0, gap * inv)  # inf: never reaches
-        end = jnp.where(gap + span <= 0, -inf, (gap + span) * inv)  # -inf: already past
+        toward, away = closing > 1e-6, closing < -1e-6
+        inv = 1.0 / jnp.where(toward | away, closing, 1.0)
+        start = jnp.where(gap <= 0, 0.0, jnp.where(toward, gap * inv, inf))  # inf: never
+        end = jnp.where(toward, jnp.where(gap + span <= 0, -inf, (gap + span) * inv),
+                        jnp.where(gap > 0, -inf,  # apart and not closing: never
+                                  jnp.where(away, gap * inv, inf)))  # until it opens
         return start, end
 
     s1, e1 = interval(gap_x, closing_x, span_x)

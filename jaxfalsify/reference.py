@@ -188,10 +188,10 @@ def _ttc_vector(gx, gy, cx, cy, span_x, span_y):
     never = np.zeros(gx.shape, bool)
     for g, c, s in ((gx, cx, span_x), (gy, cy, span_y)):
         with np.errstate(divide="ignore", invalid="ignore"):
-            moving = c > 1e-6
+            moving, away = c > 1e-6, c < -1e-6
             start = np.where(moving, np.maximum(g / np.where(moving, c, 1), 0.0), 0.0)
             end = np.where(moving, np.where(g + s > 0, (g + s) / np.where(moving, c, 1), -np.inf),
-                           np.inf)
+                           np.where(away, g / np.where(away, c, 1), np.inf))
         never |= ~moving & ~((g <= 0) & (g + s > 0))
         lo, hi = np.maximum(lo, start), np.minimum(hi, end)
     return np.where(~never & (lo <= hi), lo, np.inf)
@@ -203,8 +203,8 @@ def ttc_scalar(gx, gy, cx, cy, span_x, span_y):
     for g, c, s in ((gx, cx, span_x), (gy, cy, span_y)):
         if c > 1e-6:
             windows.append((max(g / c, 0.0), (g + s) / c if g + s > 0 else -math.inf))
-        elif g <= 0 and g + s > 0:
-            windows.append((0.0, math.inf))
+        elif g <= 0 and g + s > 0:  # overlapping: until an opening axis's gap reaches 0
+            windows.append((0.0, g / c if c < -1e-6 else math.inf))
         else:
             return math.inf
     lo = max(w[0] for w in windows)

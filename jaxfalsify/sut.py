@@ -296,12 +296,20 @@ class SensorAEBParams(AutopilotParams):
       the full brake is limited to ``mu * g``.
 
     Braking is staged on TTC: ``partial_brake`` below ``ttc_partial`` s, full below
-    ``ttc_full`` s.
+    ``ttc_full`` s. The TTC is the constant-velocity one of :func:`metrics.time_to_collision`
+    with an *in-path* target model: a pedestrian walking away from the ego's centre line is
+    taken to stay where it is laterally (no prediction that it leaves the path), so the AEB
+    keeps braking for a pedestrian inside its path until the car stops or the pedestrian is out.
+
+    ``latency`` counts from the first step a demand is perceived: with ``dt`` 0.1 s a latency
+    of 0.1 s brakes one step after that, 0 on the same step. (Earlier the first perceived
+    step counted as 0.1 s already, so every latency acted 0.1 s early and 0 never let the car
+    drive; the default went from 0.2 to 0.1 s with the fix, which keeps the SUT's behaviour.)
     """
 
     range: float = 40.0  # m, clear day
     fov: float = 50.0  # deg, full angle
-    latency: float = 0.2  # s, confirmation + actuation in full daylight
+    latency: float = 0.1  # s, confirmation + actuation in full daylight
     dark_latency: float = 0.4  # s added at zero illuminance
     glare_altitude: float = 20.0  # deg
     glare_range_loss: float = 0.5  # fraction under a clear low sun
@@ -354,14 +362,17 @@ def sensor_aeb_act(obs: Observation, state, p: SensorAEBParams, key):
     gap_x, gap_y = metrics.box_gaps(obs.ped_x - obs.ego_x, obs.ped_y - obs.ego_y,
                                     (obs.ego_length + obs.ped_length) / 2,
                                     (obs.ego_width + obs.ped_width) / 2)
-    closing_y = -jnp.sign(obs.ped_y - obs.ego_y) * obs.ped_vy
+    # in-path target model: a pedestrian walking away from the centre line is held in place
+    closing_y = jnp.maximum(-jnp.sign(obs.ped_y - obs.ego_y) * obs.ped_vy, 0.0)
     ttc = metrics.time_to_collision(gap_x, gap_y, obs.ego_speed, closing_y,
                                     obs.ego_length + obs.ped_length,
                                     obs.ego_width + obs.ped_width)
     brake = jnp.where(ttc <= p.ttc_full, decel, jnp.where(ttc <= p.ttc_partial,
                                                           jnp.minimum(p.partial_brake, decel), 0.0))
     armed_for = jnp.where(detected & (brake > 0), armed_for + 1, 0)
-    confirmed = armed_for.astype(jnp.float32) * obs.dt >= latency - 1e-6
+    # the demand has persisted (armed_for - 1) steps since it was first perceived
+    confirmed = (armed_for > 0) & ((armed_for - 1).astype(jnp.float32) * obs.dt
+                                   >= latency - 1e-6)
     cruise, pid = autopilot_command(obs.ego_speed, pid, p)
     accel = jnp.where(confirmed, -brake, cruise)
     return accel, (armed_for, pid)

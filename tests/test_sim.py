@@ -99,6 +99,45 @@ def random_traj():
 # are property-based tests in test_properties.py
 
 
+def _aeb_steps(latency, demand_steps=8, ped_vy=0.0, ped_y=-1.5):
+    """sensor-aeb's commands over ``demand_steps`` steps with a pedestrian standing (or
+    walking at ``ped_vy``) in the ego's lane 3 m ahead at 6 m/s (TTC 0.5 s: a full-brake
+    demand from the first step), the weather's extra latencies off."""
+    from jaxfalsify.sut import Observation, SensorAEBParams, _sensor_init, sensor_aeb_act
+    p = SensorAEBParams(latency=latency, dark_latency=0.0, rain_latency=0.0)
+    f = lambda v: jnp.float32(v)  # noqa: E731
+    obs = Observation(t=f(0), dt=f(0.1), ego_x=f(0), ego_y=f(-1.5), ego_speed=f(6.0),
+                      ego_length=f(4.6), ego_width=f(2.1), ped_x=f(5.55), ped_y=f(ped_y),
+                      ped_vx=f(0), ped_vy=f(ped_vy), ped_length=f(0.5), ped_width=f(0.6),
+                      road_right=f(-9), road_left=f(3), weather=jnp.int32(0))
+    state, out = _sensor_init(None, p), []
+    for _ in range(demand_steps):
+        a, state = sensor_aeb_act(obs, state, p, None)
+        out.append(float(a))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("latency", [0.0, 0.1, 0.3])
+def test_sensor_aeb_brakes_after_its_latency(latency):
+    """A demand perceived from step 0 brakes from step latency / dt on (0 on the same
+    step); latency 0 does not stop a car that sees no demand from driving."""
+    accel = _aeb_steps(latency)
+    first = round(latency / 0.1)
+    assert np.all(accel[:first] >= 0) and np.all(accel[first:] < -8.0)
+    no_demand = _aeb_steps(latency, ped_y=-8.0)  # on the kerb, out of the path
+    assert np.all(no_demand > 0)
+
+
+def test_sensor_aeb_holds_a_pedestrian_in_its_path():
+    """The in-path target model: a pedestrian inside the lane walking away from its centre
+    line still gets full braking (the metric's TTC says it clears the path first)."""
+    from jaxfalsify import metrics
+    gy = abs(-1.0 - -1.5) - (2.1 + 0.6) / 2  # inside the path, 0.85 m from its far edge
+    assert not np.isfinite(float(metrics.time_to_collision(3.0, gy, 6.0, -2.0,
+                                                           5.1, 2.7)))  # leaves after 0.43 s
+    assert np.all(_aeb_steps(0.0, ped_vy=2.0, ped_y=-1.0) < -8.0)
+
+
 def test_pedestrian_profile_matches_the_original_loop():
     """pdf.py: constant for steps 0..5, then +accel per step until above speed + 0.25; the
     change window (T..T+5, six steps) walks at the current s + change and pauses growth."""
