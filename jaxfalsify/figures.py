@@ -19,6 +19,7 @@ Host-side only (matplotlib, Agg backend); the jitted core never imports this mod
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 from pathlib import Path
@@ -154,15 +155,39 @@ def resimulate(sp, rc, ep: dict, rows, world=None):
     import jaxfalsify as jf
     from jaxfalsify import sut as sut_lib
 
+    from jaxfalsify.space import is_sut_parameter
+
     rows = np.asarray(rows)
     key = 0
     if sut_lib.resolve(rc.sut).stochastic:
         from jaxfalsify.campaign import evaluation_key
 
         key = evaluation_key(rc.seed)
-    return jf.simulate(sp.scenario(indices_of(ep, sp, rows)), sut=rc.sut,
-                       sut_params=dict(rc.sut_params), world=world or jf.WORLD, key=key,
-                       offsets=np.asarray(ep["evaluation"])[rows] - 1)
+    scen = sp.scenario(indices_of(ep, sp, rows))
+    offsets = np.asarray(ep["evaluation"])[rows] - 1
+
+    def run(sel):
+        return jf.simulate({k: np.asarray(v)[sel] for k, v in scen.items()}, sut=rc.sut,
+                           sut_params=dict(rc.sut_params), world=world or jf.WORLD, key=key,
+                           offsets=offsets[sel])
+
+    calib = [k for k in scen if is_sut_parameter(k)]  # a space's sut.NAME dimensions
+    if not calib or rows.size == 0:
+        return run(np.arange(rows.size))
+    # one call per calibration (simulate takes one value of each SUT parameter), each padded
+    # to the full size so every call reuses one compiled program
+    values = np.stack([np.asarray(scen[k], np.float64) for k in calib], -1)
+    _, group = np.unique(values, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    out = None
+    for g in range(int(group.max()) + 1):
+        sel = np.nonzero(group == g)[0]
+        traj = run(np.concatenate([sel, np.full(rows.size - sel.size, sel[0])]))
+        if out is None:
+            out = {f.name: np.array(getattr(traj, f.name)) for f in dataclasses.fields(traj)}
+        for name, arr in out.items():
+            arr[sel] = np.asarray(getattr(traj, name))[:sel.size]
+    return jf.Trajectory(**out)
 
 
 def fig10_rows(ep: dict, n: int = 14, n_collisions: int = 3) -> list[int]:

@@ -60,6 +60,13 @@ def build_space(space: Any, space_seed: int) -> Space:
     raise ValueError(f"space must be a name, a TOML path or a table (got {space!r})")
 
 
+def space_sut_names(sp: Space) -> set[str]:
+    """The SUT parameters a space varies (its ``sut.NAME`` dimensions), by SUT name."""
+    from jaxfalsify.space import SUT_PREFIX, is_sut_parameter
+
+    return {n[len(SUT_PREFIX):] for n in sp.names if is_sut_parameter(n)}
+
+
 def check_space_sut(sp: Space, sut: sut_lib.SUT, given: Any = ()) -> None:
     """ValueError naming a space parameter ``sut.NAME`` the SUT does not have, or one also
     given a value (``given``: the names of ``--sut-param``/``sut_params``), which the space's
@@ -136,10 +143,12 @@ class RunConfig:
         """Every default filled in: the canonical strategy name, its batch and full options,
         the SUT's full parameters, the space's full description."""
         b = built or self.build()
+        varied = space_sut_names(b.space)  # the space sets these per scenario
         return dataclasses.replace(
             self, space=b.space.describe(), strategy=search.canonical(self.strategy),
-            sut=sut_lib.recorded_spec(self.sut),
-            batch=b.strategy.batch, sut_params=sut_lib.params_dict(b.sut_params),
+            sut=sut_lib.recorded_spec(self.sut), batch=b.strategy.batch,
+            sut_params={k: v for k, v in sut_lib.params_dict(b.sut_params).items()
+                        if k not in varied},
             strategy_params=_strategy_options(b))
 
     def to_toml(self) -> str:

@@ -382,15 +382,20 @@ class SweepConfig:
         return dataclasses.replace(self, chunk=self.chunk or sim.default_chunk(),
                                    sut=sut_lib.recorded_spec(self.sut))
 
-    def full_sut_params(self) -> dict[str, Any]:
-        """Every SUT parameter: its default, or the value (list of values) given."""
+    def full_sut_params(self, space: Space | None = None) -> dict[str, Any]:
+        """Every SUT parameter: its default, or the value (list of values) given; without
+        those ``space`` varies (its ``sut.NAME`` dimensions)."""
+        from jaxfalsify.runs import space_sut_names
+
         defaults = sut_lib.params_dict(sut_lib.resolve(self.sut).default_params)
-        return {**defaults, **dict(self.sut_params)}
+        varied = space_sut_names(space) if space is not None else set()
+        return {k: v for k, v in {**defaults, **dict(self.sut_params)}.items()
+                if k not in varied}
 
     def to_toml(self, space: Space, processes: int = 1) -> str:
         doc = {"kind": "sweep", "sut": self.sut, "space_seed": self.space_seed,
                "seed": self.seed, "chunk": self.chunk, "rows": self.rows,
-               "processes": processes, "sut_params": self.full_sut_params(),
+               "processes": processes, "sut_params": self.full_sut_params(space),
                "space": space.describe()}
         return cfg.dumps_toml(doc)
 
@@ -728,16 +733,23 @@ def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts
                                        if r == top),
                 "global_max_scenario": best["best"]}
 
+    from jaxfalsify.runs import space_sut_names
+
+    varied = space_sut_names(space)  # set per scenario by the space: not one value here
+
+    def params(c):
+        return {k: v for k, v in sut_lib.params_dict(calib.instances[c]).items()
+                if k not in varied}
+
     rows = [merged(c) for c in range(calib.count)]
     summary = {"space": space.name, "space_seed": config.space_seed, "sut": config.sut,
                "seed": config.seed}
     if calib.count == 1:
         summary.update(rows[0])
-        summary["sut_params"] = sut_lib.params_dict(calib.instances[0])
+        summary["sut_params"] = params(0)
     else:
         summary["calibrations"] = [{"calibration": c, **calib.describe(c), **r,
-                                    "sut_params": sut_lib.params_dict(calib.instances[c])}
-                                   for c, r in enumerate(rows)]
+                                    "sut_params": params(c)} for c, r in enumerate(rows)]
         summary["n_calibrations"] = calib.count
         summary["n_scenarios"] = space.size
     summary.update({

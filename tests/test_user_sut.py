@@ -306,3 +306,58 @@ def test_a_sut_that_is_never_finite_gets_a_summary_not_a_traceback(tiny, tmp_pat
     assert "No finite reward: all 20 evaluations non-finite" in capsys.readouterr().out
     report.write_report(tmp_path / "run")
     assert "none finite: all 20 evaluations" in (tmp_path / "run" / "report.md").read_text()
+
+
+SUT_DIM_SPACE = """name = "sutdim"
+[parameters.ego_offset]
+values = [7, 8, 9]
+[parameters.ped_speed]
+distribution = "uniform"
+low = 0.5
+high = 2.0
+samples = 200
+[parameters."sut.ttc_full"]
+values = [0.5, 0.9, 1.5]
+"""
+
+
+def test_a_space_varying_a_sut_parameter_round_trips(tmp_path):
+    """A space with a ``sut.NAME`` dimension: its run is interrupted and resumed, its
+    figures re-simulate rows of different calibrations (each equal to simulating that
+    calibration alone), ``--config`` repeats it, and an interrupted sweep resumes: the
+    recorded config.toml leaves the varied parameter to the space."""
+    from jaxfalsify import figures, runs, sweep
+
+    space = tmp_path / "sutdim.toml"
+    space.write_text(SUT_DIM_SPACE)
+    rc = runs.RunConfig(space=str(space), sut="sensor-aeb", strategy="random",
+                        evaluations=40, batch=10, checkpoint_every=1)
+    calls = iter(range(100))
+    with pytest.raises(runs.Interrupted):
+        runs.execute(rc, tmp_path / "r", stop=lambda: next(calls) == 2)
+    assert "ttc_full" not in tomllib.loads((tmp_path / "r" / "config.toml").read_text())[
+        "sut_params"]
+    runs.execute(runs.resume_config(tmp_path / "r"), tmp_path / "r", resume=True)
+    assert (tmp_path / "r" / "report.md").exists()
+    sp, rc2, _, ep = figures.load_run(tmp_path / "r")
+    rows = np.arange(12)
+    traj = figures.resimulate(sp, rc2, ep, rows)
+    ttc = np.asarray(ep["sut.ttc_full"])[rows]
+    assert len(np.unique(ttc)) > 1
+    for v in np.unique(ttc):
+        sel = rows[ttc == v]
+        alone = jf.simulate({n: np.asarray(ep[n])[sel] for n in ("ego_offset", "ped_speed")},
+                            sut="sensor-aeb", sut_params={"ttc_full": float(v)})
+        np.testing.assert_array_equal(np.asarray(traj.distance)[sel], alone.distance)
+    assert main(["run", "--config", str(tmp_path / "r" / "config.toml"), "--out",
+                 str(tmp_path / "again"), "--quiet", "--no-figures"]) == 0
+    assert (tmp_path / "again" / "summary.json").read_bytes() == \
+        (tmp_path / "r" / "summary.json").read_bytes()
+    sc = sweep.SweepConfig(space=str(space), sut="sensor-aeb", chunk=768)  # 3 chunks x 3
+    calls = iter(range(100))
+    with pytest.raises(runs.Interrupted):
+        sweep.execute(sc, tmp_path / "s", stop=lambda: next(calls) == 1)
+    config, _ = sweep.resume_config(tmp_path / "s")
+    s = sweep.execute(config, tmp_path / "s", resume=True)
+    assert s["n_scenarios"] == 1800 and "ttc_full" not in config.sut_params
+    assert "ttc_full" not in s["sut_params"]
