@@ -136,10 +136,14 @@ def table_ii(space, indices: np.ndarray, fields: dict) -> tuple[list[str], list[
 
 
 def format_value(space, p: int, v: float) -> str:
-    """A parameter value with the decimals its space declares (integers without any)."""
+    """A parameter value as the simulator used it: a draw with the decimals its space declares,
+    integers without any, explicit ``values`` as written (the shortest text that reads back
+    to the same number: ``0.0125``, not ``0.013``)."""
     par = space.parameters[p]
     if par.distribution == "integers" or float(v).is_integer() and par.distribution == "values":
         return f"{v:.0f}" if float(v).is_integer() else f"{v:g}"
+    if par.distribution == "values":
+        return np.format_float_positional(float(v), unique=True, trim="-")
     return f"{v:.{par.decimals}f}"
 
 

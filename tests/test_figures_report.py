@@ -484,3 +484,38 @@ def test_python_dash_m_runs_the_cli():
     r = subprocess.run([sys.executable, "-m", "jaxfalsify", "--version"], capture_output=True,
                        text=True)
     assert r.returncode == 0 and r.stdout.strip().endswith(__import__("jaxfalsify").__version__)
+
+
+def test_export_writes_explicit_values_as_written(tmp_path):
+    """A space's explicit ``values`` with more than 3 decimals: the exported critical
+    scenario declares them as written (0.0125, not 0.013) and, simulated, still collides as
+    the run's row did."""
+    import xml.etree.ElementTree as ET
+
+    import pyarrow.parquet as pq
+
+    import jaxfalsify as jf
+
+    space = tmp_path / "vals.toml"
+    space.write_text('name = "vals"\n[parameters.ego_offset]\nvalues = [9]\n'
+                     '[parameters.ped_offset]\nvalues = [3.5]\n'
+                     '[parameters.ped_accel]\nvalues = [0.0075, 0.0125]\n'
+                     '[parameters.ped_speed]\nvalues = [1.1335, 1.2375]\n')
+    run = tmp_path / "run"
+    assert main(["run", "--space", str(space), "--strategy", "grid", "--evaluations", "4",
+                 "--out", str(run), "--quiet", "--no-figures"]) == 0
+    assert main(["export", str(run), "--scenario", "critical", "--out",
+                 str(tmp_path / "x")]) == 0
+    ep = pq.read_table(run / "episodes.parquet").to_pydict()
+    hits = [i for i, c in enumerate(ep["collision"]) if c]
+    assert hits
+    files = sorted((tmp_path / "x").glob("critical_*.xosc"))
+    assert len(files) == len(hits)
+    for f in files:
+        decl = {p.attrib["name"]: p.attrib["value"]
+                for p in ET.parse(f).getroot().iter("ParameterDeclaration")}
+        assert decl["ped_accel"] in ("0.0075", "0.0125")
+        assert decl["ped_speed"] in ("1.1335", "1.2375")
+        o = jf.evaluate({n: float(decl[n]) for n in ("ego_offset", "ped_offset", "ped_accel",
+                                                      "ped_speed")})
+        assert bool(o.collision)
