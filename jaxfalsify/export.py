@@ -95,7 +95,9 @@ def write_road(path: Path, world) -> Path:
 
     road = xodr.create_road(xodr.Line(ROAD_LENGTH), id=0, left_lanes=int(world.lanes_left),
                             right_lanes=int(world.lanes_right), lane_width=world.lane_width)
-    road.add_object(xodr.Object(s=world.crosswalk_x + X_OFFSET, t=0.0,
+    # centred across the road (t: lateral offset from the reference line, left positive)
+    road.add_object(xodr.Object(s=world.crosswalk_x + X_OFFSET,
+                                t=(world.road_left + world.road_right) / 2,
                                 Type=xodr.ObjectType.crosswalk, id="1", name="crosswalk",
                                 width=world.road_left - world.road_right, length=3.0,
                                 height=0.0, hdg=0.0))
@@ -292,12 +294,16 @@ def write_scenario(path: Path, road_file: str, traj: dict, params: dict, world,
     referenced: the trajectories carry the values)."""
     from scenariogeneration import xosc
 
+    from jaxfalsify.sim import start_positions
+
     v = traj["valid"]
-    t = [round(float(x), 3) for x in traj["t"][v]]
+    x0, y0 = start_positions(params["ego_offset"], params["ped_offset"], world)
+    # the start (t = 0) first, then the state after each simulated step
+    t = [0.0] + [round(float(x), 3) for x in traj["t"][v]]
     ego_pos = [xosc.WorldPosition(float(x) + X_OFFSET, float(y), 0.0, 0.0)
-               for x, y in zip(traj["ego_x"][v], traj["ego_y"][v])]
+               for x, y in zip([x0, *traj["ego_x"][v]], [world.ego_y, *traj["ego_y"][v]])]
     ped_pos = [xosc.WorldPosition(float(x) + X_OFFSET, float(y), 0.0, math.pi / 2)
-               for x, y in zip(traj["ped_x"][v], traj["ped_y"][v])]
+               for x, y in zip([world.crosswalk_x, *traj["ped_x"][v]], [y0, *traj["ped_y"][v]])]
 
     init = xosc.Init()
     init.add_init_action("Ego", xosc.TeleportAction(ego_pos[0]))
@@ -489,9 +495,16 @@ def write_controller_scenario(path: Path, road_file: str, space, values: dict[st
 
     # the weather on $weather, for a template whose distribution varies it
     w_idx = space.names.index("weather") if "weather" in space.names else None
-    if w_idx is not None and len(space.table[w_idx]) > 1:
+    # every preset the deterministic or the stochastic distribution may set (the stochastic
+    # one draws from the declared range, not only the space's drawn values)
+    w_all = [] if w_idx is None else sorted({int(v) for v in space.table[w_idx]} | set(
+        range(int(space.parameters[w_idx].args[0]), int(space.parameters[w_idx].args[1]) + 1)
+        if space.parameters[w_idx].distribution == "integers" else
+        (int(v) for v in space.parameters[w_idx].args)
+        if space.parameters[w_idx].distribution == "values" else ()))
+    if len(w_all) > 1:
         w_man = xosc.Maneuver("weather")
-        for v in space.table[w_idx]:
+        for v in w_all:
             ev = xosc.Event(f"weather_{int(v)}", xosc.Priority.parallel)
             ev.add_action(f"weather_{int(v)}", xosc.EnvironmentAction(environment(int(v))))
             ev.add_trigger(_any_of([ego_start(), _param_is(f"weather_is_{int(v)}", "weather",

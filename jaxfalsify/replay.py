@@ -41,7 +41,7 @@ import numpy as np
 
 from jaxfalsify import analysis
 from jaxfalsify.config import plain
-from jaxfalsify.figures import load_run, resimulate
+from jaxfalsify.figures import indices_of, load_run, resimulate
 
 RED, GREEN, BLUE, GREY = (220, 40, 40), (40, 160, 60), (40, 90, 220), (150, 150, 150)
 
@@ -123,6 +123,15 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
     tr = {k: np.asarray(v)[0] for k, v in vars(traj).items()}
     valid = tr["valid"]
     corridor = _tm_polygons(rc, tr, w) if rc.sut == "carla-tm" else None
+    # the start (t = 0), then the state after each simulated step
+    sc = sp.scenario(indices_of(ep, sp, [row]))
+    ex0, py0 = jf.sim.start_positions(float(sc["ego_offset"][0]), float(sc["ped_offset"][0]), w)
+    rec.set_time("sim_time", duration=0.0)
+    rec.log("world/ego", rr.Boxes2D(centers=[[ex0, w.ego_y]], sizes=[[w.ego_length, w.ego_width]],
+                                    colors=[BLUE], labels=["ego"]))
+    rec.log("world/pedestrian", rr.Boxes2D(centers=[[w.crosswalk_x, py0]],
+                                           sizes=[[w.ped_length, w.ped_width]],
+                                           colors=[(240, 160, 0)]))
     for k in np.nonzero(valid)[0]:
         rec.set_time("sim_time", duration=float(tr["t"][k]))
         braking = bool(tr["braking"][k])

@@ -213,6 +213,13 @@ def _scenario_scalars(scenario: dict) -> dict:
     return {k: jnp.asarray(scenario[k], jnp.float32) for k in KNOWN_PARAMETERS}
 
 
+def start_positions(ego_offset, ped_offset, world: World = WORLD):
+    """``(ego x, pedestrian y)`` at t = 0 [m] (NumPy or JAX values): the ego ``ego_offset``
+    behind its base start, the walker ``ped_offset + 1`` m beyond its base start on the kerb
+    side (the ego's y is ``world.ego_y``, the walker's x ``world.crosswalk_x``)."""
+    return -ego_offset, world.road_right + world.walker_base - (ped_offset + 1.0)
+
+
 def rollout(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array,
             world: World = WORLD, record: bool = False):
     """Simulate one concrete scenario (all values scalars).
@@ -241,8 +248,7 @@ def rollout(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array,
     k_init, k_act = jax.random.split(key) if sut.stochastic else (key, key)
     half_x = (w.ego_length + w.ped_length) / 2
     half_y = (w.ego_width + w.ped_width) / 2
-    start_x = -s["ego_offset"]
-    ped_y0 = w.road_right + w.walker_base - (s["ped_offset"] + 1.0)
+    start_x, ped_y0 = start_positions(s["ego_offset"], s["ped_offset"], w)
     weather_idx = s["weather"].astype(jnp.int32)
     p_start, p_grow = ped_profile_constants(s["ped_speed"], s["ped_accel"])
     n_blocks = -(-w.horizon // BLOCK)

@@ -147,7 +147,10 @@ def test_replay_recording_reads_back_with_simulated_values(run_with_figures, tmp
     times = np.asarray(_column(cols["/metrics/distance"], "sim_time")) / 1e9
     np.testing.assert_allclose(times, np.asarray(tr.t[0])[v], atol=1e-6)
     centers = [np.asarray(c)[0] for c in _column(cols["/world/ego"], "Boxes2D:centers")]
-    np.testing.assert_allclose([c[0] for c in centers], np.asarray(tr.ego_x[0])[v], atol=1e-5)
+    ego_offset = sp.table[sp.names.index("ego_offset")][idx[0][sp.names.index("ego_offset")]]
+    # the start (t = 0: ego_offset behind the base start), then the simulated steps
+    np.testing.assert_allclose([c[0] for c in centers],
+                               [-ego_offset, *np.asarray(tr.ego_x[0])[v]], atol=1e-5)
     rewards = np.concatenate([np.ravel(x) for x in _column(cols["/training/reward"],
                                                             "Scalars:scalars")])
     np.testing.assert_allclose(rewards, r, atol=1e-6)
@@ -259,11 +262,21 @@ def test_export_validates_against_the_xsd_and_matches_the_trajectory(run_with_fi
     ego_x = [float(p.find("Position/WorldPosition").attrib["x"]) - X_OFFSET
              for p in polylines[0].findall("Vertex")]
     times = [float(p.attrib["time"]) for p in polylines[0].findall("Vertex")]
-    np.testing.assert_allclose(ego_x, np.asarray(tr.ego_x)[v], atol=1e-4)
-    np.testing.assert_allclose(times, np.asarray(tr.t)[v], atol=1e-3)
+    # the start at t = 0 (the Init's teleport), then the simulated steps
+    w = jf.WORLD
+    start_y = w.road_right + w.walker_base - float(params["ped_offset"]) - 1.0
+    np.testing.assert_allclose(ego_x, [-float(params["ego_offset"]), *np.asarray(tr.ego_x)[v]],
+                               atol=1e-4)
+    np.testing.assert_allclose(times, [0.0, *np.asarray(tr.t)[v]], atol=1e-3)
     ped_y = [float(p.find("Position/WorldPosition").attrib["y"])
              for p in polylines[1].findall("Vertex")]
-    np.testing.assert_allclose(ped_y, np.asarray(tr.ped_y)[v], atol=1e-4)
+    np.testing.assert_allclose(ped_y, [start_y, *np.asarray(tr.ped_y)[v]], atol=1e-4)
+    init = root.find(".//Init//Private[@entityRef='Ego']//WorldPosition").attrib
+    assert float(init["x"]) - X_OFFSET == pytest.approx(-float(params["ego_offset"]))
+    # the crosswalk object centred across the road (-9 .. 3 m: t = -3, width 12)
+    cw = ET.parse(out / "crossing.xodr").getroot().find(".//object").attrib
+    assert (float(cw["t"]), float(cw["width"])) == ((w.road_left + w.road_right) / 2,
+                                                    w.road_left - w.road_right)
     # weather preset -> environment
     assert root.find(".//Environment") is not None
 
@@ -395,6 +408,12 @@ def test_export_distribution_lists_the_space(run_with_figures, tmp_path):
                     if par.distribution == "integers" else list(par.args))
             assert vals == want
     assert list(kinds) == list(sp.names)
+    # the template applies every weather either distribution can set (the stochastic one
+    # draws all 15 presets of the paper's range, the deterministic one the 10 drawn)
+    events = {int(e.attrib["name"].split("_")[1]) for e in ET.parse(out / "best.xosc")
+              .getroot().iter("Event") if e.attrib["name"].startswith("weather_")}
+    drawn = {int(float(e.attrib["value"])) for e in kinds["weather"].iter("Element")}
+    assert drawn == set(range(15)) and events == drawn >= set(sets["weather"])
     with pytest.raises(ValueError, match="deterministic or stochastic"):
         write_distribution(tmp_path / "x.xosc", sp, "best.xosc", "fuzzy")
 
