@@ -302,7 +302,14 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
     best_label = "challenging (best)" if analysis.collided(ep)[rows["best"]] else \
         "best (no collision)"
     _distance_panel(axes[0], traj, 0, best_label)
-    _distance_panel(axes[1], traj, 1, "non-challenging (typical)")
+    if rows["typical"] is not None:
+        _distance_panel(axes[1], traj, 1, "non-challenging (typical)")
+    else:  # every evaluation collided: nothing to set beside the best
+        _distance_panel(axes[1], traj, 1, "no non-critical scenario evaluated")
+        for a in axes[1].collections + axes[1].lines:
+            a.remove()
+        axes[1].text(0.5, 0.5, "every evaluated scenario collided", ha="center",
+                     va="center", transform=axes[1].transAxes)
     handles, labels = axes[0].get_legend_handles_labels()
     _bottom_legend(fig, handles, labels, ncol=3)
     m = _Metrics(fig)
@@ -315,9 +322,14 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
     save(fig, "distance_challenging.png")
 
     fig, ax, place = _single(plt, (5, 4.5), top=_line() + 0.05, xlabel=False)
-    shares = [100 * ep["high_risk_share_second_half"][r] for r in (rows["best"], typical)]
-    ax.bar([best_label.split(" (")[0], "non-challenging"], shares,
-           color=["tab:red", "tab:green"])
+    both = rows["typical"] is not None  # else every evaluation collided: the best alone
+    shares = [100 * ep["high_risk_share_second_half"][r]
+              for r in ((rows["best"], typical) if both else (rows["best"],))]
+    ax.bar([best_label.split(" (")[0], "non-challenging"][:len(shares)], shares,
+           color=["tab:red", "tab:green"][:len(shares)])
+    if not both:
+        ax.set_xlim(-0.5, 1.5)
+        ax.text(1, 50, "no non-critical\nscenario evaluated", ha="center", va="center")
     ax.set_ylabel("high-risk steps in the second half [%]")
     ax.set_ylim(0, 100)
     for i, s in enumerate(shares):

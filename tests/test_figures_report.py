@@ -538,3 +538,31 @@ def test_export_writes_explicit_values_as_written(tmp_path):
         o = jf.evaluate({n: float(decl[n]) for n in ("ego_offset", "ped_offset", "ped_accel",
                                                       "ped_speed")})
         assert bool(o.collision)
+
+
+def test_a_run_where_everything_collided_shows_no_typical_scenario(tmp_path, monkeypatch):
+    """Every evaluation a collision: the figures set nothing non-critical beside the best
+    (the best was drawn twice, once labelled 'non-challenging (typical)' in green)."""
+    import matplotlib.figure
+    import pyarrow.parquet as pq
+
+    space = tmp_path / "allcol.toml"
+    space.write_text('name = "allcol"\n[parameters.ego_offset]\nvalues = [7]\n'
+                     '[parameters.ped_accel]\nvalues = [0.035, 0.081]\n[parameters.ped_speed]\n'
+                     'values = [1.133]\n[parameters.ped_offset]\nvalues = [3]\n')
+    seen = {}
+    save = matplotlib.figure.Figure.savefig
+
+    def record(fig, fname, **kw):
+        seen[len(seen)] = ([a.get_title() for a in fig.axes],
+                           [t.get_text() for a in fig.axes for t in a.get_xticklabels()])
+        return save(fig, fname, **kw)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", record)
+    assert main(["run", "--space", str(space), "--strategy", "grid", "--evaluations", "2",
+                 "--out", str(tmp_path / "r"), "--quiet"]) == 0
+    assert all(pq.read_table(tmp_path / "r" / "episodes.parquet").to_pydict()["collision"])
+    titles = [t for ts, _ in seen.values() for t in ts]
+    assert "challenging (best)" in titles and "non-challenging (typical)" not in titles
+    bars = [ticks for ts, ticks in seen.values() if "challenging" in ticks]
+    assert bars == [["challenging"]]
