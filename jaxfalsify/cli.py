@@ -187,7 +187,9 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("run_dir", type=Path, metavar="RUN_DIR")
     pl.add_argument("--scenario", default="best", help="best, critical:K or eval:N")
     g = pl.add_mutually_exclusive_group()
-    g.add_argument("--save", type=Path, help="write FILE.rrd (default RUN_DIR/replay-<scenario>.rrd)")
+    g.add_argument("--save", type=Path, help="write FILE.rrd (default RUN_DIR/replay-<scenario>"
+                   ".rrd, a derived file rewritten like the figures); an existing FILE only "
+                   "with --force")
     g.add_argument("--spawn", action="store_true", help="open a rerun viewer instead")
     pl.add_argument("--scenarios", type=_int("--scenarios", 1), default=0,
                     help="also overlay the distance of K evaluated scenarios (paper Fig. 10)")
@@ -195,7 +197,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="record the whole search instead (default RUN_DIR/campaign.rrd): every "
                     "evaluation's outcome and values, the sampling distribution per update")
     pl.add_argument("--window", type=_int("--window", 1), default=200,
-                    help="with --campaign: evaluations behind each sampling-distribution chart")
+                    help="with --campaign: evaluations behind each sampling-distribution chart "
+                    "(default 200)")
+    pl.add_argument("--force", action="store_true", help="overwrite an existing --save FILE")
 
     x = sub.add_parser("export", help="OpenSCENARIO (.xosc) + OpenDRIVE (.xodr) of a run's "
                        "scenarios and its logical scenario (parameter distributions)")
@@ -484,6 +488,8 @@ def cmd_replay(args, stop, startup) -> int:
     from jaxfalsify.replay import record, record_campaign
 
     inside = args.save is None and not args.spawn  # the default recording is in the run folder
+    if args.save is not None and Path(args.save).is_file() and not args.force:
+        raise UsageError(f"--save {args.save} exists; pass --force to overwrite it")
     guard = (lambda: _run_folder_lock(args.run_dir, "replay")) if inside else None
     if args.campaign:
         if args.scenario != "best" or args.scenarios:
@@ -498,14 +504,14 @@ def cmd_replay(args, stop, startup) -> int:
 
 
 def cmd_export(args, stop, startup) -> int:
-    from jaxfalsify.export import export
+    from jaxfalsify.export import EXPORT_FILES, export
     from jaxfalsify.store import check_out_plain
 
     if args.scenario not in ("best", "critical"):
         raise UsageError(f"--scenario {args.scenario!r}: expected best or critical")
     if args.ego not in ("controller", "replay"):
         raise UsageError(f"--ego {args.ego!r}: expected controller or replay")
-    check_out_plain(args.out, "crossing.xodr", args.force)
+    check_out_plain(args.out, EXPORT_FILES, args.force)
     files = export(args.run_dir, args.out, args.scenario, ego=args.ego)
     scenarios = [f for f in files if f.suffix == ".xosc" and not f.name.startswith("logical")
                  and f.name != "template.xosc"]

@@ -83,7 +83,7 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
     row = resolve_scenario(scenario, ep, sp)
     rec = rr.RecordingStream("jaxfalsify", recording_id=f"{Path(run_dir).name}-{scenario}")
     if spawn:
-        rec.spawn()
+        _spawn(rec)
         _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row)
         return None
     path = Path(save) if save else Path(run_dir) / f"replay-{scenario.replace(':', '-')}.rrd"
@@ -221,7 +221,7 @@ def record_campaign(run_dir: Path, save: Path | None = None, spawn: bool = False
     sp, rc, summary, ep = load_run(run_dir)
     rec = rr.RecordingStream("jaxfalsify", recording_id=f"{Path(run_dir).name}-campaign")
     if spawn:
-        rec.spawn()
+        _spawn(rec)
         _log_campaign(rec, sp, ep, window)
         return None
     path = Path(save) if save else Path(run_dir) / "campaign.rrd"
@@ -277,6 +277,15 @@ def _log_campaign(rec, sp, ep, window: int) -> None:
                                     name=f"{n} ({u}): share of the last {window} draws")
                    for n, u in zip(sp.names, sp.units)]))))
     rec.flush()
+
+
+def _spawn(rec) -> None:
+    """Open a rerun viewer for ``rec``; ValueError (one line) when none can be started."""
+    try:
+        rec.spawn()
+    except RuntimeError as e:
+        raise ValueError(f"--spawn: {e} (install rerun-sdk's viewer on PATH, or --save a "
+                         ".rrd file and open it with `rerun FILE.rrd`)") from None
 
 
 def check_save_path(path: Path) -> Path:

@@ -525,16 +525,23 @@ def write_status(out: Path, kind: str, state: str, **extra) -> None:
     write_json(Path(out) / "status.json", doc, indent=2)
 
 
-def check_out_plain(out: Path, marker: str, force: bool) -> None:
+def check_out_plain(out: Path, patterns: tuple[str, ...], force: bool) -> None:
     """An output folder for files that are not a run, sweep or compare (exports): refuse a
-    file in the way, a result folder, existing output without ``force``, or no write access."""
+    file in the way, a result folder, a file matching one of the glob ``patterns`` (what the
+    command writes) without ``force``, or no write access."""
+    import fnmatch
+
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise FolderError(f"--out {out} exists and is not a folder")
     if folder_kind(out) is not None:
         raise FolderError(f"--out {out} holds a {folder_kind(out)}; choose another folder")
-    if (out / marker).exists() and not force:
-        raise FolderError(f"--out {out} already holds {marker}; pass --force to overwrite")
+    there = sorted(f.name for f in out.iterdir() if any(
+        fnmatch.fnmatch(f.name, p) for p in patterns)) if out.is_dir() else []
+    if there and not force:
+        raise FolderError(f"--out {out} already holds {there[0]}"
+                          f"{f' (and {len(there) - 1} more)' if len(there) > 1 else ''}; "
+                          "pass --force to overwrite")
     parent = out if out.exists() else next((a for a in out.parents if a.exists()), Path("."))
     try:
         with tempfile.TemporaryFile(dir=parent):

@@ -425,6 +425,35 @@ def test_export_refuses_existing_output(run_with_figures, tmp_path, capsys):
     assert "--force" in capsys.readouterr().err
     assert main(["export", str(run_with_figures), "--scenario", "all", "--out",
                  str(tmp_path / "o2")]) == 2
+    # any file an export would write counts, not only the road (a user's own best.xosc)
+    own = tmp_path / "own"
+    own.mkdir()
+    (own / "best.xosc").write_text("mine")
+    capsys.readouterr()
+    assert main(["export", str(run_with_figures), "--out", str(own)]) == 2
+    assert "already holds best.xosc" in capsys.readouterr().err
+    assert (own / "best.xosc").read_text() == "mine" and len(list(own.iterdir())) == 1
+
+
+def test_replay_refuses_to_overwrite_a_saved_file_and_says_when_no_viewer(
+        run_with_figures, tmp_path, capsys, monkeypatch):
+    import rerun as rr
+
+    f = tmp_path / "mine.rrd"
+    f.write_text("precious")
+    assert main(["replay", str(run_with_figures), "--save", str(f)]) == 2
+    assert "--force" in capsys.readouterr().err and f.read_text() == "precious"
+    assert main(["replay", str(run_with_figures), "--save", str(f), "--force"]) == 0
+    assert f.stat().st_size > 1000
+
+    def no_viewer(self, *a, **k):
+        raise RuntimeError("Failed to find Rerun Viewer executable in PATH")
+
+    monkeypatch.setattr(rr.RecordingStream, "spawn", no_viewer)
+    capsys.readouterr()
+    assert main(["replay", str(run_with_figures), "--spawn"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Rerun Viewer" in err[0] and "--save" in err[0]
 
 
 def test_export_force_replaces_the_earlier_export(run_with_figures, tmp_path):
