@@ -6,13 +6,13 @@
 Writes the data the paper's figures show (drawn by the figures issue):
 
 * ``reward_curve.csv`` — reward per episode for every seed, their mean, and a 100-episode moving
-  average of the mean (paper Fig. 7);
+  average of the mean (paper Fig. 6);
 * ``table_ii.json`` — seed 0's best critical scenario beside a typical non-critical one, with
   parameters and outcomes (paper Table II), and the high-risk shares over the second half
-  (paper Fig. 9);
+  (paper Fig. 8);
 * ``distance_traces.csv`` — Euclidean distance over time for those two scenarios, with each
-  step's high-risk flag (paper Fig. 8), and for 14 evaluated scenarios, 3 collisions and 11
-  others (paper Fig. 10);
+  step's high-risk flag (paper Fig. 7), and for 14 evaluated scenarios, 3 collisions and 11
+  others (paper Fig. 9);
 * ``summary.json`` — per seed: best reward, whether it is the space's global maximum, first
   collision, the episode from which the mean reward stays within 5 % of its final plateau.
 """
@@ -82,7 +82,7 @@ def main() -> None:
                         **{f: res.fields[f][i].item() for f in campaign.RECORD_FIELDS}}
     (args.out / "table_ii.json").write_text(json.dumps(jsonable(table), indent=2) + "\n")
 
-    # distance traces: the Table II pair, then 3 collisions + 11 others for Fig. 10
+    # distance traces: the Table II pair, then 3 collisions + 11 others for Fig. 9
     col = np.nonzero(res.fields["collision"])[0]
     other = np.nonzero(~res.fields["collision"])[0]
     rng = np.random.default_rng(0)

@@ -154,7 +154,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--strategies",
                    help=f"comma-separated (default {','.join(DEFAULT_STRATEGIES)})")
     c.add_argument("--seeds", type=_int("--seeds", 1), help="seeds 0..N-1 (default 10)")
-    c.add_argument("--evaluations", type=_int("--evaluations", 1), default=4000)
+    c.add_argument("--evaluations", type=_int("--evaluations", 1), default=4000,
+                   help="budget per strategy and seed (default 4000)")
     c.add_argument("--budgets", help="also report at these budgets, comma-separated "
                    "(the first evaluations of the same runs)")
     c.add_argument("--suite", type=Path, metavar="FILE",
@@ -172,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--jobs", type=_int("--jobs", 1),
                    help="strategies searched side by side (default: one per CPU core, at "
                    "most 4; results are the same, only wall times differ)")
-    c.add_argument("--force", action="store_true")
+    c.add_argument("--force", action="store_true", help="overwrite an existing comparison")
     c.add_argument("--quiet", action="store_true", help="no progress")
     _distributed_flags(c)
 
@@ -192,7 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "with --force")
     g.add_argument("--spawn", action="store_true", help="open a rerun viewer instead")
     pl.add_argument("--scenarios", type=_int("--scenarios", 1), default=0,
-                    help="also overlay the distance of K evaluated scenarios (paper Fig. 10)")
+                    help="also overlay the distance of K evaluated scenarios (paper Fig. 9)")
     pl.add_argument("--campaign", action="store_true",
                     help="record the whole search instead (default RUN_DIR/campaign.rrd): every "
                     "evaluation's outcome and values, the sampling distribution per update")
@@ -406,7 +407,7 @@ def cmd_compare(args, stop, startup) -> int:
         print()
         print(compare.budgets_markdown(result))
     print(f"wall time {timing_line(result['timing'])}")
-    print(f"wrote {out}/compare.json, compare.md")
+    print(f"wrote {out}/compare.json, compare.md, config.toml, timing.json")
     return 0
 
 

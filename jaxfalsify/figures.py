@@ -2,13 +2,13 @@
 
 Host-side only (matplotlib, Agg backend); the jitted core never imports this module.
 
-* ``reward_per_episode.png`` — reward per evaluation and its moving average (paper Fig. 7);
+* ``reward_per_episode.png`` — reward per evaluation and its moving average (paper Fig. 6);
 * ``distance_challenging.png`` — distance over time of the best critical scenario and of a
   typical non-critical one, high-risk steps red, low-risk green, the < 1 m collision zone
-  shaded (paper Fig. 8);
-* ``high_risk_second_half.png`` — their high-risk shares over the second half (paper Fig. 9);
+  shaded (paper Fig. 7);
+* ``high_risk_second_half.png`` — their high-risk shares over the second half (paper Fig. 8);
 * ``distance_14_scenarios.png`` — distance over time of 14 evaluated scenarios, collisions
-  red, the rest green (paper Fig. 10);
+  red, the rest green (paper Fig. 9);
 * ``critical_regions.png`` — beyond the paper: the collision share of the exhaustive sweep over
   every pair of parameters (a perceptual colour scale fitted to the data), with a subsample of
   the run's evaluated scenarios on top; axes in the parameters' units, ticks at their values;
@@ -191,7 +191,7 @@ def resimulate(sp, rc, ep: dict, rows, world=None):
 
 
 def fig10_rows(ep: dict, n: int = 14, n_collisions: int = 3) -> list[int]:
-    """Up to ``n`` evaluated scenarios, ``n_collisions`` of them collisions (paper Fig. 10);
+    """Up to ``n`` evaluated scenarios, ``n_collisions`` of them collisions (paper Fig. 9);
     a fixed draw so redrawing gives the same figure."""
     rng = np.random.default_rng(0)
     col = np.nonzero(analysis.collided(ep))[0]
@@ -274,7 +274,7 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
         plt.close(fig)
         written.append(path)
 
-    # Fig. 7: reward per episode
+    # Fig. 6: reward per episode
     fig, ax, place = _single(plt, (8, 5), top=TITLE, legend=True)
     e, r = ep["evaluation"], ep["reward"]
     ax.plot(e, r, ".", ms=2, color="tab:blue", alpha=0.4, label="reward per evaluation")
@@ -296,7 +296,7 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
     shown += [shown[0]] * (N_TRAJECTORIES - len(shown))  # a fixed batch: one compiled program
     traj = resimulate(sp, rc, ep, shown, world)
 
-    # Fig. 8/9: the best critical scenario vs a typical non-critical one
+    # Fig. 7/8: the best critical scenario vs a typical non-critical one
     fig = plt.figure(figsize=(12, 5))
     axes = [fig.add_axes([0.1, 0.1, 0.35, 0.8]), fig.add_axes([0.55, 0.1, 0.35, 0.8])]
     best_label = "challenging (best)" if analysis.collided(ep)[rows["best"]] else \
@@ -337,7 +337,7 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
     place()
     save(fig, "high_risk_second_half.png")
 
-    # Fig. 10: 14 scenarios, collisions red
+    # Fig. 9: 14 scenarios, collisions red
     fig, ax, place = _single(plt, (8, 5), top=TITLE, legend=True)
     ax.axhspan(0, 1.0, color="0.85", label="collision zone (< 1 m)")
     labelled = set()

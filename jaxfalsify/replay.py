@@ -17,7 +17,7 @@ Entities of a recording:
 * ``info``: the scenario's parameters and outcome as a markdown document;
 * ``training/reward``: the run's reward per evaluation, on the ``evaluation`` timeline;
 * ``overlay/<k>/distance``: with several scenarios, each one's distance (collisions red), as in
-  the paper's Fig. 10.
+  the paper's Fig. 9.
 
 A blueprint puts the top view and the scenario's text beside three plots: the distance with
 the RSS safe distance and the epsilon line, the speeds and the high-risk flag, the training

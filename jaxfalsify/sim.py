@@ -1,4 +1,4 @@
-"""The crossing world and its batched simulator (paper Fig. 1/3: a pedestrian crosses an urban road).
+"""The crossing world and its batched simulator (paper Fig. 1/2: a pedestrian crosses an urban road).
 
 Frame: x along the ego's lane (direction of travel), y to the left, origin at the ego's *base*
 start (its box centre), SI units. The road is straight with ``lanes_right`` lanes right of
@@ -108,14 +108,16 @@ WORLD = World()
 class Trajectory:
     """Per-step record of one episode; each field ``(T,)`` (leading batch dims if batched).
 
-    Steps after the episode ended hold the final state with ``valid`` False.
+    Steps after the episode ended have ``valid`` False and hold no meaning (their positions
+    are the final state, their distances those of one more hypothetical tick): read only the
+    valid steps.
     """
 
     t: jax.Array  # s
     ego_x: jax.Array  # m, box centre
     ego_y: jax.Array  # m
     ego_speed: jax.Array  # m/s
-    ego_accel: jax.Array  # m/s^2, effective over the step that follows
+    ego_accel: jax.Array  # m/s^2, effective over the step that led to this record
     ped_x: jax.Array  # m
     ped_y: jax.Array  # m
     ped_speed: jax.Array  # m/s
@@ -143,7 +145,7 @@ class Outcome:
     final_distance: jax.Array  # m, centre distance before the last step (the reward's term)
     high_risk_steps: jax.Array  # int32
     high_risk_share: jax.Array  # over the episode's steps
-    high_risk_share_second_half: jax.Array  # over its second half (paper Fig. 9)
+    high_risk_share_second_half: jax.Array  # over its second half (paper Fig. 8)
     robustness: jax.Array  # m, STL robustness of always(not clash); < 0 iff violated
     steps: jax.Array  # int32, episode length in steps
     min_ttc: jax.Array  # s
@@ -393,8 +395,8 @@ def _outcome(c: _Carry, hr_bits, w: World) -> Outcome:
         collision_time=jnp.where(collision, c.coll_step.astype(jnp.float32) * w.dt, jnp.nan),
         min_distance=c.min_dist, final_distance=c.last_centre,
         high_risk_steps=c.hr_count,
-        high_risk_share=c.hr_count / jnp.maximum(n, 1),
-        high_risk_share_second_half=hr2 / jnp.maximum(second, 1),
+        high_risk_share=(c.hr_count / jnp.maximum(n, 1)).astype(jnp.float32),
+        high_risk_share_second_half=(hr2 / jnp.maximum(second, 1)).astype(jnp.float32),
         robustness=c.min_dist - w.epsilon,
         steps=n, min_ttc=c.min_ttc, nonfinite=c.nonfinite)
 
