@@ -131,11 +131,36 @@ def load_run(run_dir: Path):
     if missing:
         raise ValueError(f"{run_dir} is not a finished run folder (missing "
                          f"{', '.join(missing)})")
+    from jaxfalsify.campaign import RECORD_FIELDS
+
     rc = RunConfig.from_toml(run_dir / "config.toml")
     sp = rc.build().space
-    summary = json.loads((run_dir / "summary.json").read_text())
-    ep = {k: np.asarray(v) for k, v in pq.read_table(run_dir / "episodes.parquet")
-          .to_pydict().items()}
+    where = run_dir / "summary.json"
+    try:
+        summary = json.loads(where.read_text())
+    except (ValueError, UnicodeDecodeError) as e:
+        raise ValueError(f"{where} is damaged ({e})") from None
+    need = ("first_collision_evaluation", "n_collisions", "n_distinct_critical", "best",
+            "evaluations", "batch", "strategy", "space", "space_seed", "sut", "seed")
+    gone = [k for k in need if not isinstance(summary, dict) or k not in summary]
+    if gone:
+        raise ValueError(f"{where} is damaged (no '{gone[0]}')")
+    where = run_dir / "episodes.parquet"
+    try:
+        ep = {k: np.asarray(v) for k, v in pq.read_table(where).to_pydict().items()}
+    except Exception as e:  # pyarrow raises several kinds for a damaged file
+        raise ValueError(f"{where} is damaged ({type(e).__name__}: {str(e)[:120]})") from None
+    cols = ["evaluation", *RECORD_FIELDS,
+            *(c for n in sp.names for c in (f"{n}_idx", n))]
+    gone = [c for c in cols if c not in ep]
+    if gone:
+        raise ValueError(f"{where} is damaged (no column '{gone[0]}')")
+    if len(ep["evaluation"]) == 0:
+        raise ValueError(f"{where} holds no evaluation")
+    for n, size in zip(sp.names, sp.shape):
+        i = ep[f"{n}_idx"]
+        if not np.issubdtype(i.dtype, np.integer) or i.min() < 0 or i.max() >= size:
+            raise ValueError(f"{where} is damaged: column '{n}_idx' outside 0..{size - 1}")
     return sp, rc, summary, ep
 
 

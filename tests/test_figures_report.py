@@ -595,3 +595,48 @@ def test_a_run_where_everything_collided_shows_no_typical_scenario(tmp_path, mon
     assert "challenging (best)" in titles and "non-challenging (typical)" not in titles
     bars = [ticks for ts, ticks in seen.values() if "challenging" in ticks]
     assert bars == [["challenging"]]
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("summary_empty", "summary.json is damaged (no 'first_collision_evaluation')"),
+    ("summary_not_json", "summary.json is damaged (Expecting value"),
+    ("no_reward", "episodes.parquet is damaged (no column 'reward')"),
+    ("no_rows", "episodes.parquet holds no evaluation"),
+    ("index_out_of_range", "column 'ped_speed_idx' outside 0..24"),
+])
+def test_a_damaged_run_folder_gets_one_line_and_nothing_redrawn(run_with_figures, tmp_path,
+                                                                 capsys, damage, message):
+    """figures, replay and export of a damaged run: one line naming the file, exit 2, and the
+    folder's figures untouched (they were half redrawn before the failure)."""
+    import shutil
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    run = tmp_path / "run"
+    shutil.copytree(run_with_figures, run)
+    eps = run / "episodes.parquet"
+    t = pq.read_table(eps)
+    if damage == "summary_empty":
+        (run / "summary.json").write_text("{}")
+    elif damage == "summary_not_json":
+        (run / "summary.json").write_text('{"best":')
+    elif damage == "no_reward":
+        pq.write_table(t.drop(["reward"]), eps)
+    elif damage == "no_rows":
+        pq.write_table(t.slice(0, 0), eps)
+    else:
+        i = t.schema.get_field_index("ped_speed_idx")
+        col = t.column(i).to_pylist()
+        col[3] = 99  # the paper space has 25 speeds
+        pq.write_table(t.set_column(i, "ped_speed_idx", pa.array(col, t.schema.field(i).type)),
+                       eps)
+    before = {f.name: f.read_bytes() for f in (run / "figures").iterdir()}
+    for cmd in (["figures", str(run)], ["replay", str(run)],
+                ["export", str(run), "--out", str(tmp_path / "x")]):
+        capsys.readouterr()
+        assert main(cmd) == 2, cmd
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], (cmd, err)
+    assert {f.name: f.read_bytes() for f in (run / "figures").iterdir()} == before
+    assert not (tmp_path / "x").exists() or not any((tmp_path / "x").iterdir())
