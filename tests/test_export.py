@@ -20,7 +20,8 @@ def oracle_profile(speed, accel, change=0.0, step=0, n_steps=300):
     """Per-step walking speed of the original code (pdf.py), written as its loop: ``s =
     speed - 5 * accel``; steps 0..5 at ``s``; then ``s += accel`` each step while it has not
     yet exceeded ``speed + 0.25`` (by more than 1e-4 of an increment); a nonzero ``change``
-    walks steps ``step..step+5`` at ``s + change`` without growing; never below 0.
+    walks steps ``step..step+5`` at ``s + change`` without growing (the original opens that
+    window for a change of 0 too: a deviation README lists); never below 0.
     Returns (speeds, start, final s)."""
     start = speed - 5 * accel
     s = start
