@@ -457,10 +457,7 @@ def write_controller_scenario(path: Path, road_file: str, space, values: dict[st
     E, R = xosc.StoryboardElementType, xosc.Rule
     if window:
         # at T = 0 the window itself is the start speed: the two must not start together
-        change_off = lambda: _param_is("no_speed_change", "ped_speed_change", "0",  # noqa: E731
-                                       R.equalTo)
-        start = _any_of([ego_start(), change_off()],
-                        [ego_start(), _param_is("window_later", "ped_change_step", "0",
+        start = _any_of([ego_start(), _param_is("window_later", "ped_change_step", "0",
                                                 R.greaterThan)])
         window_waiting = lambda: xosc.ValueTrigger(  # noqa: E731
             "window_not_started", 0.0, xosc.ConditionEdge.none,
@@ -473,14 +470,13 @@ def write_controller_scenario(path: Path, road_file: str, space, values: dict[st
     speed_man.add_event(_speed_event("ped_start_speed", ex["start_speed"], _step(), start))
     speed_man.add_event(_speed_event("ped_accelerates", ex["target"], linear, ramp))
     if window:
-        changed = lambda: _param_is("speed_change", "ped_speed_change", "0",  # noqa: E731
-                                    R.notEqualTo)
+        # the window opens whatever the change (pdf.py): a change of 0 holds the speed
         speed_man.add_event(_speed_event(
             "ped_speed_change", ex["window_speed"], _step(),
-            _any_of([_at("window_starts", ex["window_at"]), changed()])))
+            _any_of([_at("window_starts", ex["window_at"])])))
         speed_man.add_event(_speed_event(
             "ped_speed_restore", ex["restore_speed"], _step(),
-            _any_of([_at("window_ends", ex["restore_at"]), changed()])))
+            _any_of([_at("window_ends", ex["restore_at"])])))
         again = xosc.ValueTrigger(
             "restored", ex["ramp_again_delay"], xosc.ConditionEdge.none,
             xosc.StoryboardElementStateCondition(E.event, "ped_speed_restore",

@@ -62,12 +62,11 @@ def reference_evaluate(scenario: dict, sut: str = "carla-tm", world: World = WOR
 
     # the original's pdf.py loop: s starts at speed - 5*accel; steps 0..5 at s; then s += accel
     # per step until it exceeds speed + 0.25; the change window (6 steps from T) walks at
-    # s + change and does not advance s
+    # s + change and does not advance s, whatever the change
     s = p["ped_speed"] - 5 * p["ped_accel"]
-    on = p["ped_speed_change"] != 0
     T = p["ped_change_step"]
     for k in range(w.horizon):
-        in_win = on & (k >= T) & (k <= T + 5)
+        in_win = (k >= T) & (k <= T + 5)
         grow = ~in_win & (k > 5) & (s <= p["ped_speed"] + 0.25 + 1e-4 * p["ped_accel"]) \
             & (p["ped_accel"] > 0)
         s = np.where(grow, s + p["ped_accel"], s)

@@ -173,23 +173,23 @@ def ped_speed_profile(k, ped_speed, ped_accel, ped_speed_change=0.0, ped_change_
 
     ``s = speed - 5*accel``; steps 0..5 walk at ``s``; from step 6, ``s`` grows by ``accel``
     per step (per step, not accel*dt, as the original) until it first exceeds speed + 0.25,
-    then stays. In the extended space (``ped_speed_change != 0``) the steps
-    ``change_step .. change_step + 5`` (six) walk at the current ``s + change`` and the growth
-    pauses during them. Never < 0 (the original does not guard; CARLA cannot walk backwards).
+    then stays. The steps ``change_step .. change_step + 5`` (six) walk at the current
+    ``s + change`` and the growth pauses during them, whatever the change (0 holds the speed;
+    the default ``change_step`` 0 is the still phase). Never < 0 (the original does not guard; CARLA cannot walk backwards).
     """
     start, n_grow = ped_profile_constants(ped_speed, ped_accel)
     return _profile_at(k, start, n_grow, ped_accel, ped_speed_change, ped_change_step)
 
 
 def _profile_at(k, start, n_grow, accel, change, change_step):
-    on = change != 0
-    # growth steps done by step k: steps 6..k outside the window [T, T+5]
-    paused = jnp.where(on, jnp.clip(jnp.minimum(k, change_step + WINDOW - 1)
-                                    - jnp.maximum(float(STILL), change_step) + 1.0,
-                                    0.0, None), 0.0)
+    # growth steps done by step k: steps 6..k outside the window [T, T+5] (the window is
+    # open whatever the change, as in pdf.py: a change of 0 holds the speed; at T = 0 it is
+    # the still phase)
+    paused = jnp.clip(jnp.minimum(k, change_step + WINDOW - 1)
+                      - jnp.maximum(float(STILL), change_step) + 1.0, 0.0, None)
     grown = jnp.clip(jnp.maximum(k - (STILL - 1.0), 0.0) - paused, 0.0, n_grow)
     v = start + grown * accel
-    window = on & (k >= change_step) & (k < change_step + WINDOW)
+    window = (k >= change_step) & (k < change_step + WINDOW)
     return jnp.maximum(jnp.where(window, v + change, v), 0.0)
 
 

@@ -19,15 +19,15 @@ DT = 0.1
 def oracle_profile(speed, accel, change=0.0, step=0, n_steps=300):
     """Per-step walking speed of the original code (pdf.py), written as its loop: ``s =
     speed - 5 * accel``; steps 0..5 at ``s``; then ``s += accel`` each step while it has not
-    yet exceeded ``speed + 0.25`` (by more than 1e-4 of an increment); a nonzero ``change``
-    walks steps ``step..step+5`` at ``s + change`` without growing (the original opens that
-    window for a change of 0 too: a deviation README lists); never below 0.
+    yet exceeded ``speed + 0.25`` (by more than 1e-4 of an increment); steps
+    ``step..step+5`` walk at ``s + change`` without growing, whatever the change (0 holds
+    the speed); never below 0.
     Returns (speeds, start, final s)."""
     start = speed - 5 * accel
     s = start
     out = []
     for k in range(n_steps):
-        window = change != 0 and step <= k < step + 6
+        window = step <= k < step + 6
         if k >= 6 and not window and not s > speed + 0.25 + 1e-4 * accel:
             s += accel
         out.append(max(s + change if window else s, 0.0))
@@ -145,7 +145,7 @@ CASES = [  # ped_speed, ped_accel, ped_speed_change, ped_change_step
     (1.2, 0.02, 0.5, 3.0),       # window in the still phase (growth starts after it)
     (1.2, 0.02, 0.5, 0.0),       # window from step 0 (instead of the start speed)
     (1.46, 0.0, -0.75, 30.0),    # window without any increment
-    (1.2, 0.03, 0.0, 20.0),      # no change: no window, no pause
+    (1.2, 0.03, 0.0, 20.0),      # a change of 0: the window holds the speed, growth paused
     (0.3, 0.1, -0.5, 8.0),       # window with clamped speeds
 ]
 
@@ -182,18 +182,12 @@ def test_exported_pedestrian_profile_equals_the_simulator(tmp_path, xsd, speed, 
     assert ev["ped_accelerates"][2] == "linear"
     assert ev["ped_accelerates"][4] == pytest.approx(accel / DT, abs=1e-12)
     assert ev["ped_accelerates"][3] == pytest.approx(final, abs=1e-9)
-    if change == 0 or step > 0:
+    if step > 0:
         assert ev["ped_start_speed"][1] == 0.0  # at the ego's start
         assert ev["ped_start_speed"][3] == pytest.approx(max(start, 0.0), abs=1e-12)
-    if change == 0:
-        assert ev["ped_speed_change"][1] is None  # no window
-        if start >= 0 and accel > 0:
-            assert ev["ped_accelerates"][1] == pytest.approx(0.55)
-    else:
-        assert ev["ped_speed_change"][1] == pytest.approx(step * DT)
-        i = int(step)
-        assert ev["ped_speed_change"][3] == pytest.approx(ref[i], abs=1e-9)
-        assert ev["ped_speed_restore"][1] == pytest.approx((step + 6) * DT)
+    assert ev["ped_speed_change"][1] == pytest.approx(step * DT)  # whatever the change
+    assert ev["ped_speed_change"][3] == pytest.approx(ref[int(step)], abs=1e-9)
+    assert ev["ped_speed_restore"][1] == pytest.approx((step + 6) * DT)
 
     # the walked distance at every step's end: the simulator's up to accel * dt / 8 (the
     # ramp runs through each step's mean speed), plus one step's clamping at zero speed

@@ -140,11 +140,12 @@ def test_sensor_aeb_holds_a_pedestrian_in_its_path():
 
 def test_pedestrian_profile_matches_the_original_loop():
     """pdf.py: constant for steps 0..5, then +accel per step until above speed + 0.25; the
-    change window (T..T+5, six steps) walks at the current s + change and pauses growth."""
+    change window (T..T+5, six steps) walks at the current s + change and pauses growth,
+    whatever the change."""
     def original(speed, accel, change, T, n):
         out, s = [], round(speed - accel * 5, 3)
         for i in range(n):
-            if change and T <= i <= T + 5:
+            if T <= i <= T + 5:  # whatever the change: 0 holds the speed
                 out.append(s + change)
             elif i <= 5 or s > speed + 0.25:
                 out.append(s)
@@ -155,7 +156,8 @@ def test_pedestrian_profile_matches_the_original_loop():
 
     # (no exact ties s == speed + 0.25, which the original resolves by float noise)
     for speed, accel, change, T in ((1.237, 0.007, 0.0, 0.0), (1.4, 0.03, -0.5, 8.0),
-                                    (1.1, 0.045, 0.75, 20.0), (1.808, 0.076, 0.5, 6.0)):
+                                    (1.1, 0.045, 0.75, 20.0), (1.808, 0.076, 0.5, 6.0),
+                                    (1.3, 0.03, 0.0, 10.0)):  # a change of 0 mid-ramp
         got = np.asarray(sim.ped_speed_profile(jnp.arange(120.0), speed, accel, change, T))
         np.testing.assert_allclose(got, original(speed, accel, change, T, 120), atol=1e-5)
 
