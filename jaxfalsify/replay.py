@@ -126,21 +126,20 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
     # the start (t = 0), then the state after each simulated step
     sc = sp.scenario(indices_of(ep, sp, [row]))
     ex0, py0 = jf.sim.start_positions(float(sc["ego_offset"][0]), float(sc["ped_offset"][0]), w)
-    rec.set_time("sim_time", duration=0.0)
-    rec.log("world/ego", rr.Boxes2D(centers=[[ex0, w.ego_y]], sizes=[[w.ego_length, w.ego_width]],
-                                    colors=[BLUE], labels=["ego"]))
-    rec.log("world/pedestrian", rr.Boxes2D(centers=[[w.crosswalk_x, py0]],
-                                           sizes=[[w.ped_length, w.ped_width]],
-                                           colors=[(240, 160, 0)]))
-    for k in np.nonzero(valid)[0]:
-        rec.set_time("sim_time", duration=float(tr["t"][k]))
-        braking = bool(tr["braking"][k])
-        rec.log("world/ego", rr.Boxes2D(centers=[[tr["ego_x"][k], tr["ego_y"][k]]],
+
+    def actors(t, ego_x, ego_y, ped_x, ped_y, braking):
+        rec.set_time("sim_time", duration=float(t))
+        rec.log("world/ego", rr.Boxes2D(centers=[[ego_x, ego_y]],
                                         sizes=[[w.ego_length, w.ego_width]],
                                         colors=[RED if braking else BLUE], labels=["ego"]))
-        rec.log("world/pedestrian", rr.Boxes2D(centers=[[tr["ped_x"][k], tr["ped_y"][k]]],
+        rec.log("world/pedestrian", rr.Boxes2D(centers=[[ped_x, ped_y]],
                                                sizes=[[w.ped_length, w.ped_width]],
                                                colors=[(240, 160, 0)]))
+
+    actors(0.0, ex0, w.ego_y, w.crosswalk_x, py0, False)
+    for k in np.nonzero(valid)[0]:
+        actors(tr["t"][k], tr["ego_x"][k], tr["ego_y"][k], tr["ped_x"][k], tr["ped_y"][k],
+               bool(tr["braking"][k]))
         if corridor is not None:  # the Traffic Manager's polygons at this step
             for name, (x0, x1, y0, y1), color in zip(
                     ("hazard_corridor", "walker_grown_box"), corridor,

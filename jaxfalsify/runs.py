@@ -67,6 +67,13 @@ def space_sut_names(sp: Space) -> set[str]:
     return {n[len(SUT_PREFIX):] for n in sp.names if is_sut_parameter(n)}
 
 
+def fixed_sut_params(params: Mapping[str, Any], sp: Space) -> dict[str, Any]:
+    """``params`` without those the space sets per scenario (what a config or summary
+    records: one value, or the values given, per parameter the space does not vary)."""
+    varied = space_sut_names(sp)
+    return {k: v for k, v in params.items() if k not in varied}
+
+
 def check_space_sut(sp: Space, sut: sut_lib.SUT, given: Any = ()) -> None:
     """ValueError naming a space parameter ``sut.NAME`` the SUT does not have, or one also
     given a value (``given``: the names of ``--sut-param``/``sut_params``), which the space's
@@ -143,12 +150,10 @@ class RunConfig:
         """Every default filled in: the canonical strategy name, its batch and full options,
         the SUT's full parameters, the space's full description."""
         b = built or self.build()
-        varied = space_sut_names(b.space)  # the space sets these per scenario
         return dataclasses.replace(
             self, space=b.space.describe(), strategy=search.canonical(self.strategy),
             sut=sut_lib.recorded_spec(self.sut), batch=b.strategy.batch,
-            sut_params={k: v for k, v in sut_lib.params_dict(b.sut_params).items()
-                        if k not in varied},
+            sut_params=fixed_sut_params(sut_lib.params_dict(b.sut_params), b.space),
             strategy_params=_strategy_options(b))
 
     def to_toml(self) -> str:

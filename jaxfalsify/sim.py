@@ -175,7 +175,8 @@ def ped_speed_profile(k, ped_speed, ped_accel, ped_speed_change=0.0, ped_change_
     per step (per step, not accel*dt, as the original) until it first exceeds speed + 0.25,
     then stays. The steps ``change_step .. change_step + 5`` (six) walk at the current
     ``s + change`` and the growth pauses during them, whatever the change (0 holds the speed;
-    the default ``change_step`` 0 is the still phase). Never < 0 (the original does not guard; CARLA cannot walk backwards).
+    the default ``change_step`` 0 is the still phase). Never < 0 (the original does not
+    guard; CARLA cannot walk backwards).
     """
     start, n_grow = ped_profile_constants(ped_speed, ped_accel)
     return _profile_at(k, start, n_grow, ped_accel, ped_speed_change, ped_change_step)

@@ -382,15 +382,13 @@ class SweepConfig:
         return dataclasses.replace(self, chunk=self.chunk or sim.default_chunk(),
                                    sut=sut_lib.recorded_spec(self.sut))
 
-    def full_sut_params(self, space: Space | None = None) -> dict[str, Any]:
+    def full_sut_params(self, space: Space) -> dict[str, Any]:
         """Every SUT parameter: its default, or the value (list of values) given; without
         those ``space`` varies (its ``sut.NAME`` dimensions)."""
-        from jaxfalsify.runs import space_sut_names
+        from jaxfalsify.runs import fixed_sut_params
 
         defaults = sut_lib.params_dict(sut_lib.resolve(self.sut).default_params)
-        varied = space_sut_names(space) if space is not None else set()
-        return {k: v for k, v in {**defaults, **dict(self.sut_params)}.items()
-                if k not in varied}
+        return fixed_sut_params({**defaults, **dict(self.sut_params)}, space)
 
     def to_toml(self, space: Space, processes: int = 1) -> str:
         doc = {"kind": "sweep", "sut": self.sut, "space_seed": self.space_seed,
@@ -733,13 +731,10 @@ def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts
                                        if r == top),
                 "global_max_scenario": best["best"]}
 
-    from jaxfalsify.runs import space_sut_names
+    from jaxfalsify.runs import fixed_sut_params
 
-    varied = space_sut_names(space)  # set per scenario by the space: not one value here
-
-    def params(c):
-        return {k: v for k, v in sut_lib.params_dict(calib.instances[c]).items()
-                if k not in varied}
+    def params(c):  # a parameter the space sets per scenario has no one value here
+        return fixed_sut_params(sut_lib.params_dict(calib.instances[c]), space)
 
     rows = [merged(c) for c in range(calib.count)]
     summary = {"space": space.name, "space_seed": config.space_seed, "sut": config.sut,
