@@ -20,6 +20,7 @@ Host-side only (matplotlib, Agg backend); the jitted core never imports this mod
 from __future__ import annotations
 
 import dataclasses
+import io
 import itertools
 import json
 from pathlib import Path
@@ -289,15 +290,16 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
     run_dir = Path(run_dir)
     sp, rc, summary, ep = load_run(run_dir)
     out = run_dir / "figures"
-    out.mkdir(exist_ok=True)
-    written = []
+    drawn: dict[Path, bytes] = {}  # written together at the end: a failure while drawing
+    # leaves the earlier figures as they were, not some redrawn and some not
 
     def save(fig, name):
-        path = out / name
-        with store.atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=DPI, format="png", pil_kwargs=PNG)
-        plt.close(fig)
-        written.append(path)
+        buf = io.BytesIO()
+        try:
+            fig.savefig(buf, dpi=DPI, format="png", pil_kwargs=PNG)
+        finally:
+            plt.close(fig)
+        drawn[out / name] = buf.getvalue()
 
     # Fig. 6: reward per episode
     fig, ax, place = _single(plt, (8, 5), top=TITLE, legend=True)
@@ -389,7 +391,9 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
         base = prepared and prepared.critical_base(sp, truth["collision"])
         save(critical_region_figure(plt, sp, truth, ep, base=base), "critical_regions.png")
     save(search_figure(plt, sp, ep, rc.strategy), "search_distribution.png")
-    return written
+    out.mkdir(exist_ok=True)
+    store.write_all_atomic(drawn)
+    return list(drawn)
 
 
 def axis_label(sp, p: int) -> str:

@@ -88,6 +88,25 @@ def write_atomic(path: Path, data: str | bytes) -> str:
     return sha256(data)
 
 
+def write_all_atomic(files: dict[Path, bytes]) -> None:
+    """Write several files as one set: every one to a temporary file first, then all renamed
+    into place, so a failure while writing (a full disk) leaves every earlier file as it was
+    and no temporary file behind."""
+    staged = []
+    try:
+        for path, data in files.items():
+            tmp = _tmp_in(Path(path).parent, Path(path).name)
+            staged.append((tmp, Path(path)))
+            with _naming(Path(path)):
+                tmp.write_bytes(data)
+        for tmp, path in staged:
+            _publish(tmp, path)
+    finally:
+        for tmp, _ in staged:
+            if tmp.exists():
+                tmp.unlink()
+
+
 @contextlib.contextmanager
 def _naming(path: Path):
     """An OSError without a file name (a write to an open file on a full disk) gets

@@ -96,6 +96,32 @@ def test_figures_command_regenerates_and_rejects_non_runs(run_with_figures, tmp_
     assert "is not a finished run folder" in err and len(err.splitlines()) == 1
 
 
+def test_a_failure_while_drawing_leaves_every_figure_as_it_was(run_with_figures, monkeypatch,
+                                                                capsys):
+    """The figures are written as one set after all are drawn: the last one failing leaves
+    the earlier ones byte for byte (none redrawn) and no temporary file behind."""
+    from jaxfalsify import figures
+
+    figs = run_with_figures / "figures"
+    originals = {p: p.read_bytes() for p in figs.iterdir()}
+    for p in originals:  # marked, so a redrawn figure (same bytes as before) would show
+        p.write_bytes(b"earlier " + p.name.encode())
+    before = {p.name: p.read_bytes() for p in figs.iterdir()}
+
+    def broken(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(figures, "search_figure", broken)
+    try:
+        assert main(["figures", str(run_with_figures)]) == 1  # a failure, not bad input
+        err = capsys.readouterr().err.strip()
+        assert "No space left on device" in err and len(err.splitlines()) == 1
+        assert {p.name: p.read_bytes() for p in figs.iterdir()} == before
+    finally:  # the module's run folder, for the tests after this one
+        for p, data in originals.items():
+            p.write_bytes(data)
+
+
 def _read_rrd(path):
     from rerun.chunk import RrdReader
 
