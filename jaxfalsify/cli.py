@@ -392,7 +392,8 @@ def cmd_compare(args, stop, startup) -> int:
         return 0
     if result.get("n_collisions") is not None:
         gmax = result["global_max_reward"]
-        top = (f"global max reward {gmax:.4f} ({result['global_max_ties']} scenarios)"
+        ties = result['global_max_ties']
+        top = (f"global max reward {gmax:.4f} ({ties} scenario{'' if ties == 1 else 's'})"
                if gmax is not None else "no finite reward (every rollout non-finite)")
         print(f"{result['space']} space, {result['sut']}, {args.evaluations} evaluations, "
               f"{config.seeds} seeds; {top}, {result['n_collisions']:,} critical of "

@@ -562,7 +562,10 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
             out.mkdir(parents=True, exist_ok=True)
             store.write_atomic(out / "config.toml", config.to_toml())
             store.write_json(out / "compare.json", result, indent=2)
-            store.write_atomic(out / "compare.md", table_markdown(result) + "\n")
+            md = table_markdown(result)
+            if config.budgets:  # the smaller budgets' table too, not only on the console
+                md += "\n\n" + budgets_markdown(result)
+            store.write_atomic(out / "compare.md", md + "\n")
             store.write_json(out / "timing.json", clock.summary(), indent=2)
         for i in range(num_processes if num_processes > 1 else 0):
             (out / f".compare.part-{i:05d}.json").unlink(missing_ok=True)
@@ -579,10 +582,25 @@ def _frac(n, of) -> str:
 
 
 def _share(p: float | None) -> str:
-    """A share for humans: percent above 1 %, scientific notation below."""
+    """A collision share for humans: scientific notation (``8.4e-03``), ``0`` for none."""
     if p is None or not np.isfinite(p):
         return "-"
-    return f"{p:.1%}" if p >= 0.01 else f"{p:.1e}"
+    return "0" if p == 0 else f"{p:.1e}"
+
+
+def _percent(p: float | None) -> str:
+    """A share of evaluations in percent, two significant digits (``1.3%``, ``0.67%``,
+    ``0.0025%``), ``0`` for none: one format down a column."""
+    if p is None or not np.isfinite(p):
+        return "-"
+    if p == 0:
+        return "0"
+    x = 100 * p
+    return f"{x:.2g}%" if x >= 1e-4 else f"{x:.1e}%"
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n:,} {word}{'' if n == 1 else 's'}"
 
 
 def uniform_line(result: dict, u: dict, budget: int) -> str:
@@ -594,14 +612,14 @@ def uniform_line(result: dict, u: dict, budget: int) -> str:
                f"({result['sampled_collisions']} collided: p = {_share(u['p'])}, 95 % interval "
                f"{lo:.2g}..{hi:.2g})")
     else:
-        src = (f"{result['n_collisions']:,} collisions in {result['n_scenarios']:,} scenarios, "
-               f"p = {_share(u['p'])}")
+        src = (f"{_plural(result['n_collisions'], 'collision')} in "
+               f"{_plural(result['n_scenarios'], 'scenario')}, p = {_share(u['p'])}")
     return (f"Uniform random, analytically ({src}): expected evaluations to the first collision "
             f"1/p = {_num(u['expected'], '.4g')} (median {_num(u['median'], '.4g')}); censored "
             f"at {budget + 1}: expected {u['expected_censored']:.4g}, median "
             f"{u['median_censored']:g}; a collision within {budget} evaluations with "
             f"probability {u['found_probability']:.3f}. Uniform's share of evaluations on box "
-            f"corners: {_share(result['uniform_corner_share'])}.")
+            f"corners: {_percent(result['uniform_corner_share'])}.")
 
 
 def side_by_side(result: dict) -> str:
@@ -628,7 +646,7 @@ def table_markdown(result: dict) -> str:
                      f"{_frac(r['seeds_reaching_global_max'], r['seeds'])} | "
                      f"{_num(r['distinct_critical_median'], 'g')} / "
                      f"{'-' if r['all_critical'] is None else r['all_critical']} | "
-                     f"{_share(r['corner_share_median'])} | "
+                     f"{_percent(r['corner_share_median'])} | "
                      f"{_num(r['final_mean_reward_median'], '.4f')} | "
                      f"{_num(overhead.get(r['strategy']), '.3f')} | "
                      f"{r['wall_seconds']:.1f} |")
@@ -652,11 +670,15 @@ def table_markdown(result: dict) -> str:
 def budgets_markdown(result: dict) -> str:
     """One table per comparison: per strategy and budget, seeds with a collision, evaluations
     to the first collision (median [IQR] over all seeds, none = budget + 1) and seeds at the
-    global maximum; uniform random's expectation in the last row."""
+    global maximum; uniform random's expectation in the last row (its collision chance within
+    the budget and E[min(X, budget + 1)], X its evaluations to the first collision, so it
+    compares with the censored medians beside it)."""
     blist = result["budgets"]
+    top = blist[-1]["budget"]
     head = "| strategy | " + " | ".join(
         f"{b['budget']}: collision / first [IQR] / global max" for b in blist) + \
-        " | distinct failures | box corners | overhead ms / evaluation |"
+        (f" | distinct failures (median at {top}) | box corners (median at {top}) | "
+         "overhead ms / evaluation |")
     lines = [head, "|" + "---|" * (len(blist) + 4)]
     overhead = result.get("overhead", {})
     names = [r["strategy"] for r in blist[-1]["rows"]]
@@ -672,15 +694,17 @@ def budgets_markdown(result: dict) -> str:
         o = overhead.get(name)
         lines.append(f"| {name} | " + " | ".join(cells) +
                      f" | {_num(last['distinct_critical_median'], 'g')} | "
-                     f"{_share(last['corner_share_median'])} | "
+                     f"{_percent(last['corner_share_median'])} | "
                      f"{'-' if o is None else f'{o:.3f}'} |")
     cells = []
     for b in blist:
         u = b["uniform_first_collision"]
-        cells.append(f"{u['found_probability']:.0%} / E {_num(u['expected_censored'], '.4g')}, "
-                     f"median {u['median_censored']:g}")
-    lines.append("| uniform random (analytic) | " + " | ".join(cells) +
-                 f" | | {_share(result['uniform_corner_share'])} | |")
+        cells.append(f"{u['found_probability']:.0%} / E[min(X, {b['budget'] + 1})] "
+                     f"{_num(u['expected_censored'], '.4g')}, median {u['median_censored']:g}")
+    estimated = " (p estimated from a uniform sample)" if result.get("n_collisions") is None \
+        else ""
+    lines.append(f"| uniform random (analytic{estimated}) | " + " | ".join(cells) +
+                 f" | | {_percent(result['uniform_corner_share'])} | |")
     return "\n".join(lines)
 
 
@@ -829,15 +853,19 @@ def suite_markdown(summary: dict) -> str:
     parts = [f"# Search benchmark: {summary['suite']} ({summary['seeds']} seeds per strategy)"]
     for r in summary["entries"]:
         share = r.get("collision_share")
-        truth = (f"{r['n_collisions']:,} collisions of {r['n_scenarios']:,} scenarios "
-                 f"(p = {_share(share)})" if r.get("n_collisions") is not None else
-                 f"{r['n_scenarios']:.3g} scenarios, too many to sweep; collision share "
-                 f"estimated {_share(share)} from {r['sampled']:,} uniform draws")
+        if r.get("n_collisions") is not None:
+            truth = (f"{_plural(r['n_collisions'], 'collision')} of "
+                     f"{_plural(r['n_scenarios'], 'scenario')} (p = {_share(share)})")
+        else:
+            truth = (f"{r['n_scenarios']:.3g} scenarios, too many to sweep; collision share "
+                     f"estimated {_share(share)} from {r['sampled']:,} uniform draws")
         extra = ""
         if r.get("global_max_reward") is not None:
+            where = ("no collision anywhere in the space" if r["n_collisions"] == 0 else
+                     "failures away from every edge (interior island)"
+                     if r.get("failures_interior") else "failures touch an edge of the box")
             extra = (f"; global maximum {r['global_max_reward']:.4f} "
-                     f"({r['global_max_ties']} scenario{'s' if r['global_max_ties'] != 1 else ''})"
-                     f"; failures {'away from every edge (interior island)' if r.get('failures_interior') else 'touch an edge of the box'}")
+                     f"({_plural(r['global_max_ties'], 'scenario')}); {where}")
         sp = ", ".join(f"{k}={v:g}" for k, v in r.get("sut_params", {}).items())
         parts += ["", f"## {r['space']} x {r['sut']}{f' ({sp})' if sp else ''}", "",
                   truth + extra + ".", "", budgets_markdown(r)]

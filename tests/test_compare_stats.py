@@ -78,6 +78,30 @@ def test_seed_stats_and_row_by_hand_with_a_failed_seed():
     assert "1/p = 4.8" in md
 
 
+def test_shares_print_in_one_format_per_column():
+    """Corner shares in percent with two significant digits whatever their size (a column
+    never mixes 1.3% and 6.7e-03); collision shares in scientific notation; none is 0."""
+    assert [compare._percent(x) for x in (0.013, 6.7e-3, 2.5e-5, 0.0)] == \
+        ["1.3%", "0.67%", "0.0025%", "0"]
+    assert [compare._share(x) for x in (8.4e-3, 0.0)] == ["8.4e-03", "0"]
+
+
+def test_suite_section_of_a_space_without_collisions():
+    """A space with no collision says so (not that its failures touch an edge); one
+    collision and one scenario are singular."""
+    entry = {"space": "s", "sut": "carla-tm", "n_collisions": 0, "n_scenarios": 8,
+             "collision_share": 0.0, "global_max_reward": -0.05, "global_max_ties": 1,
+             "failures_interior": False, "overhead": {}, "uniform_corner_share": 0.5,
+             "budgets": [{"budget": 4, "rows": [],
+                          "uniform_first_collision": compare.uniform_first_collision(8, 0, 4)}]}
+    text = compare.suite_markdown({"suite": "t", "seeds": 2, "entries": [entry]})
+    assert "0 collisions of 8 scenarios (p = 0); global maximum -0.0500 (1 scenario); " \
+        "no collision anywhere in the space." in text
+    one = {**entry, "n_collisions": 1, "failures_interior": True}
+    assert "1 collision of 8 scenarios" in compare.suite_markdown(
+        {"suite": "t", "seeds": 2, "entries": [one]})
+
+
 def test_corner_mask_one_value_parameter_is_always_a_corner():
     m = compare.corner_mask(np.array([[0, 0, 4], [0, 0, 2], [2, 0, 0]]), (3, 1, 5))
     assert m.tolist() == [True, False, True]
@@ -180,7 +204,11 @@ def test_strategies_side_by_side_give_the_same_results(tmp_path):
 
     recorded = tomllib.loads((tmp_path / "three" / "config.toml").read_text())
     assert (recorded["jobs"], recorded["budgets"], recorded["overhead"]) == (3, [16], False)
-    assert "3 strategies side by side" in (tmp_path / "three" / "compare.md").read_text()
+    md = (tmp_path / "three" / "compare.md").read_text()
+    assert "3 strategies side by side" in md
+    # the smaller budget's table is in the file, not only on the console, cell for cell
+    assert compare.budgets_markdown(three) in md
+    assert "| 16: collision / first [IQR] / global max | 48: " in md
     assert json.loads((tmp_path / "one" / "compare.json").read_text())["rows"][0]["per_seed"]
 
 
