@@ -7,14 +7,34 @@ strategies (``jaxfalsify.search``) and host-side outputs are imported on first u
 """
 
 import importlib as _importlib
+import sys as _sys
 
-from jaxfalsify import cache as _cache
-from jaxfalsify.metrics import rss_safe_distance
-from jaxfalsify.sim import WORLD, Outcome, Trajectory, World, evaluate, simulate
-from jaxfalsify.space import Space, load_space
-from jaxfalsify.sut import SUT, Observation
 
-_cache.enable_compilation_cache()
+def _command_line() -> bool:
+    """This import is the ``jaxfalsify`` console script's or ``python -m jaxfalsify``'s."""
+    import os
+
+    orig = getattr(_sys, "orig_argv", [])
+    return os.path.basename(_sys.argv[0] if _sys.argv else "") == "jaxfalsify" or \
+        orig[1:3] == ["-m", "jaxfalsify"]
+
+
+try:  # importing JAX takes most of a second: a Ctrl-C then ends the command in one line
+    from jaxfalsify import cache as _cache
+    from jaxfalsify.metrics import rss_safe_distance
+    from jaxfalsify.sim import WORLD, Outcome, Trajectory, World, evaluate, simulate
+    from jaxfalsify.space import Space, load_space
+    from jaxfalsify.sut import SUT, Observation
+
+    _cache.enable_compilation_cache()
+except KeyboardInterrupt:
+    if not _command_line():  # a library user's interrupt stays theirs
+        raise
+    print("jaxfalsify: interrupted while starting; nothing was written", file=_sys.stderr)
+    _sys.stderr.flush()
+    import os as _os
+
+    _os._exit(130)
 
 __all__ = ["rss_safe_distance", "simulate", "evaluate", "load_space", "Space", "World", "WORLD",
            "Outcome", "Trajectory", "SUT", "Observation"]

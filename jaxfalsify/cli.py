@@ -154,7 +154,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--strategies",
                    help=f"comma-separated (default {','.join(DEFAULT_STRATEGIES)})")
     c.add_argument("--seeds", type=_int("--seeds", 1), help="seeds 0..N-1 (default 10)")
-    c.add_argument("--evaluations", type=_int("--evaluations", 1), default=4000,
+    c.add_argument("--evaluations", type=_int("--evaluations", 1), default=None,
                    help="budget per strategy and seed (default 4000)")
     c.add_argument("--budgets", help="also report at these budgets, comma-separated "
                    "(the first evaluations of the same runs)")
@@ -238,7 +238,11 @@ def _per_strategy(items) -> dict:
         if not sep or not name.strip():
             raise UsageError(f"--strategy-param {item!r}: expected STRATEGY:NAME=VALUE, "
                              "e.g. cem:elite_frac=0.2")
-        out.setdefault(name.strip(), {}).update(_assignments([assignment], "--strategy-param"))
+        mine = out.setdefault(name.strip(), {})
+        for k, v in _assignments([assignment], "--strategy-param").items():
+            if k in mine:
+                raise UsageError(f"--strategy-param {name.strip()}:{k} given twice")
+            mine[k] = v
     return out
 
 
@@ -247,6 +251,32 @@ def _no_flags_with_resume(args, names):
     if given:
         raise UsageError(f"--{given[0].replace('_', '-')} cannot be combined with --resume "
                          "(the folder's own config.toml is used)")
+
+
+def _config_overridden(rc, flags: dict):
+    """``--config`` with flags: what the config resolved for the strategy, SUT or space that
+    a flag replaces is dropped (compared by what they name: ``reinforce`` is
+    ``reinforce/default``, a SUT file by its absolute path), so the new one starts from its own
+    defaults: another strategy's options and batch, another SUT's parameters, and parameters
+    the new space varies itself (its ``sut.NAME`` dimensions)."""
+    from jaxfalsify import runs, search
+    from jaxfalsify import sut as sut_lib
+
+    def same(a, b, canon):
+        try:
+            return canon(a) == canon(b)
+        except ValueError:  # an unknown name: named when the run is built
+            return a == b
+
+    if "strategy" in flags and not same(flags["strategy"], rc.strategy, search.canonical):
+        rc = dataclasses.replace(rc, strategy_params={}, batch=None)  # --batch re-applied
+    if "sut" in flags and not same(flags["sut"], rc.sut, sut_lib.recorded_spec):
+        rc = dataclasses.replace(rc, sut_params={})
+    if ("space" in flags or "space_seed" in flags) and rc.sut_params:
+        sp = runs.build_space(flags.get("space", rc.space), flags.get("space_seed",
+                                                                       rc.space_seed))
+        rc = dataclasses.replace(rc, sut_params=runs.fixed_sut_params(rc.sut_params, sp))
+    return rc
 
 
 RUN_FLAGS = ("space", "space_seed", "sut", "strategy", "evaluations", "batch", "seed",
@@ -263,10 +293,8 @@ def cmd_run(args, stop, startup) -> int:
     else:
         rc = runs.RunConfig.from_toml(args.config) if args.config else runs.RunConfig()
         flags = {k: getattr(args, k) for k in RUN_FLAGS if getattr(args, k) is not None}
-        if args.config and "strategy" in flags and flags["strategy"] != rc.strategy:
-            rc = dataclasses.replace(rc, strategy_params={})  # options of another strategy
-        if args.config and "sut" in flags and flags["sut"] != rc.sut:
-            rc = dataclasses.replace(rc, sut_params={})
+        if args.config:
+            rc = _config_overridden(rc, flags)
         rc = dataclasses.replace(rc, **flags)
         if args.sut_param:
             rc = dataclasses.replace(rc, sut_params={**rc.sut_params, **_assignments(
@@ -274,13 +302,13 @@ def cmd_run(args, stop, startup) -> int:
         if args.strategy_param:
             rc = dataclasses.replace(rc, strategy_params={**rc.strategy_params, **_assignments(
                 args.strategy_param, "--strategy-param")})
-        out = args.out or runs.default_run_dir(rc.strategy)
+        out = args.out  # None: a new folder runs/<time>-<strategy>
     o = runs.execute(rc, out, resume=args.resume is not None, force=args.force,
                      progress=_progress(args.quiet), stop=stop, figures=not args.no_figures,
                      rerun=args.rerun, startup_seconds=startup)
     if not args.quiet:
         print(runs.closing_report(o))
-    print(f"wrote {out}/ (config.toml, episodes.parquet, summary.json, critical.csv, "
+    print(f"wrote {o.out}/ (config.toml, episodes.parquet, summary.json, critical.csv, "
           f"timing.json{'' if args.no_figures else ', figures/, report.md'}"
           f"{', best.rrd' if args.rerun else ''})")
     return _late_signal(stop)
@@ -353,8 +381,6 @@ def cmd_sweep(args, stop, startup) -> int:
 
 
 def cmd_compare(args, stop, startup) -> int:
-    import time
-
     from jaxfalsify import compare
     from jaxfalsify.progress import timing_line
 
@@ -376,15 +402,15 @@ def cmd_compare(args, stop, startup) -> int:
             raise UsageError(f"--budgets {args.budgets!r}: comma-separated integers") from None
     config = compare.CompareConfig(strategies=names or compare.DEFAULT_STRATEGIES,
                                    seeds=args.seeds or 10,
-                                   evaluations=args.evaluations, space=args.space or "paper",
+                                   evaluations=args.evaluations or 4000,
+                                   space=args.space or "paper",
                                    space_seed=args.space_seed or 0, sut=args.sut or "carla-tm",
                                    sut_params=_assignments(args.sut_param, "--sut-param"),
                                    strategy_params=_per_strategy(args.strategy_param),
                                    budgets=budgets, jobs=args.jobs or 0)
     config.check()
-    out = args.out or Path("runs") / f"compare-{time.strftime('%Y%m%d-%H%M%S')}"
     pid, n_proc = _start_distributed(args)
-    result = compare.execute(config, out, force=args.force, progress=_progress(args.quiet),
+    result = compare.execute(config, args.out, force=args.force, progress=_progress(args.quiet),
                              stop=stop, process_id=pid, num_processes=n_proc,
                              startup_seconds=startup)
     if pid != 0:
@@ -395,11 +421,11 @@ def cmd_compare(args, stop, startup) -> int:
         ties = result['global_max_ties']
         top = (f"global max reward {gmax:.4f} ({ties} scenario{'' if ties == 1 else 's'})"
                if gmax is not None else "no finite reward (every rollout non-finite)")
-        print(f"{result['space']} space, {result['sut']}, {args.evaluations} evaluations, "
+        print(f"{result['space']} space, {result['sut']}, {config.evaluations} evaluations, "
               f"{config.seeds} seeds; {top}, {result['n_collisions']:,} critical of "
               f"{result['n_scenarios']:,} scenarios")
     else:
-        print(f"{result['space']} space, {result['sut']}, {args.evaluations} evaluations, "
+        print(f"{result['space']} space, {result['sut']}, {config.evaluations} evaluations, "
               f"{config.seeds} seeds; {result['n_scenarios']:.3g} scenarios (too many to "
               f"sweep): collision share estimated {result['collision_share']:.2g} from "
               f"{result['sampled']:,} uniform draws")
@@ -408,13 +434,11 @@ def cmd_compare(args, stop, startup) -> int:
         print()
         print(compare.budgets_markdown(result))
     print(f"wall time {timing_line(result['timing'])}")
-    print(f"wrote {out}/compare.json, compare.md, config.toml, timing.json")
+    print(f"wrote {result['out']}/compare.json, compare.md, config.toml, timing.json")
     return 0
 
 
 def _compare_suite(args, names, stop, startup) -> int:
-    import time
-
     from jaxfalsify import compare
     from jaxfalsify.progress import timing_line
 
@@ -423,19 +447,18 @@ def _compare_suite(args, names, stop, startup) -> int:
                         ("--sut-param", args.sut_param), ("--budgets", args.budgets),
                         ("--strategy-param", args.strategy_param),
                         ("--distributed", args.distributed),
-                        ("--evaluations", args.evaluations != 4000)):
+                        ("--evaluations", args.evaluations is not None)):
         if given:
             raise UsageError(f"--suite takes its spaces, SUTs and budgets from the suite file; "
                              f"drop {flag}")
     suite = compare.load_suite(args.suite, seeds=args.seeds, strategies=names,
                                jobs=args.jobs or 0)
-    out = args.out or Path("runs") / f"suite-{time.strftime('%Y%m%d-%H%M%S')}"
-    result = compare.execute_suite(suite, out, force=args.force,
+    result = compare.execute_suite(suite, args.out, force=args.force,
                                    progress=_progress(args.quiet), stop=stop,
                                    startup_seconds=startup)
     print(compare.suite_markdown(result))
     print(f"wall time {timing_line(result['timing'])}")
-    print(f"wrote {out}/suite.json, suite.md (and a comparison folder per space)")
+    print(f"wrote {result['out']}/suite.json, suite.md (and a comparison folder per space)")
     return 0
 
 
@@ -453,6 +476,8 @@ def cmd_simulate(args, stop, startup) -> int:
             raise UsageError(f"expected NAME=VALUE, got {item!r}")
         if name not in KNOWN_PARAMETERS:
             raise UsageError(f"unknown parameter '{name}' (known: {', '.join(KNOWN_PARAMETERS)})")
+        if name in scenario:
+            raise UsageError(f"{name} given twice")
         try:
             scenario[name] = float(value)
         except ValueError:

@@ -454,16 +454,19 @@ def _search_side_by_side(builds, seeds: list[int], jobs: int, progress: Progress
     return out_map
 
 
-def execute(config: CompareConfig, out: Path | str, *, force: bool = False,
+def execute(config: CompareConfig, out: Path | str | None, *, force: bool = False,
             progress: Progress | None = None, stop=None, process_id: int = 0,
             num_processes: int = 1, startup_seconds: float = 0.0) -> dict:
     """Run every strategy on seeds 0..seeds-1 and write ``compare.json``/``compare.md`` to
     ``out``. With several processes (``jax.distributed``), process i runs its contiguous share
-    of the seeds and writes a part; process 0 merges. Returns the result."""
+    of the seeds and writes a part; process 0 merges. ``out`` None: a new folder
+    ``runs/compare-<time>`` (``-2``, ... when taken). Returns the result (its folder under
+    ``"out"``)."""
     cfg.check_type(config, CompareConfig, "config")
     clock = Clock(startup_seconds)
     progress = progress or Progress()
-    out = Path(out)
+    if out is None and num_processes > 1:
+        raise ValueError("a comparison of several processes needs out (a shared folder)")
     config.check(num_processes)
     base = config.run_config(config.strategies[0]).build()
     from jaxfalsify import cache
@@ -477,8 +480,13 @@ def execute(config: CompareConfig, out: Path | str, *, force: bool = False,
         "strategy_params": {k: dict(v) for k, v in config.strategy_params.items()},
         "processes": num_processes, "code": cache.source_hash(base.sut.act, base.sut.init)},
         sort_keys=True, default=str).encode()))
-    lk = store.open_folder(out, "compare", force=force,
-                           name=".lock" if process_id == 0 else f".lock-part-{process_id:05d}")
+    if out is None:
+        out, lk = store.open_new_folder(Path("runs") / f"compare-{_now()}", "compare")
+    else:
+        out = Path(out)
+        lk = store.open_folder(out, "compare", force=force,
+                               name=".lock" if process_id == 0 else
+                               f".lock-part-{process_id:05d}")
     try:
         lk.claim("compare")
         return _execute(config, out, base, progress, process_id, num_processes, clock, stop)
@@ -570,6 +578,7 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
         for i in range(num_processes if num_processes > 1 else 0):
             (out / f".compare.part-{i:05d}.json").unlink(missing_ok=True)
     result["timing"] = clock.summary()
+    result["out"] = str(out)
     return result
 
 
@@ -790,27 +799,50 @@ def load_suite(path: Path | str, seeds: int | None = None,
             raise ValueError(f"{key}.exclude must be a list of strategy names")
         out.append(SuiteEntry(sp, sut, sut_params,
                               e.get("space_seed", 0), tuple(exclude)))
+    from jaxfalsify.runs import check_int
+    from jaxfalsify.space import check_name
+
     budgets = doc.get("budgets", [250, 1000, 4000])
     if not isinstance(budgets, list) or not budgets:
         raise ValueError(f"{where}: budgets must be a list of evaluation counts")
-    names = strategies or tuple(doc.get("strategies", DEFAULT_STRATEGIES))
-    suite = SuiteConfig(str(doc.get("name", path.stem)), tuple(out),
+    for b in budgets:
+        check_int(f"{where}: budgets", b, 1, 10**9)
+    names = doc.get("strategies", list(DEFAULT_STRATEGIES))
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+        raise ValueError(f"{where}: strategies must be a list of strategy names "
+                         f"(got {names!r:.60})")
+    names = strategies or tuple(names)
+    try:
+        name = check_name(doc.get("name", path.stem))
+    except ValueError as e:
+        raise ValueError(f"{where}: {e}") from None
+    suite = SuiteConfig(name, tuple(out),
                         tuple(sorted(set(budgets))), seeds or doc.get("seeds", 10), names,
                         jobs)
     suite.check()
     return suite
 
 
-def execute_suite(config: SuiteConfig, out: Path | str, *, force: bool = False,
+def _now() -> str:
+    import time
+
+    return time.strftime("%Y%m%d-%H%M%S")
+
+
+def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = False,
                   progress: Progress | None = None, stop=None,
                   startup_seconds: float = 0.0) -> dict:
     """Every entry of the suite as a comparison (its own folder under ``out``, named after
-    the space), then ``suite.json`` and ``suite.md`` with a table per space."""
-    out = Path(out)
+    the space), then ``suite.json`` and ``suite.md`` with a table per space. ``out`` None:
+    a new folder ``runs/suite-<time>`` (``-2``, ... when taken; the summary's ``"out"``)."""
     config.check()
     progress = progress or Progress()
     clock = Clock(startup_seconds)
-    lk = store.open_folder(out, "suite", force=force)
+    if out is None:
+        out, lk = store.open_new_folder(Path("runs") / f"suite-{_now()}", "suite")
+    else:
+        out = Path(out)
+        lk = store.open_folder(out, "suite", force=force)
     try:
         entries = []  # every entry's folder checked before anything is written
         for k, e in enumerate(config.entries):
@@ -843,6 +875,7 @@ def execute_suite(config: SuiteConfig, out: Path | str, *, force: bool = False,
             store.write_json(out / "suite.json", summary, indent=2)
             store.write_atomic(out / "suite.md", suite_markdown(summary) + "\n")
         summary["timing"] = clock.summary()
+        summary["out"] = str(out)
         return summary
     finally:
         lk.release()

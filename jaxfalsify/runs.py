@@ -24,6 +24,7 @@ import csv
 import dataclasses
 import io
 import json
+import shlex
 import time
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -186,6 +187,11 @@ class RunConfig:
                 raise ValueError(f"{where}: [{key}] must be a table (got {doc[key]!r})")
         if "space" in doc and not isinstance(doc["space"], (str, dict)):
             raise ValueError(f"{where}: space must be a name, a path or a table")
+        for key, lo, hi in (("seed", 0, SEED_LIMIT - 1), ("space_seed", 0, SEED_LIMIT - 1),
+                            ("evaluations", 1, 10**9), ("batch", 1, 10**6),
+                            ("checkpoint_every", 1, None)):
+            if key in doc:  # the file named (build() checks the same, for flags too)
+                check_int(f"{where}: {key}", doc[key], lo, hi)
         return cls(**doc)
 
 
@@ -291,7 +297,8 @@ class Interrupted(Exception):
     def __init__(self, kind: str, out: Path, done: int, total: int, unit: str,
                  resumable: bool = True):
         self.kind, self.out, self.done, self.total = kind, Path(out), done, total
-        self.resume = f"jaxfalsify {kind} --resume {out}" if resumable else None
+        self.resume = (f"jaxfalsify {kind} --resume {shlex.quote(str(out))}" if resumable
+                       else None)  # quoted: a command to paste into a shell
         super().__init__(f"interrupted after {done} of {total} {unit}; " + (
             f"{out} is resumable: {self.resume}" if resumable
             else f"nothing was written to {out}; run the {kind} again"))
@@ -353,7 +360,8 @@ class _Preparing:
         return self.result
 
 
-def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: bool = False,
+def execute(config: RunConfig, out: Path | str | None, *, resume: bool = False,
+            force: bool = False,
             progress: Progress | None = None, stop: Callable[[], bool] | None = None,
             figures: bool = True, rerun: bool = False, startup_seconds: float = 0.0
             ) -> RunOutcome:
@@ -362,7 +370,8 @@ def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: 
 
     Args:
       config: what to run (validated here: ValueError with one line on bad values).
-      out: the run folder.
+      out: the run folder; None: a new folder ``runs/<time>-<strategy>`` (``-2``, ``-3``, ...
+        appended when a run started in the same second has that name; ``RunOutcome.out``).
       resume: continue the unfinished run in ``out`` (its ``config.toml`` must equal
         ``config`` resolved; use :func:`resume_config` to read it).
       force: discard earlier results in ``out`` first.
@@ -384,11 +393,16 @@ def execute(config: RunConfig, out: Path | str, *, resume: bool = False, force: 
 
     clock = Clock(startup_seconds)
     progress = progress or Progress()
-    out = Path(out)
+    if out is None and resume:
+        raise ValueError("resume needs the run folder (out)")
     b = config.build()
     rc = config.resolved(b)
     check_memory(b)
-    lk = store.open_folder(out, "run", force=force, resume=resume)
+    if out is None:
+        out, lk = store.open_new_folder(default_run_dir(rc.strategy), "run")
+    else:
+        out = Path(out)
+        lk = store.open_folder(out, "run", force=force, resume=resume)
     try:
         return _execute(b, rc, out, lk, resume, force, progress, stop, figures, rerun, clock)
     finally:

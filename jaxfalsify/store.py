@@ -31,8 +31,10 @@ import fcntl
 import contextlib
 import hashlib
 import io
+import itertools
 import json
 import os
+import shlex
 import shutil
 import stat
 import tempfile
@@ -350,6 +352,16 @@ FINISHED = {"run": "summary.json", "sweep": "summary.json", "compare": "compare.
             "suite": "suite.json"}
 
 
+def _result_names(kind: str) -> list[str]:
+    """Every file a finished ``kind`` writes, relative to its folder."""
+    names = list(RESULT_FILES[kind]) + ["status.json"]
+    if kind == "run":
+        from jaxfalsify.report import FIGURES
+
+        names += [f"figures/{f}" for f, _ in FIGURES] + ["campaign.rrd"]
+    return names
+
+
 def folder_kind(out: Path) -> str | None:
     """``run``, ``sweep`` or ``compare`` from the folder's ``config.toml`` (None if absent);
     a FolderError if that file cannot be read."""
@@ -423,8 +435,15 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
             raise FolderError(f"--out {out} already holds {FINISHED[kind]}; pass --force to "
                               "overwrite")
         if kind not in ("compare", "suite") and unfinished(out) and not force:
-            raise FolderError(f"--out {out} holds an unfinished {kind}; pass --resume {out} to "
+            raise FolderError(f"--out {out} holds an unfinished {kind}; pass --resume "
+                              f"{shlex.quote(str(out))} to "
                               "continue it or --force to start over")
+        if have is None and not force:  # a user's files under the names a result takes
+            theirs = [n for n in _result_names(kind) if (out / n).exists()]
+            if theirs:
+                raise FolderError(f"--out {out} already holds {theirs[0]} (not written by "
+                                  "jaxfalsify); pass --force to overwrite it or choose "
+                                  "another folder")
     parent = out if out.exists() else next((a for a in out.parents if a.exists()), Path("."))
     if not parent.is_dir():
         raise FolderError(f"{flag}: {parent} is not a folder")
@@ -494,7 +513,9 @@ class FolderLock:
         return self
 
     def claim(self, kind: str) -> None:
-        """Record this process as the writer (done once validation passed)."""
+        """Record this process as the writer in the lock file, as soon as it holds the lock
+        (so a second writer is told whose it is while this one still validates; a resume then
+        refused leaves its pid there, the lock file's only content: no result changes)."""
         if self.fd is not None:
             os.ftruncate(self.fd, 0)
             os.pwrite(self.fd, f"{os.getpid()} jaxfalsify-{kind}\n".encode(), 0)
@@ -536,11 +557,31 @@ def open_folder(out: Path, kind: str, *, force: bool = False, resume: bool = Fal
     return lk
 
 
+def open_new_folder(base: Path, kind: str) -> tuple[Path, FolderLock]:
+    """A folder of a default name (``runs/<time>-<strategy>``) created here, exclusively:
+    ``base``, or ``base-2``, ``base-3``, ... when another command (one started in the same
+    second) has it, then locked. Returns the folder and its lock."""
+    base = Path(base)
+    base.parent.mkdir(parents=True, exist_ok=True)
+    for k in itertools.count(1):
+        out = base if k == 1 else base.with_name(f"{base.name}-{k}")
+        try:
+            out.mkdir()
+            break
+        except FileExistsError:
+            continue
+    try:
+        return out, open_folder(out, kind)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
 def write_status(out: Path, kind: str, state: str, **extra) -> None:
     """``status.json``: ``running``, ``interrupted`` or ``complete``, and how to resume."""
     doc = {"state": state, **extra}
     if state != "complete":
-        doc["resume"] = f"jaxfalsify {kind} --resume {out}"
+        doc["resume"] = f"jaxfalsify {kind} --resume {shlex.quote(str(out))}"
     write_json(Path(out) / "status.json", doc, indent=2)
 
 

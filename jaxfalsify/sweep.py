@@ -416,7 +416,7 @@ class SweepConfig:
 
 def default_out(space: Space, sut_name: str, space_seed: int) -> Path:
     sut = sut_lib.folder_name(sut_name)
-    return Path("sweeps") / f"{Path(space.name).stem}-{sut}-s{space_seed}"
+    return Path("sweeps") / f"{space.name}-{sut}-s{space_seed}"  # names hold no / (check_name)
 
 
 def checkpoint_name(process_id: int = 0, num_processes: int = 1) -> str:

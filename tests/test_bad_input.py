@@ -88,6 +88,21 @@ def world(tmp_path_factory):
     os.symlink(w / "victim.txt", w / "lock_is_link" / ".lock")  # never followed
     os.symlink(w / "nowhere", w / "dangling")  # --out through a link to nothing
     os.mkfifo(w / "fifo.toml")
+    for folder, name in [("users_report", "report.md"), ("users_sweep", "sweep.parquet"),
+                         ("users_figure", "figures/critical_regions.png"),
+                         ("users_compare", "compare.md")]:  # a user's files, result names
+        (w / folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (w / folder / name).write_text("the user's own\n")
+    for name, text in {
+        "suite_budget_str.toml": 'budgets = [1, "a"]\n[[entry]]\nspace = "tiny.toml"\n',
+        "suite_budget_nested.toml": 'budgets = [[1]]\n[[entry]]\nspace = "tiny.toml"\n',
+        "suite_strategies_int.toml": 'strategies = 5\n[[entry]]\nspace = "tiny.toml"\n',
+        "suite_strategies_nested.toml": ('strategies = [["random"]]\n[[entry]]\n'
+                                         'space = "tiny.toml"\n'),
+        "suite_strategies_str.toml": 'strategies = "random"\n[[entry]]\nspace = "tiny.toml"\n',
+        "suite_name_table.toml": 'name = {a = 1}\n[[entry]]\nspace = "tiny.toml"\n',
+    }.items():
+        (w / name).write_text(text)
     # a finished run and sweep
     assert main(["run", "--space", str(w / "tiny.toml"), "--strategy", "random",
                  "--evaluations", "40", "--batch", "8", "--out", str(w / "done"), "--quiet",
@@ -131,8 +146,8 @@ CASES = [
     (["sweep", "--space", "space_unknown_key.toml"], "colour"),
     (["run", "--bogus"], "--bogus"),
     # wrong types
-    (["run", "--config", "wrong_type.toml"], "evaluations must be an integer"),
-    (["run", "--config", "float_seed.toml"], "seed must be an integer"),
+    (["run", "--config", "wrong_type.toml"], "wrong_type.toml: evaluations must be an integer"),
+    (["run", "--config", "float_seed.toml"], "float_seed.toml: seed must be an integer"),
     (["sweep", "--space", "space_wrong_type.toml"], "'fast'"),
     (["run", "--evaluations", "ten"], "--evaluations must be an integer"),
     (["sweep", "--chunk", "x"], "--chunk must be an integer"),
@@ -152,7 +167,7 @@ CASES = [
     (["run", "--batch", "0"], "--batch must be >= 1"),
     (["run", "--batch", "-4"], "--batch must be >= 1"),
     (["run", "--checkpoint-every", "0"], "--checkpoint-every must be >= 1"),
-    (["run", "--config", "zero_batch.toml"], "batch must be in 1..1000000"),
+    (["run", "--config", "zero_batch.toml"], "zero_batch.toml: batch must be in 1..1000000"),
     (["run", "--seed", "-1"], "--seed"),
     (["sweep", "--chunk", "0"], "--chunk must be >= 1"),
     (["sweep", "--space", "space_zero_samples.toml"], "samples must be a positive integer"),
@@ -180,6 +195,9 @@ CASES = [
     (["compare", "--strategies", "reinforce,reinforce/default"],
      "'reinforce/default' given twice ('reinforce' names it too)"),
     (["simulate", "speed=1"], "unknown parameter 'speed'"),
+    (["simulate", "ego_offset=30", "ego_offset=40"], "ego_offset given twice"),
+    (["compare", "--strategies", "cem", "--strategy-param", "cem:elite_frac=0.2",
+      "--strategy-param", "cem:elite_frac=0.3"], "--strategy-param cem:elite_frac given twice"),
     (["replay", "done", "--scenario", "worst"], "worst"),
     (["export", "done", "--scenario", "worst", "--out", "x"], "--scenario 'worst'"),
     (["export", "done", "--ego", "wheel", "--out", "x"], "--ego 'wheel'"),
@@ -296,6 +314,21 @@ CASES = [
     (["compare", "--strategies", "random", "--seeds", "10000", "--evaluations", "1000000",
       "--out", "cmp_new"], "lower --seeds or --evaluations"),
     (["run", "--evaluations", "1000000000", "--out", "run_new"], "lower --evaluations"),
+    # a user's files under the names a result would take: never overwritten without --force
+    (["run", "--space", "tiny.toml", "--out", "users_report"],
+     "--out users_report already holds report.md (not written by jaxfalsify)"),
+    (["run", "--space", "tiny.toml", "--out", "users_figure"],
+     "already holds figures/critical_regions.png"),
+    (["sweep", "--space", "tiny.toml", "--out", "users_sweep"], "already holds sweep.parquet"),
+    (["compare", "--space", "tiny.toml", "--seeds", "1", "--out", "users_compare"],
+     "already holds compare.md"),
+    # malformed suites
+    (["compare", "--suite", "suite_budget_str.toml"], "budgets must be an integer (got 'a')"),
+    (["compare", "--suite", "suite_budget_nested.toml"], "budgets must be an integer"),
+    (["compare", "--suite", "suite_strategies_int.toml"], "strategies must be a list"),
+    (["compare", "--suite", "suite_strategies_nested.toml"], "strategies must be a list"),
+    (["compare", "--suite", "suite_strategies_str.toml"], "strategies must be a list"),
+    (["compare", "--suite", "suite_name_table.toml"], "name must be a string"),
     # the lock file: never a folder, never followed through a link
     (["run", "--space", "tiny.toml", "--out", "lock_is_folder"], "lock file"),
     (["run", "--space", "tiny.toml", "--out", "lock_is_link"], "lock file"),
@@ -377,3 +410,21 @@ def test_library_misuse_gives_one_line_errors_naming_the_argument(tmp_path):
     b = jf.evaluate({"ego_offset": 3.0}, sut="sensor-aeb",
                     sut_params={"ttc_full": np.float64(1.25)})
     assert float(a.min_distance) == float(b.min_distance)
+
+
+def test_an_interrupt_while_starting_is_one_line(tmp_path):
+    """Ctrl-C while JAX is still being imported (before the command's own handler exists):
+    one line and exit 130 from ``python -m jaxfalsify``; a library user's import re-raises.
+    The interrupt is made deterministic by a stand-in ``jax`` package that raises it."""
+    fake = tmp_path / "fake" / "jax"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("raise KeyboardInterrupt\n")
+    env = {**os.environ, "PYTHONPATH": str(tmp_path / "fake")}
+    r = subprocess.run([sys.executable, "-m", "jaxfalsify", "run", "--out", "x"], env=env,
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 130 and r.stdout == ""
+    assert r.stderr.splitlines() == ["jaxfalsify: interrupted while starting; nothing was written"]
+    assert not (tmp_path / "x").exists()
+    r = subprocess.run([sys.executable, "-c", "import jaxfalsify"], env=env,
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode != 0 and r.stderr.strip().endswith("KeyboardInterrupt")

@@ -137,3 +137,30 @@ def test_closing_report_and_report_md_agree(tmp_path, capsys):
     typ = analysis.typical_non_critical(ep)
     assert md_rows[0][2] == f"{ep['ego_offset'][typ]:.0f} m"  # integers: no decimals
     assert md_rows[1][2] == f"{ep['ped_accel'][typ]:.3f}"  # declared: 3 decimals
+
+
+def test_config_with_flags_drops_what_the_flag_replaces(tmp_path, monkeypatch):
+    """``run --config C`` with a flag naming the same strategy or SUT another way keeps C's
+    options; another strategy starts from its own options and batch; a space that varies a
+    SUT parameter drops C's value for it (no clash with a flag that was never given)."""
+    from pathlib import Path
+
+    from jaxfalsify import runs
+    from jaxfalsify.cli import _config_overridden
+    from jaxfalsify.sut import recorded_spec
+
+    rc = runs.RunConfig(strategy="reinforce/default", strategy_params={"hidden": 8}, batch=16)
+    assert _config_overridden(rc, {"strategy": "reinforce"}) == rc  # an alias: the same
+    other = _config_overridden(rc, {"strategy": "random"})
+    assert other.strategy_params == {} and other.batch is None
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "my_aeb.py").write_text("")
+    mine = runs.RunConfig(sut=recorded_spec("my_aeb.py:AEB"), sut_params={"ttc_brake": 1.2})
+    assert _config_overridden(mine, {"sut": "my_aeb.py:AEB"}) == mine  # relative = absolute
+    assert _config_overridden(mine, {"sut": "sensor-aeb"}).sut_params == {}
+    huge = Path(__file__).parents[1] / "experiments" / "suite" / "huge-aeb.toml"
+    aeb = runs.RunConfig(sut="sensor-aeb", sut_params={"ttc_full": 2.0, "ttc_partial": 3.0,
+                                                       "latency": 0.1})
+    moved = _config_overridden(aeb, {"space": str(huge)})
+    assert moved.sut_params == {"latency": 0.1}  # the space varies ttc_full and ttc_partial
+    moved.build()  # and the run builds (it was refused: "--sut-param ttc_full: the space ...")

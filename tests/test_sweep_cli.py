@@ -185,3 +185,15 @@ def test_chunks_never_exceed_the_chunk_given():
         if chunk >= 256:
             assert c % 256 == 0, (size, chunk, c)
             assert math.ceil(size / c) == math.ceil(size / (chunk // 256 * 256)), (size, chunk)
+
+
+def test_default_folder_keeps_the_whole_space_name():
+    """``exp.v1`` and ``exp.v2`` sweep into folders of their own (the name was cut at its
+    last dot, so the second found the first's results)."""
+    from jaxfalsify.space import space_from_dict
+    from jaxfalsify.sweep import default_out
+
+    doc = {"parameters": {"ped_speed": {"values": [1.0, 2.0]}}}
+    names = [default_out(space_from_dict({**doc, "name": n}), "carla-tm", 0).name
+             for n in ("exp.v1", "exp.v2")]
+    assert names == ["exp.v1-carla-tm-s0", "exp.v2-carla-tm-s0"]

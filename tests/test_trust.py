@@ -564,3 +564,34 @@ def test_an_undamaged_sweep_checkpoint_resumes_identically(checkpoints):
     assert (tmp / "sweep" / "summary.json").read_bytes() == (ref / "summary.json").read_bytes()
     assert _same_parquet(tmp / "sweep" / "sweep.parquet", ref / "sweep.parquet")
     shutil.rmtree(tmp)
+
+
+def test_the_resume_command_is_quoted_for_a_shell(tmp_path):
+    """A folder name with a space: the printed and recorded resume command, split as a shell
+    splits it, names that folder."""
+    import json
+    import shlex
+
+    from jaxfalsify import store
+
+    out = tmp_path / "my run"
+    out.mkdir()
+    store.write_status(out, "run", "interrupted")
+    cmd = json.loads((out / "status.json").read_text())["resume"]
+    assert shlex.split(cmd) == ["jaxfalsify", "run", "--resume", str(out)]
+
+
+def test_default_folders_of_the_same_second_do_not_collide(tmp_path):
+    """Two commands started in the same second get ``base`` and ``base-2`` (each created
+    exclusively), not one folder that the second then calls an unfinished run of its own."""
+    from jaxfalsify import store
+
+    base = tmp_path / "runs" / "20261124-094511-random"
+    a, la = store.open_new_folder(base, "run")
+    b, lb = store.open_new_folder(base, "run")
+    try:
+        assert (a, b) == (base, base.with_name(base.name + "-2"))
+        assert a.is_dir() and b.is_dir()
+    finally:
+        la.release()
+        lb.release()
