@@ -185,8 +185,9 @@ def make_parameter(name: str, distribution: str, args: tuple, samples: int,
     if isinstance(decimals, bool) or not isinstance(decimals, int) or not 0 <= decimals <= 9:
         raise ValueError(f"{key}.decimals must be an integer in 0..9 (got {decimals!r})")
     if distribution == "values":
-        if len(set(args)) != len(args):
-            raise ValueError(f"{key}.values has duplicates: {list(args)}")
+        if len(set(np.asarray(args, np.float32).tolist())) != len(args):  # as simulated
+            raise ValueError(f"{key}.values has duplicates (in float32, the simulator's "
+                             f"precision): {list(args)}")
     elif distribution == "normal":
         if args[1] <= 0:
             raise ValueError(f"{key}.sd must be > 0 (got {args[1]})")

@@ -69,6 +69,7 @@ def world(tmp_path_factory):
                                     "high = 100000000000000000000\nsamples = 3\n"),
         "space_bigint_values.toml": "[parameters.ped_speed]\nvalues = [1" + "0" * 400 + "]\n",
         "space_beyond_float32.toml": "[parameters.sut.ttc_full]\nvalues = [1.0, 1e39]\n",
+        "space_float32_twins.toml": "[parameters.ped_speed]\nvalues = [1.0, 1.00000001]\n",
     }
     for name, text in files.items():
         (w / name).write_text(text)
@@ -229,6 +230,7 @@ CASES = [
     (["sweep", "--space", "space_huge_integers.toml"], "16,777,216"),
     (["sweep", "--space", "space_int_overflow.toml"], "16,777,216"),
     (["sweep", "--space", "space_bigint_values.toml"], "not finite in float32"),
+    (["sweep", "--space", "space_float32_twins.toml"], "values has duplicates (in float32"),
     (["sweep", "--space", "space_beyond_float32.toml", "--sut", "sensor-aeb"],
      "not finite in float32"),
     (["sweep", "--space", "space_sut_twice.toml", "--sut", "sensor-aeb"], "declared twice"),
@@ -292,6 +294,9 @@ CASES = [
      "elite_frac=1.5 is outside (0, 1]"),
     (["run", "--strategy-param", "lr=-1"], "lr=-1.0 is outside [0, inf)"),
     (["run", "--strategy", "anneal", "--strategy-param", "max_step=0"], "outside [1, inf)"),
+    (["run", "--strategy", "cmaes", "--batch", "1"], "needs a population of at least 2"),
+    (["run", "--batch", "200", "--strategy-param", "resample=256", "--strategy-param",
+      "explore=256"], "102,400 candidates"),
     (["compare", "--strategies", "cmaes", "--strategy-param", "cmaes:std_init=0"],
      "std_init=0.0 is outside (0, inf)"),
     # SUT parameters outside their declared interval, also in a calibration list

@@ -344,3 +344,41 @@ def test_grid_default_batch_fits_a_small_space():
     assert search.make("grid", (40, 8))[0].batch == 200
     with pytest.raises(ValueError, match="batch=33 exceeds the space's 32 scenarios"):
         search.make("grid", (4, 8), 33)
+
+
+def test_cem_learns_from_finite_outcomes_only():
+    """Failed rollouts (-inf) are never CEM's elite: a batch of failures leaves the
+    distribution as it was; with one finite outcome only its values gain mass (by hand:
+    smoothing s moves s of the mass to the elite's value, the rest scaled by 1 - s)."""
+    s, p = search.make("cem", (50,), 200, smoothing=0.7, min_prob=0.0)
+    st = s.init(jax.random.key(0), p)
+    idx = jnp.arange(200, dtype=jnp.int32)[:, None] % 50
+    failed = jnp.full((200,), -jnp.inf)
+    after = s.tell(jax.random.key(1), st, idx, failed, p)
+    np.testing.assert_array_equal(np.asarray(after.probs), np.asarray(st.probs))
+    one = failed.at[7].set(0.1)
+    after = np.asarray(s.tell(jax.random.key(1), st, idx, one, p).probs[0])
+    expected = np.full(50, 0.3 / 50)
+    expected[7] += 0.7
+    np.testing.assert_allclose(after, expected, rtol=1e-5)
+
+
+def test_anneal_moves_only_parameters_that_can_move():
+    """One-value parameters are never picked (a move there repeats the chain's scenario):
+    without restarts every proposal from the middle of a 50-value parameter is new; a huge
+    max_step keeps the moves symmetric (it overflowed int32 and pushed them to index 0)."""
+    s, p = search.make("anneal", (1, 1, 50), 2000, p_restart=0.0)
+    st = s.init(jax.random.key(0), p)
+    st = pytree.replace(st, current=jnp.full((2000, 3), 0, jnp.int32).at[:, 2].set(25),
+                        started=jnp.bool_(True))
+    prop, _ = s.ask(jax.random.key(1), st, p)
+    prop = np.asarray(prop)
+    assert (prop[:, :2] == 0).all() and (prop[:, 2] != 25).all()
+    assert set(np.abs(prop[:, 2] - 25)) == {1, 2}  # max_step 2
+    s, p = search.make("anneal", (100,), 4000, p_restart=0.0, max_step=1e12)
+    st = s.init(jax.random.key(0), p)
+    st = pytree.replace(st, current=jnp.full((4000, 1), 50, jnp.int32),
+                        started=jnp.bool_(True))
+    prop = np.asarray(s.ask(jax.random.key(2), st, p)[0])[:, 0]
+    down = (prop < 50).mean()
+    assert 0.45 < down < 0.55, down  # a fair coin for the sign, 4000 draws: sd 0.008

@@ -1,7 +1,7 @@
 """Simulated annealing with ``batch`` independent chains over the index lattice.
 
-Each chain proposes a neighbour of its current scenario: one parameter, chosen at random,
-moves by a random step of +-1..``max_step`` indices (clipped), or with probability
+Each chain proposes a neighbour of its current scenario: one parameter of more than one value,
+chosen at random, moves by a random step of +-1..``max_step`` indices (clipped), or with probability
 ``p_restart`` is redrawn uniformly. Metropolis acceptance with temperature ``t0 * decay^k``
 at update k (rewards are in the paper's units, about -0.06..0.27).
 """
@@ -55,8 +55,13 @@ class Anneal(Strategy):
         B, P = self.batch, self.n_params
         sizes = jnp.asarray(self.shape, jnp.int32)
         u = uniform(key, (B, P + 4))  # one draw: parameter, step, sign, restart, fresh values
-        which = jnp.minimum(jnp.floor(u[:, 0] * P), P - 1).astype(jnp.int32)
-        top = jnp.maximum(jnp.round(params.max_step), 1.0)
+        # the parameter moved: one with more than one value (moving another repeats the
+        # chain's scenario); the k-th of them for u in [k/M, (k+1)/M)
+        movable = [p for p, n in enumerate(self.shape) if n > 1] or [0]
+        k = jnp.minimum(jnp.floor(u[:, 0] * len(movable)), len(movable) - 1).astype(jnp.int32)
+        which = jnp.asarray(movable, jnp.int32)[k]
+        # at most the widest parameter's span (a huge max_step would overflow int32)
+        top = jnp.clip(jnp.round(params.max_step), 1.0, max(max(self.shape) - 1, 1))
         step = (1 + jnp.minimum(jnp.floor(u[:, 1] * top), top - 1)).astype(jnp.int32)
         step = jnp.where(u[:, 2] < 0.5, step, -step)
         moved = state.current + jax.nn.one_hot(which, P, dtype=jnp.int32) * step[:, None]

@@ -11,13 +11,15 @@ earlier ones, which the LSTM would otherwise have to remember). One LSTM layer (
 units) turns it into ``h_p``; the logits over parameter p's values ``v`` (rank ``r_v``) are
 
     logits_p(v) = (h_p W_p + b_p)[v] - (r_v - mu_p)^2 / (2 sigma_p^2),
-    mu_p = sigmoid(h_p . a_p + c_p),  sigma_p = exp(clip(h_p . s_p + d_p, ln 0.05, 1)),
+    mu_p = sigmoid(h_p . a_p + c_p),  sigma_p = exp(clip(h_p . s_p + d_p, ln s_min, 1)),
 
 a free softmax head plus a Gaussian bump over the value ranks. The bump lets what is learnt
 about one value carry to its neighbours (the search moves towards a failure region as an
 evolution strategy's mean would, instead of value by value); the free head sharpens onto the
-individual values that fail. The bump is at least 0.05 of the range wide (a narrower one
-would move its mass wholesale from value to value as its mean drifts). Heads start at zero
+individual values that fail. The bump is at least ``s_min`` of the range wide
+(``log_sigma_min``; by default 0.05, the strategies' ``sigma_min`` option, e.g. 0.001 in
+``reinforce/default``) and never narrower than half a value step (a narrower one would move its
+mass wholesale from value to value as its mean drifts). Heads start at zero
 (``sigma = 1``): the first proposals are close to uniform. Weights are padded to the widest
 parameter; on spaces with a few wide parameters (:func:`unrolled`) the steps are unrolled and
 each head computed over its own values only, elsewhere they are scanned and padded values get

@@ -54,8 +54,13 @@ class CEM(Strategy):
         n_elite = jnp.maximum(1.0, jnp.round(params.elite_frac * self.batch))
         rank = jnp.zeros(self.batch, jnp.int32).at[rank_order(key, rewards)].set(
             jnp.arange(self.batch, dtype=jnp.int32))
-        weight = (rank < n_elite).astype(jnp.float32) / n_elite  # (B,)
+        # the elite: the best n_elite of the finite outcomes (a failed rollout, -inf, never
+        # teaches the distribution; a batch of failures leaves it as it was)
+        elite = (rank < n_elite) & jnp.isfinite(rewards)
+        n = elite.sum()
+        weight = elite.astype(jnp.float32) / jnp.maximum(n, 1)  # (B,)
         freq = jnp.einsum("b,bpn->pn", weight, jax.nn.one_hot(indices, self.width))
         probs = (1 - params.smoothing) * state.probs + params.smoothing * freq
         probs = jnp.where(mask, jnp.maximum(probs, params.min_prob), 0.0)
-        return CEMState(probs / probs.sum(-1, keepdims=True))
+        probs = probs / probs.sum(-1, keepdims=True)
+        return CEMState(jnp.where(n > 0, probs, state.probs))

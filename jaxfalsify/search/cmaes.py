@@ -57,6 +57,9 @@ class CMAES(Strategy):
 
     def __post_init__(self):
         check_signal(self.signal)
+        if self.batch < 2:  # one candidate has no parent to recombine: the mean turns NaN
+            raise ValueError(f"batch={self.batch}: strategy 'cmaes' needs a population of at "
+                             "least 2")
 
     def _es(self):
         from evosax.algorithms import CMA_ES

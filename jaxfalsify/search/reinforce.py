@@ -11,9 +11,13 @@ Registry entries (``jaxfalsify.search``):
   the loss summed and scaled by alpha = 1e-4, epsilon-random exploration (a uniformly random
   action with probability eps; eps starts at 1.0, x0.995 every 4 episodes, floor 0.01, forced
   to 0 from episode 2000), raw reward, no baseline; the paper ran 4000 episodes.
-* ``reinforce/default`` — ours: 250 episodes per update as 250 parallel chains, normalised
-  advantages (reward minus the batch mean, over the batch standard deviation), an entropy
-  bonus, Adam lr 0.02, no epsilon exploration. Same reward.
+* ``reinforce/factorised`` — the same controller with our training: 50 episodes per update
+  as 50 parallel chains, normalised advantages (signal minus the batch mean, over the batch
+  standard deviation) of the shaped signal (:func:`jaxfalsify.search.base.shaped_signal`), an
+  entropy bonus, Adam lr 0.02, no epsilon exploration.
+
+(``reinforce/default`` is the autoregressive controller of
+:mod:`jaxfalsify.search.reinforce_ar`.)
 
 Evaluations the campaign marks -inf (NaN rollouts, beyond the budget) get zero weight.
 """

@@ -14,7 +14,8 @@ a reward that is flat until the first collision, failures that are rare.
   ``anchor_decay^k``; ``anchor_decay_found`` once the learner has a collision, so it
   converges on the best ones). An anchored head keeps the anchor's value with a learnt *stay*
   probability and otherwise moves by a learnt offset and width (starting at about one
-  parameter moved per draw, 1.5 value steps wide): a learnt local move. ``global_share`` of
+  parameter moved per draw, 1.5 value steps wide, before ``zoom`` widens it): a learnt
+  local move. ``global_share`` of
   the draws have no anchor (the controller's own distribution over the whole space);
   ``global_share_found`` once the learner has a collision (the default 0: every draw
   anchored, so the learner converges on the best region).
@@ -81,8 +82,8 @@ class ARParams:
     lr_found: float = -1.0  # learning rate once the learner has a collision (< 0: lr)
     entropy: float = 0.02  # entropy bonus while the learner has seen no collision
     entropy_found: float = 0.0  # entropy bonus once it has
-    sigma_min: float = 0.05  # narrowest bump, as a fraction of a parameter's range (never
-    # narrower than half a value step)
+    sigma_min: float = 0.05  # narrowest bump, as a fraction of a parameter's range (1e-4..1;
+    # never narrower than half a value step)
     global_share: float = 0.25  # anchored: share of draws without an anchor
     global_share_found: float = -1.0  # the same once the learner has a collision (< 0: as
     # global_share)
@@ -104,7 +105,8 @@ class ARParams:
 
     # a negative *_found value means "as before the first collision"
     RANGES = {"lr": "[0, inf)", "entropy": "[0, inf)", "entropy_found": "[0, inf)",
-              "sigma_min": "(0, 1]", "global_share": "[0, 1]", "global_share_found": "(-inf, 1]",
+              "sigma_min": "[0.0001, 1]", "global_share": "[0, 1]",
+              "global_share_found": "(-inf, 1]",
               "anchor_decay": "[0, 1]", "anchor_decay_found": "(-inf, 1]",
               "repeat_found": "[0, 1]", "uniform_mix": "[0, 1]", "edge_mass": "[0, 1]",
               "edge_explore": "[0, 1]", "kappa": "[0, inf)", "zoom": "[0, inf)"}
@@ -157,6 +159,9 @@ def top_distinct(indices: jax.Array, signal: jax.Array, k: int):
     return idx[order], sig[order]
 
 
+MAX_TABLE = 2**28  # entries of the candidates' repeat-check tables (N x N, N x memory)
+
+
 @dataclasses.dataclass(frozen=True)
 class AutoregressiveReinforce(Strategy):
     """Static: ``hidden`` LSTM units, ``learners`` (divides ``batch``), ``advantage``
@@ -204,6 +209,13 @@ class AutoregressiveReinforce(Strategy):
         if self.resample < 1 or self.memory < 1 or self.explore < 1:
             raise ValueError(f"resample, explore and memory must be >= 1 (got "
                              f"{self.resample}, {self.explore}, {self.memory})")
+        n = self.batch * (self.resample + self.explore)  # candidates per ask
+        if self.resample > 1 and max(n * n, n * self.memory) > MAX_TABLE:
+            raise ValueError(
+                f"batch x (resample + explore) = {n:,} candidates: the repeat checks compare "
+                f"them with each other and with the memory of {self.memory:,} (tables of "
+                f"{max(n * n, n * self.memory):,} entries, at most {MAX_TABLE:,}); lower "
+                "batch, resample, explore or memory")
 
     @property
     def per_learner(self) -> int:
