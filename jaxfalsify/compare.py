@@ -710,7 +710,7 @@ def budgets_markdown(result: dict) -> str:
         u = b["uniform_first_collision"]
         cells.append(f"{u['found_probability']:.0%} / E[min(X, {b['budget'] + 1})] "
                      f"{_num(u['expected_censored'], '.4g')}, median {u['median_censored']:g}")
-    estimated = " (p estimated from a uniform sample)" if result.get("n_collisions") is None \
+    estimated = ", p estimated from a uniform sample" if result.get("n_collisions") is None \
         else ""
     lines.append(f"| uniform random (analytic{estimated}) | " + " | ".join(cells) +
                  f" | | {_percent(result['uniform_corner_share'])} | |")

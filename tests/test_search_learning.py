@@ -270,6 +270,69 @@ def test_default_never_repeats_a_scenario_before_a_collision():
     assert np.any(np.all(idx == np.asarray(target), axis=1))
 
 
+def test_default_repeats_only_its_own_collisions_and_holds_still_without_signal():
+    """After its first collision reinforce/default may repeat a scenario only if it is one of
+    its own collisions (a repeated near miss teaches nothing); and a batch whose signals all
+    tie (copies of its best) moves neither its weights nor Adam's state (the learner walked
+    off its best on Adam's momentum and rounding noise). Collisions: a band of 250 of the
+    10,000 scenarios; 60 updates of 32."""
+    shape = (10, 10, 10, 10)
+    strat, p = search.make("reinforce/default", shape)
+
+    def outcome(idx):
+        d = jnp.abs(idx[..., 0] + idx[..., 1] - 9) + jnp.abs(idx[..., 2] - 4)
+        hit = (d == 0) & (idx[..., 3] < 5)  # 10 x 5 x 5 = 250 scenarios
+        rob = d.astype(jnp.float32) * 0.5 + (~hit) * 0.1
+        return jnp.where(hit, 0.25 + 0.001 * idx[..., 3], -0.01 * rob), rob, hit
+
+    def loop(key):
+        def upd(state, k):
+            k1, k2 = jax.random.split(k)
+            idx, state = strat.ask(k1, state, p)
+            r, rob, hit = outcome(idx)
+            return strat.tell_outcome(k2, state, idx, r, rob, hit, p), (idx, hit)
+        k0, k1 = jax.random.split(key)
+        return jax.lax.scan(upd, strat.init(k0, p), jax.random.split(k1, 60))[1]
+
+    idx, hit = (np.asarray(a) for a in jax.jit(loop)(jax.random.key(1)))
+    idx, hit = idx.reshape(-1, 4), hit.reshape(-1)
+    flat = np.ravel_multi_index(idx.T, shape)
+    assert hit.any()
+    seen = set()
+    for f, h in zip(flat, hit):
+        assert h or f not in seen  # a repeat is always a collision
+        seen.add(int(f))
+    assert len(flat) - len(seen) > 100  # and it does repeat its collisions (converges)
+    # a learner that has a collision, told a batch of 32 copies of one collision: no step
+    st = strat.init(jax.random.key(0), p)
+    st = pytree.replace(st, seen=jnp.ones_like(st.seen))
+    st = jax.tree.map(lambda a: a, st)
+    one = jnp.tile(jnp.asarray([[3, 6, 4, 1]], jnp.int32), (32, 1))
+    # first a batch with a signal (weights and Adam's moments move), then one without
+    r, rob, hit = outcome(one.at[0].set(jnp.asarray([0, 0, 0, 0])))
+    st = strat.tell_outcome(jax.random.key(2), st, one.at[0].set(0), r, rob, hit, p)
+    r, rob, hit = outcome(one)
+    after = strat.tell_outcome(jax.random.key(3), st, one, r, rob, hit, p)
+    for a, b in zip(jax.tree.leaves((after.weights, after.opt)),
+                    jax.tree.leaves((st.weights, st.opt))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_centred_ranks_are_exact_fractions_under_jit():
+    """Every rank is (2 below + ties - (n - 1)) / (2 (n - 1)) to the last bit (XLA may divide
+    by a reciprocal), and a rank whose numerator is 0 (the middle of ties: a batch of copies)
+    exactly 0 (under jit such a tie came out -3e-8, which Adam turns into a full step)."""
+    rng = np.random.default_rng(0)
+    x = rng.integers(0, 4, size=(5, 32)).astype(np.float32)
+    x[0] = 0.2578
+    got = np.asarray(jax.jit(base.centred_ranks)(jnp.asarray(x)))
+    below = (x[:, None, :] < x[:, :, None]).sum(-1)
+    ties = (x[:, None, :] == x[:, :, None]).sum(-1) - 1
+    num = 2 * below + ties - 31
+    np.testing.assert_allclose(got, num / 62, rtol=2e-7, atol=0)
+    assert (got[num == 0] == 0).all() and (got[0] == 0).all()
+
+
 @pytest.mark.slow
 def test_default_anchors_every_draw_once_it_has_a_collision():
     """reinforce/default draws a share ``global_share`` (0.25) without an anchor until its
@@ -520,6 +583,17 @@ def test_ard_refine_picks_the_scale_of_highest_marginal_likelihood():
         np.testing.assert_allclose(np.asarray(m.ell), ell, rtol=1e-6)
         assert float(m.lml) == pytest.approx(lml, rel=1e-3, abs=1e-2)
     assert ell[2] >= 1.0 and ell[0] < ell[2]
+
+
+def test_ard_refine_keeps_the_scale_without_enough_data():
+    """With fewer than MIN_POINTS valid points every scale fits equally (no model): the length
+    scale stays as it was (it took the first candidate, 0.03, at the first ask)."""
+    x = surrogate.unit(jnp.asarray([[0, 0], [3, 4]]), (5, 5))
+    for y in ([-jnp.inf, -jnp.inf], [0.1, -jnp.inf], [0.1, 0.2]):
+        for ell in ([0.12, 0.12], [0.5, 4.0]):
+            m = surrogate.refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell), 0)
+            assert not bool(m.enough)
+            np.testing.assert_array_equal(np.asarray(m.ell), np.float32(ell))
 
 
 def test_batch_ucb_matches_sequential_conditioning():

@@ -106,8 +106,12 @@ def centred_ranks(x: jax.Array, valid: jax.Array | None = None) -> jax.Array:
     below = jnp.sum((x[..., None, :] < x[..., :, None]) & vj, axis=-1)
     ties = jnp.sum((x[..., None, :] == x[..., :, None]) & vj & vi, axis=-1) - 1
     n = jnp.sum(valid, axis=-1, keepdims=True)
-    rank = (below + 0.5 * jnp.maximum(ties, 0)) / jnp.maximum(n - 1, 1)
-    return jnp.where(valid & (n > 1), rank - 0.5, 0.0).astype(jnp.float32)
+    # (below + ties / 2) / (n - 1) - 1/2 with an integer numerator, so a tie is exactly 0
+    # (XLA may divide by multiplying with a reciprocal: 15.5 / 31 - 0.5 came out -3e-8, and
+    # Adam, which normalises the gradient, turned such noise into full-size steps)
+    num = 2 * below + jnp.maximum(ties, 0) - (n - 1)
+    rank = num.astype(jnp.float32) / (2 * jnp.maximum(n - 1, 1)).astype(jnp.float32)
+    return jnp.where(valid & (n > 1), rank, 0.0).astype(jnp.float32)
 
 
 def uniform(key, shape: tuple[int, ...]) -> jax.Array:

@@ -70,8 +70,9 @@ import optax
 from jaxfalsify import pytree
 from jaxfalsify.search import autoregressive as ar
 from jaxfalsify.search import surrogate as gp
-from jaxfalsify.search.base import (Strategy, categorical_from_uniform, centred_ranks,
-                                    check_signal, shaped_signal, uniform, uniform_indices)
+from jaxfalsify.search.base import (ROBUSTNESS_WEIGHT, Strategy, categorical_from_uniform,
+                                    centred_ranks, check_signal, shaped_signal, uniform,
+                                    uniform_indices)
 
 ADVANTAGES = ("rank", "normalised")
 
@@ -323,8 +324,13 @@ class AutoregressiveReinforce(Strategy):
             h = scenario_hash(idx).reshape(-1)
             repeated = _equals_an_earlier(h[:, None] == h[None, :])
             fresh = (~self._evaluated(h, state) & ~repeated).reshape(L, C)
-            # a learner with a collision may repeat, for a share repeat_found of its draws
-            free = state.seen[:, None] & (u[..., 2 * P + 2] < params.repeat_found) \
+            # a learner with a collision may repeat, for a share repeat_found of its draws,
+            # one of its own collisions (queue entries scoring above any non-collision): a
+            # repeated non-collision teaches nothing, and a batch of copies of one scenario
+            # has no rank to learn from (the learner stalled there for good)
+            own = jnp.any(jnp.all(idx[:, :, None, :] == state.queue[:, None, :, :], -1)
+                          & (state.queue_signal > ROBUSTNESS_WEIGHT)[:, None, :], -1)
+            free = state.seen[:, None] & own & (u[..., 2 * P + 2] < params.repeat_found) \
                 & (jnp.arange(C) < Cp)[None, :]
             allowed = fresh | free
         return dict(idx=idx, explored=explored, anchors=anchors, present=present, zooms=zooms,
@@ -428,6 +434,14 @@ class AutoregressiveReinforce(Strategy):
         lr = jnp.where(seen & (params.lr_found >= 0), params.lr_found, params.lr)  # (L,)
         weights = jax.tree.map(lambda w, u: w - lr.reshape((-1,) + (1,) * (u.ndim - 1)) * u,
                                state.weights, updates)
+        # no signal, no step: a learner whose batch ranks all alike (a converged learner
+        # asking copies of its best scenario) has a zero gradient, and Adam's momentum alone
+        # would walk its policy off what it learnt
+        active = jnp.any(adv != 0, axis=-1) | (beta > 0)  # (L,)
+        keep = lambda new, old: jnp.where(  # noqa: E731
+            active.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
+        weights = jax.tree.map(keep, weights, state.weights)
+        opt = jax.tree.map(keep, opt, state.opt)
         if self.queue:  # merge the batch into each learner's queue of best distinct scenarios
             q, qs = jax.vmap(lambda qi, qsi, a, s: top_distinct(
                 jnp.concatenate([qi, a]), jnp.concatenate([qsi, s]), self.queue))(

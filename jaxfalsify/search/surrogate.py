@@ -131,10 +131,14 @@ def best_fit(x: jax.Array, y: jax.Array, ells: jax.Array) -> Model:
 
 def refine(x: jax.Array, y: jax.Array, ell: jax.Array, p) -> Model:
     """ARD, one coordinate at a time: the best fit over ``ARD_SCALES`` for parameter ``p``'s
-    length scale, the others kept at ``ell (P,)``."""
+    length scale, the others kept at ``ell (P,)``. Without enough data for a model every
+    candidate's likelihood is the same, and ``ell`` is kept as it is."""
     cands = jnp.asarray(ARD_SCALES, jnp.float32)
     ells = jnp.broadcast_to(ell, (len(ARD_SCALES),) + ell.shape).at[:, p].set(cands)
-    return best_fit(x, y, ells)
+    models = jax.vmap(lambda e: fit(x, y, e))(ells)
+    lml = jnp.where(models.enough, models.lml,  # no model: the current scale's candidate
+                    jnp.where(cands == ell[p], 0.0, -jnp.inf))
+    return jax.tree.map(lambda a: a[jnp.argmax(lml)], models)
 
 
 def predict(m: Model, z: jax.Array):
