@@ -272,10 +272,17 @@ def _config_overridden(rc, flags: dict):
         rc = dataclasses.replace(rc, strategy_params={}, batch=None)  # --batch re-applied
     if "sut" in flags and not same(flags["sut"], rc.sut, sut_lib.recorded_spec):
         rc = dataclasses.replace(rc, sut_params={})
-    if ("space" in flags or "space_seed" in flags) and rc.sut_params:
-        sp = runs.build_space(flags.get("space", rc.space), flags.get("space_seed",
-                                                                       rc.space_seed))
-        rc = dataclasses.replace(rc, sut_params=runs.fixed_sut_params(rc.sut_params, sp))
+    if "space" in flags or "space_seed" in flags:
+        if rc.sut_params:
+            sp = runs.build_space(flags.get("space", rc.space), flags.get("space_seed",
+                                                                           rc.space_seed))
+            rc = dataclasses.replace(rc, sut_params=runs.fixed_sut_params(rc.sut_params, sp))
+        try:  # a strategy whose default batch fits the space (grid) resolves it anew
+            cls = search.REGISTRY[search.canonical(rc.strategy)].cls
+        except (ValueError, KeyError, AttributeError):
+            cls = None
+        if getattr(cls, "BATCH_AT_MOST_SIZE", False):
+            rc = dataclasses.replace(rc, batch=None)  # --batch re-applied
     return rc
 
 

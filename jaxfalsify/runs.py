@@ -24,7 +24,6 @@ import csv
 import dataclasses
 import io
 import json
-import shlex
 import time
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -297,8 +296,8 @@ class Interrupted(Exception):
     def __init__(self, kind: str, out: Path, done: int, total: int, unit: str,
                  resumable: bool = True):
         self.kind, self.out, self.done, self.total = kind, Path(out), done, total
-        self.resume = (f"jaxfalsify {kind} --resume {shlex.quote(str(out))}" if resumable
-                       else None)  # quoted: a command to paste into a shell
+        self.resume = (f"jaxfalsify {kind} --resume {store.shell_path(out)}" if resumable
+                       else None)  # a command to paste into a shell
         super().__init__(f"interrupted after {done} of {total} {unit}; " + (
             f"{out} is resumable: {self.resume}" if resumable
             else f"nothing was written to {out}; run the {kind} again"))

@@ -436,7 +436,7 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
                               "overwrite")
         if kind not in ("compare", "suite") and unfinished(out) and not force:
             raise FolderError(f"--out {out} holds an unfinished {kind}; pass --resume "
-                              f"{shlex.quote(str(out))} to "
+                              f"{shell_path(out)} to "
                               "continue it or --force to start over")
         if have is None and not force:  # a user's files under the names a result takes
             theirs = [n for n in _result_names(kind) if (out / n).exists()]
@@ -577,11 +577,20 @@ def open_new_folder(base: Path, kind: str) -> tuple[Path, FolderLock]:
         raise
 
 
+def shell_path(path: Path | str) -> str:
+    """A folder as a shell word for a command to paste: quoted, and ``./`` before a relative
+    name that starts with ``-`` (which the command line would read as a flag)."""
+    text = str(path)
+    if text.startswith("-"):
+        text = "./" + text
+    return shlex.quote(text)
+
+
 def write_status(out: Path, kind: str, state: str, **extra) -> None:
     """``status.json``: ``running``, ``interrupted`` or ``complete``, and how to resume."""
     doc = {"state": state, **extra}
     if state != "complete":
-        doc["resume"] = f"jaxfalsify {kind} --resume {shlex.quote(str(out))}"
+        doc["resume"] = f"jaxfalsify {kind} --resume {shell_path(out)}"
     write_json(Path(out) / "status.json", doc, indent=2)
 
 

@@ -2,6 +2,7 @@
 schema, --config round trip, the closing report (bad input: test_bad_input.py)."""
 
 import csv
+import dataclasses
 import json
 import tomllib
 
@@ -164,3 +165,11 @@ def test_config_with_flags_drops_what_the_flag_replaces(tmp_path, monkeypatch):
     moved = _config_overridden(aeb, {"space": str(huge)})
     assert moved.sut_params == {"latency": 0.1}  # the space varies ttc_full and ttc_partial
     moved.build()  # and the run builds (it was refused: "--sut-param ttc_full: the space ...")
+    # grid's default batch shrinks to a small space's size: another space resolves it anew
+    (tmp_path / "tiny.toml").write_text(TINY_SPACE)
+    grid = runs.RunConfig(strategy="grid").resolved()
+    assert grid.batch == 200
+    flags = {"space": str(tmp_path / "tiny.toml")}
+    small = _config_overridden(grid, flags)
+    assert small.batch is None  # then the flags are applied, as cmd_run does
+    assert dataclasses.replace(small, **flags).build().strategy.batch == 32

@@ -316,6 +316,27 @@ def test_default_repeats_only_its_own_collisions_and_holds_still_without_signal(
     for a, b in zip(jax.tree.leaves((after.weights, after.opt)),
                     jax.tree.leaves((st.weights, st.opt))):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # the same with normalised advantages (x - mean of equal float32 values is noise, which
+    # the division by their std of the same noise blew up to O(1))
+    norm, pn = search.make("reinforce/default", shape, advantage="normalised", surrogate=0,
+                           resample=1)
+    st = pytree.replace(norm.init(jax.random.key(0), pn), seen=jnp.ones((1,), bool))
+    sig = jnp.full(32, 0.3, jnp.float32)
+    after = norm.tell(jax.random.key(3), st, one, sig, pn)
+    for a, b in zip(jax.tree.leaves(after.weights), jax.tree.leaves(st.weights)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_top_distinct_carries_the_collision_flags():
+    """The queue's collided flags follow their rows: best distinct first, a repeated row
+    counted once with its first (best) entry's flag, empty (-inf) slots unflagged."""
+    idx = jnp.asarray([[1, 1], [2, 2], [1, 1], [3, 3], [4, 4]], jnp.int32)
+    sig = jnp.asarray([0.01, 0.25, 0.01, -jnp.inf, 0.26], jnp.float32)
+    hit = jnp.asarray([False, True, False, True, True])
+    q, qs, qh = top_distinct(idx, sig, 4, hit)
+    assert np.asarray(q).tolist()[:3] == [[4, 4], [2, 2], [1, 1]]
+    assert np.asarray(qh).tolist() == [True, True, False, False]
+    assert np.isneginf(np.asarray(qs)[3])
 
 
 def test_centred_ranks_are_exact_fractions_under_jit():

@@ -579,6 +579,12 @@ def test_the_resume_command_is_quoted_for_a_shell(tmp_path):
     store.write_status(out, "run", "interrupted")
     cmd = json.loads((out / "status.json").read_text())["resume"]
     assert shlex.split(cmd) == ["jaxfalsify", "run", "--resume", str(out)]
+    # a relative name that starts with "-" gets "./", so it is not read as a flag
+    from jaxfalsify.cli import build_parser
+
+    assert shlex.split(store.shell_path(Path("-x")))[0] == "./-x"
+    args = build_parser().parse_args(shlex.split(f"run --resume {store.shell_path('-x')}"))
+    assert args.resume is not None and str(args.resume) in ("-x", "./-x")
 
 
 def test_default_folders_of_the_same_second_do_not_collide(tmp_path):

@@ -36,7 +36,11 @@ a reward that is flat until the first collision, failures that are rare.
   candidates per scenario it asks and takes the first ones not evaluated before (a ``memory``
   of 32-bit hashes of the evaluated scenarios) and not repeated within the batch, then uniform
   draws if too few are new. Once a learner has found a collision, a share ``repeat_found`` of
-  its draws may repeat, so it can converge on the best scenario (the paper's learning curve).
+  its draws may repeat one of its own collisions (kept in its ``queue``; with no queue there
+  is nothing to repeat), so it can converge on the best scenario (the paper's learning curve).
+* **No signal, no step**: a learner whose batch gives it no advantage (every signal tied: a
+  converged learner asking copies of its best) and no entropy bonus takes no optimizer step
+  (Adam would otherwise step on its momentum and walk the policy off what it learnt).
 * **Surrogate screening** (``surrogate``, off by default): until the learner has a
   collision, a Gaussian process (:mod:`jaxfalsify.search.surrogate`) fitted to its last
   ``surrogate`` evaluations and its queue of best scenarios picks which of the new candidates
@@ -70,9 +74,8 @@ import optax
 from jaxfalsify import pytree
 from jaxfalsify.search import autoregressive as ar
 from jaxfalsify.search import surrogate as gp
-from jaxfalsify.search.base import (ROBUSTNESS_WEIGHT, Strategy, categorical_from_uniform,
-                                    centred_ranks, check_signal, shaped_signal, uniform,
-                                    uniform_indices)
+from jaxfalsify.search.base import (Strategy, categorical_from_uniform, centred_ranks,
+                                    check_signal, shaped_signal, uniform, uniform_indices)
 
 ADVANTAGES = ("rank", "normalised")
 
@@ -92,7 +95,7 @@ class ARParams:
     anchor_decay_found: float = -1.0  # the same once the learner has a collision (< 0: as
     # anchor_decay)
     repeat_found: float = 0.0  # once the learner has a collision: share of its draws that
-    # may repeat an evaluated scenario
+    # may repeat one of its own collisions (queue entries that collided; needs queue >= 1)
     uniform_mix: float = 0.0  # share of uniformly random draws (not learnt from)
     edge_mass: float = 0.0  # anchored: share of a move's mass beyond a bound that stops at
     # the bound's value (1: clipped moves, as an evolution strategy clips; 0: renormalised
@@ -124,6 +127,7 @@ class ARState:
     zooms: jax.Array  # (B,) float32 in [0, 1), each draw's position on the zoom scale
     queue: jax.Array  # (L, K, P) int32, each learner's best distinct scenarios, best first
     queue_signal: jax.Array  # (L, K) float32, their signals (-inf: empty slot)
+    queue_hit: jax.Array  # (L, K) bool, which of them collided
     memory: jax.Array  # (M,) uint32, hashes of the evaluated scenarios (a ring buffer)
     memory_at: jax.Array  # () int32, hashes written so far (slot = memory_at % M)
     told: jax.Array  # () int32, updates so far
@@ -148,16 +152,19 @@ def scenario_hash(indices: jax.Array) -> jax.Array:
     return h
 
 
-def top_distinct(indices: jax.Array, signal: jax.Array, k: int):
+def top_distinct(indices: jax.Array, signal: jax.Array, k: int, hit: jax.Array | None = None):
     """The ``k`` best distinct rows of ``indices (N, P)`` by ``signal (N,)`` (best first; a
-    row seen twice counts once; ``-inf`` rows last): ``(indices (k, P), signal (k,))``."""
+    row seen twice counts once; ``-inf`` rows last): ``(indices (k, P), signal (k,))``, and
+    their entries of ``hit (N,)`` (collided) as a third element when it is given."""
     order = jnp.argsort(-signal, stable=True)
     idx, sig = indices[order], signal[order]
     same = jnp.all(idx[:, None, :] == idx[None, :, :], axis=-1)
     earlier = jnp.tril(same, k=-1)  # an equal row earlier in the order (better or equal)
     sig = jnp.where(jnp.any(earlier, axis=-1), -jnp.inf, sig)
-    order = jnp.argsort(-sig, stable=True)[:k]
-    return idx[order], sig[order]
+    second = jnp.argsort(-sig, stable=True)[:k]
+    if hit is None:
+        return idx[second], sig[second]
+    return idx[second], sig[second], hit[order][second] & jnp.isfinite(sig[second])
 
 
 MAX_TABLE = 2**28  # entries of the candidates' repeat-check tables (N x N, N x memory)
@@ -245,7 +252,7 @@ class AutoregressiveReinforce(Strategy):
                        jnp.zeros(L, bool), jnp.zeros(self.batch, bool),
                        jnp.zeros((self.batch, P), jnp.int32), jnp.zeros(self.batch, bool),
                        jnp.zeros(self.batch, jnp.float32), jnp.zeros((L, K, P), jnp.int32),
-                       jnp.full((L, K), -jnp.inf, jnp.float32),
+                       jnp.full((L, K), -jnp.inf, jnp.float32), jnp.zeros((L, K), bool),
                        jnp.zeros(self.memory if self.resample > 1 else 1, jnp.uint32),
                        jnp.int32(0), jnp.int32(0),
                        jnp.zeros((max(self.surrogate, 1), P), jnp.int32),
@@ -325,11 +332,11 @@ class AutoregressiveReinforce(Strategy):
             repeated = _equals_an_earlier(h[:, None] == h[None, :])
             fresh = (~self._evaluated(h, state) & ~repeated).reshape(L, C)
             # a learner with a collision may repeat, for a share repeat_found of its draws,
-            # one of its own collisions (queue entries scoring above any non-collision): a
-            # repeated non-collision teaches nothing, and a batch of copies of one scenario
-            # has no rank to learn from (the learner stalled there for good)
+            # one of its own collisions (a queue entry that collided; without a queue, none):
+            # a repeated non-collision teaches nothing, and a learner whose policy drifted
+            # onto one asked it batch after batch
             own = jnp.any(jnp.all(idx[:, :, None, :] == state.queue[:, None, :, :], -1)
-                          & (state.queue_signal > ROBUSTNESS_WEIGHT)[:, None, :], -1)
+                          & state.queue_hit[:, None, :], -1)
             free = state.seen[:, None] & own & (u[..., 2 * P + 2] < params.repeat_found) \
                 & (jnp.arange(C) < Cp)[None, :]
             allowed = fresh | free
@@ -390,15 +397,16 @@ class AutoregressiveReinforce(Strategy):
                                    memory_at=jnp.minimum(state.memory_at + h.shape[0], 2**30))
 
     def tell(self, key, state, indices, rewards, params):
-        return self._update(state, indices, rewards, state.seen, params)
+        return self._update(state, indices, rewards, state.seen, params,
+                            jnp.zeros(rewards.shape, bool))
 
     def tell_outcome(self, key, state, indices, rewards, robustness, collision, params):
         signal = (shaped_signal(rewards, robustness, collision) if self.signal == "shaped"
                   else rewards)
         hit = jnp.any(collision.reshape(self.learners, -1), axis=-1)
-        return self._update(state, indices, signal, state.seen | hit, params)
+        return self._update(state, indices, signal, state.seen | hit, params, collision)
 
-    def _update(self, state, indices, signal, seen, params):
+    def _update(self, state, indices, signal, seen, params, collided):
         L, b, P = self.learners, self.per_learner, self.n_params
         lsm = self._lsm(params)
         sig = signal.reshape(L, b)
@@ -410,7 +418,11 @@ class AutoregressiveReinforce(Strategy):
             n = jnp.maximum(jnp.sum(ok, -1, keepdims=True), 1)
             mean = jnp.sum(x, -1, keepdims=True) / n
             std = jnp.sqrt(jnp.sum(jnp.where(ok, (x - mean) ** 2, 0.0), -1, keepdims=True) / n)
-            adv = jnp.where(ok, (x - mean) / (std + 1e-8), 0.0)
+            # all equal: exactly 0 (x - mean is float32 noise there, which the division by
+            # a std of the same noise would blow up to O(1))
+            flat = jnp.max(jnp.where(ok, sig, -jnp.inf), -1, keepdims=True) \
+                <= jnp.min(jnp.where(ok, sig, jnp.inf), -1, keepdims=True)
+            adv = jnp.where(ok & ~flat, (x - mean) / (std + 1e-8), 0.0)
         beta = jnp.where(seen, params.entropy_found, params.entropy)  # (L,)
         acts = indices.reshape(L, b, P)
         anc = state.anchors.reshape(L, b, P)
@@ -443,12 +455,13 @@ class AutoregressiveReinforce(Strategy):
         weights = jax.tree.map(keep, weights, state.weights)
         opt = jax.tree.map(keep, opt, state.opt)
         if self.queue:  # merge the batch into each learner's queue of best distinct scenarios
-            q, qs = jax.vmap(lambda qi, qsi, a, s: top_distinct(
-                jnp.concatenate([qi, a]), jnp.concatenate([qsi, s]), self.queue))(
-                state.queue, state.queue_signal, acts, jnp.where(jnp.isfinite(sig), sig,
-                                                                 -jnp.inf))
+            q, qs, qh = jax.vmap(lambda qi, qsi, qhi, a, s, h: top_distinct(
+                jnp.concatenate([qi, a]), jnp.concatenate([qsi, s]), self.queue,
+                jnp.concatenate([qhi, h])))(
+                state.queue, state.queue_signal, state.queue_hit, acts,
+                jnp.where(jnp.isfinite(sig), sig, -jnp.inf), collided.reshape(L, b))
         else:
-            q, qs = state.queue, state.queue_signal
+            q, qs, qh = state.queue, state.queue_signal, state.queue_hit
         hist, hist_s, hist_at = state.history, state.history_signal, state.history_at
         if self.surrogate:  # a ring buffer of the last evaluations for the GP
             slots = (hist_at + jnp.arange(self.batch)) % self.surrogate
@@ -456,5 +469,6 @@ class AutoregressiveReinforce(Strategy):
             hist_s = hist_s.at[slots].set(jnp.where(jnp.isfinite(signal), signal, -jnp.inf))
             hist_at = jnp.minimum(hist_at + self.batch, 2**30)
         return dataclasses.replace(state, weights=weights, opt=opt, seen=seen, queue=q,
-                                   queue_signal=qs, told=state.told + 1, history=hist,
+                                   queue_signal=qs, queue_hit=qh, told=state.told + 1,
+                                   history=hist,
                                    history_signal=hist_s, history_at=hist_at)
