@@ -136,6 +136,47 @@ def user_code_hash(*objs) -> str | None:
     return h.hexdigest()[:16]
 
 
+def _user_module_sources(objs) -> list[bytes]:
+    """The source of every user module (outside the Python installation and jaxfalsify) that
+    ``objs``' modules reach through their namespaces (an imported module, or a function or
+    class imported from one), transitively; ``objs``' own modules excluded."""
+    import sys
+    import types
+
+    roots = _installed_roots()
+
+    def user_file(m):
+        f = getattr(m, "__file__", None)
+        if isinstance(f, str) and f.endswith(".py") and \
+                not os.path.realpath(f).startswith(roots):
+            return os.path.realpath(f)
+        return None
+
+    start = [sys.modules.get(getattr(o, "__module__", None) or "") for o in objs]
+    todo = [m for m in start if m is not None]
+    seen = {id(m) for m in todo}
+    found: dict[str, bytes] = {}
+    while todo:
+        m = todo.pop()
+        for v in list(vars(m).values()):
+            try:
+                name = None if isinstance(v, types.ModuleType) else getattr(v, "__module__", None)
+            except Exception:  # noqa: BLE001 - an object whose attributes raise
+                continue
+            dep = v if isinstance(v, types.ModuleType) else \
+                sys.modules.get(name if isinstance(name, str) else "")
+            if dep is None or id(dep) in seen or user_file(dep) is None:
+                continue
+            seen.add(id(dep))
+            todo.append(dep)
+            try:
+                found[user_file(dep)] = Path(user_file(dep)).read_bytes()
+            except OSError:
+                pass
+    own = {user_file(m) for m in start if m is not None}
+    return [data for f, data in found.items() if f not in own]
+
+
 def source_hash(*objs) -> str:
     """Hash of jaxfalsify's source and of the files defining ``objs`` (a user's SUT
     functions, a strategy class; their qualified names too, not their folders), for a
@@ -154,6 +195,10 @@ def source_hash(*objs) -> str:
                 h.update(Path(f).read_bytes())
         except (TypeError, OSError):
             pass
+    # and the user modules they use (a helper the SUT imports, and what that imports), by
+    # their bytes alone, so a moved project still resumes
+    for data in sorted(hashlib.sha256(d).digest() for d in _user_module_sources(objs)):
+        h.update(data)
     return h.hexdigest()[:16]
 
 
@@ -198,7 +243,8 @@ def exported_jit(fn, name: str, static: dict | None, key_args: tuple, example_ar
     key = key_of({"name": name, "static": static, "tree": str(tree),
                   "avals": [(tuple(x.shape), str(x.dtype)) for x in leaves],
                   "code": code_hash(), "jax": jax.__version__,
-                  "backend": jax.default_backend()})
+                  "backend": jax.default_backend(),
+                  "prng": str(jax.config.jax_default_prng_impl)})  # key data's shape
     path = folder() / "exports" / f"{name}-{key}.bin"
     from jax import export
 

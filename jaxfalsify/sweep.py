@@ -122,7 +122,7 @@ def _chunk_program(layout: Layout, sut: sut_lib.SUT, chunk: int, params_tree,
 
     def example():
         return (np.int32(0), np.int32(chunk), np.zeros(table.shape, np.float32),
-                [np.zeros(a.shape, a.dtype) for a in params_avals], np.zeros(2, np.uint32),
+                [np.zeros(a.shape, a.dtype) for a in params_avals], sim.seed_key_data(0),
                 [np.float32(0)] * world_tree.num_leaves)
 
     key = sut_lib.cache_key(sut)
@@ -818,24 +818,6 @@ def sweep_arrays(space: Space, sut="carla-tm", sut_params=None, world: sim.World
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def _code_hash(sut: sut_lib.SUT) -> str:
-    """Hash of the source the outcomes depend on (the simulator and the SUT's module)."""
-    import hashlib
-    import inspect
-
-    here = Path(__file__).parent
-    h = hashlib.sha256()
-    for f in ("sim.py", "sut.py", "metrics.py", "reward.py", "weather.py", "space.py"):
-        h.update((here / f).read_bytes())
-    try:
-        src = inspect.getsourcefile(sut.act)
-        if src and Path(src).resolve().parent != here.resolve():
-            h.update(Path(src).read_bytes())
-    except (TypeError, OSError):
-        h.update(repr(sut.act).encode())
-    return h.hexdigest()[:16]
-
-
 TRUTH_FIELDS = ("collision", "reward", "nonfinite")
 
 
@@ -844,13 +826,24 @@ def ground_truth(space: Space, sut="carla-tm", sut_params=None,
     """``{collision, reward, nonfinite}`` ``(N,)`` of every scenario, from the per-user cache
     (keyed by the space's values, the SUT, its parameters, the world and the simulator's
     source) or swept once and stored there."""
+    import hashlib
+
     s = sut_lib.resolve(sut)
     params = sut_lib.with_params(s, sut_params)
-    key = cache.key_of({"space": space.describe(), "seed": space.seed, "sut": s.name,
+    code = sut_lib.cache_key(s)  # None (a closure, no source file): never cached
+    # the space by its parameters in their order (which numbers the scenarios) and the exact
+    # float32 values; the code by jaxfalsify's whole source, the SUT's (its module and every
+    # user module loaded: helpers), the jax version and the backend (float32 results differ)
+    values = hashlib.sha256(b"".join(v.tobytes() for v in space.values)).hexdigest()
+    key = cache.key_of({"names": list(space.names), "shape": list(space.shape),
+                        "values": values, "sut": code,
                         "params": sut_lib.params_dict(params), "world": repr(world),
-                        "code": _code_hash(s)})
+                        "code": cache.code_hash(), "jax": jax.__version__,
+                        "backend": jax.default_backend(),
+                        "prng": str(jax.config.jax_default_prng_impl)})
     path = cache.folder() / "truth" / f"{key}.npz"
-    if cache.enabled() and path.is_file():
+    use = cache.enabled() and code is not None
+    if use and path.is_file():
         try:
             with np.load(path) as z:
                 got = {k: z[k] for k in TRUTH_FIELDS}
@@ -861,7 +854,7 @@ def ground_truth(space: Space, sut="carla-tm", sut_params=None,
     got = sweep_arrays(space, s, None if params is None else
                        {k: v for k, v in sut_lib.params_dict(params).items()},
                        world, fields=TRUTH_FIELDS)
-    if cache.enabled():
+    if use:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             store.save_npz(path, got)

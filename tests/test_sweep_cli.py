@@ -49,6 +49,11 @@ def test_sweep_arrays_equal_direct_evaluation(small_space):
     direct = jf.evaluate(sp.scenario(idx))
     np.testing.assert_array_equal(rows["reward"], np.asarray(direct.reward))
     np.testing.assert_array_equal(rows["collision"], np.asarray(direct.collision))
+    for f in ("min_distance", "final_distance", "robustness", "min_ttc"):  # to 4 ulp (README)
+        a, b = rows[f], np.asarray(getattr(direct, f))
+        fin = np.isfinite(b)
+        np.testing.assert_array_equal(np.isfinite(a), fin, err_msg=f)
+        np.testing.assert_array_max_ulp(a[fin], b[fin], maxulp=4)
     for p, name in enumerate(sp.names):
         np.testing.assert_array_equal(rows[f"{name}_idx"], idx[:, p])
     # chunk size does not change a single bit

@@ -601,3 +601,21 @@ def test_default_folders_of_the_same_second_do_not_collide(tmp_path):
     finally:
         la.release()
         lb.release()
+
+
+@pytest.mark.slow  # two fresh processes, each compiling
+def test_a_cached_program_is_not_reused_under_another_prng(tmp_path):
+    """JAX's PRNG implementation sets the shape of key data: a sweep program cached under the
+    default one is not handed to a process using rbg (it failed with a shape mismatch)."""
+    import subprocess
+    import sys
+
+    from conftest import TINY_SPACE
+
+    (tmp_path / "tiny.toml").write_text(TINY_SPACE)
+    env = {**os.environ, "JAXFALSIFY_CACHE_DIR": str(tmp_path / "cache")}
+    for k, impl in enumerate(("threefry2x32", "rbg")):
+        r = subprocess.run([sys.executable, "-m", "jaxfalsify", "sweep", "--space", "tiny.toml",
+                            "--out", f"s{k}", "--quiet"], cwd=tmp_path, capture_output=True,
+                           text=True, env={**env, "JAX_DEFAULT_PRNG_IMPL": impl})
+        assert r.returncode == 0, r.stderr

@@ -273,6 +273,43 @@ def test_program_cache_keys_on_the_users_code(tmp_path, monkeypatch):
     assert key(mine) != first
 
 
+def test_ground_truths_and_fingerprints_follow_helpers_and_parameter_order(tmp_path,
+                                                                           monkeypatch):
+    """The cached ground truth and a checkpoint's code fingerprint change when a helper module
+    the user's SUT imports changes (a stale truth or a resume joining two versions' results
+    was possible), and two spaces listing the same parameters in another order (another
+    scenario numbering) get their own truths: each equals a fresh sweep of its own space."""
+    from jaxfalsify import cache, sweep
+    from jaxfalsify.space import space_from_dict
+
+    monkeypatch.syspath_prepend(str(tmp_path))
+    (tmp_path / "gt_helper.py").write_text("DECEL = 8.0\n")
+    (tmp_path / "gt_sut.py").write_text(
+        "import jax.numpy as jnp\nimport gt_helper\nfrom jaxfalsify.sut import SUT\n\n\n"
+        "def act(obs, state, params, key):\n"
+        "    brake = obs.ego_speed * 3.0 > jnp.abs(obs.ped_x - obs.ego_x)\n"
+        "    return jnp.where(brake, -gt_helper.DECEL, 0.0).astype(jnp.float32), state\n\n\n"
+        "def init(key, params):\n    return jnp.bool_(False)\n\n\n"
+        "AEB = SUT('gt-sut', act, init, None, stochastic=False)\n")
+    doc = {"parameters": {"ego_offset": {"values": [2.0, 6.0, 10.0]},
+                          "ped_speed": {"values": [0.8, 1.2, 1.6, 2.0]}}}
+    sp = space_from_dict(doc)
+    swapped = space_from_dict({"parameters": dict(reversed(list(doc["parameters"].items())))})
+    assert sp.names != swapped.names and sp.shape != swapped.shape
+    sut = sut_lib.resolve("gt_sut:AEB")
+    for space in (sp, swapped):
+        got = sweep.ground_truth(space, sut)
+        np.testing.assert_array_equal(got["reward"], sweep.sweep_arrays(space, sut)["reward"])
+    before = cache.source_hash(sut.act, sut.init)
+    truths = set((cache.folder() / "truth").iterdir())
+    sweep.ground_truth(sp, sut)
+    assert set((cache.folder() / "truth").iterdir()) == truths  # the same code: cached
+    (tmp_path / "gt_helper.py").write_text("DECEL = 0.5\n")  # only the helper changes
+    assert cache.source_hash(sut.act, sut.init) != before  # a resume would be refused
+    sweep.ground_truth(sp, sut)  # and the truth is swept anew, under a key of its own
+    assert len(set((cache.folder() / "truth").iterdir()) - truths) == 1
+
+
 def test_a_sut_that_is_never_finite_gets_a_summary_not_a_traceback(tiny, tmp_path, capsys):
     """Every rollout NaN (the SUT commands NaN): the sweep and compare report no global
     maximum (None, zero ties) and count the non-finite rollouts instead of failing."""
