@@ -19,6 +19,11 @@ def _command_line() -> bool:
         orig[1:3] == ["-m", "jaxfalsify"]
 
 
+if _command_line() and "--no-cache" in _sys.argv[1:]:  # before the cache is set up (it
+    import os as _os  # would create its folder)
+
+    _os.environ["JAXFALSIFY_NO_CACHE"] = "1"
+
 try:  # importing JAX takes most of a second: a Ctrl-C then ends the command in one line
     from jaxfalsify import cache as _cache
     from jaxfalsify.metrics import rss_safe_distance

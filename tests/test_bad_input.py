@@ -433,3 +433,12 @@ def test_an_interrupt_while_starting_is_one_line(tmp_path):
     r = subprocess.run([sys.executable, "-c", "import jaxfalsify"], env=env,
                        capture_output=True, text=True, cwd=tmp_path)
     assert r.returncode != 0 and r.stderr.strip().endswith("KeyboardInterrupt")
+
+
+def test_no_cache_writes_no_cache_folder(tmp_path):
+    """``jaxfalsify --no-cache ...`` leaves the per-user cache folder uncreated."""
+    env = {**os.environ, "JAXFALSIFY_CACHE_DIR": str(tmp_path / "cache")}
+    r = subprocess.run([sys.executable, "-m", "jaxfalsify", "--no-cache", "simulate",
+                        "ego_offset=5"], env=env, capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert '"collision"' in r.stdout and not (tmp_path / "cache").exists()
