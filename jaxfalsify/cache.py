@@ -101,6 +101,17 @@ def _installed_roots() -> tuple[str, ...]:
     return tuple(os.path.realpath(r) + os.sep for r in roots if r)
 
 
+def _user_file(module) -> str | None:
+    """A loaded module's source file if it is the user's (outside the Python installation and
+    jaxfalsify), resolved; else None."""
+    f = getattr(module, "__file__", None)
+    if isinstance(f, str) and f.endswith(".py"):
+        real = os.path.realpath(f)
+        if not real.startswith(_installed_roots()):
+            return real
+    return None
+
+
 def user_code_hash(*objs) -> str | None:
     """Hash of the user's code a program may run: the source files of every loaded module
     outside the Python installation and jaxfalsify (a SUT's module and any helper module it
@@ -118,14 +129,7 @@ def user_code_hash(*objs) -> str | None:
         except (TypeError, OSError):
             return None
         h.update(f"{o.__module__}.{o.__qualname__}".encode())
-    roots = _installed_roots()
-    files = set()
-    for m in list(sys.modules.values()):
-        f = getattr(m, "__file__", None)
-        if isinstance(f, str) and f.endswith(".py"):
-            real = os.path.realpath(f)
-            if not real.startswith(roots):
-                files.add(real)
+    files = {f for m in list(sys.modules.values()) if (f := _user_file(m))}
     for f in sorted(files):
         try:
             data = Path(f).read_bytes()
@@ -143,15 +147,6 @@ def _user_module_sources(objs) -> list[bytes]:
     import sys
     import types
 
-    roots = _installed_roots()
-
-    def user_file(m):
-        f = getattr(m, "__file__", None)
-        if isinstance(f, str) and f.endswith(".py") and \
-                not os.path.realpath(f).startswith(roots):
-            return os.path.realpath(f)
-        return None
-
     start = [sys.modules.get(getattr(o, "__module__", None) or "") for o in objs]
     todo = [m for m in start if m is not None]
     seen = {id(m) for m in todo}
@@ -165,15 +160,16 @@ def _user_module_sources(objs) -> list[bytes]:
                 continue
             dep = v if isinstance(v, types.ModuleType) else \
                 sys.modules.get(name if isinstance(name, str) else "")
-            if dep is None or id(dep) in seen or user_file(dep) is None:
+            f = None if dep is None or id(dep) in seen else _user_file(dep)
+            if f is None:
                 continue
             seen.add(id(dep))
             todo.append(dep)
             try:
-                found[user_file(dep)] = Path(user_file(dep)).read_bytes()
+                found[f] = Path(f).read_bytes()
             except OSError:
                 pass
-    own = {user_file(m) for m in start if m is not None}
+    own = {_user_file(m) for m in start if m is not None}
     return [data for f, data in found.items() if f not in own]
 
 

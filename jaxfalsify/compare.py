@@ -43,7 +43,7 @@ import numpy as np
 from jaxfalsify import analysis, campaign, config as cfg, search, store
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.progress import Clock, Progress
-from jaxfalsify.runs import RunConfig
+from jaxfalsify.runs import RunConfig, timestamp
 
 TOL = 1e-6  # reward equality with the global maximum (rewards are float32 sums)
 DEFAULT_STRATEGIES = ("reinforce/default", "reinforce/factorised", "reinforce/paper", "random",
@@ -481,7 +481,7 @@ def execute(config: CompareConfig, out: Path | str | None, *, force: bool = Fals
         "processes": num_processes, "code": cache.source_hash(base.sut.act, base.sut.init)},
         sort_keys=True, default=str).encode()))
     if out is None:
-        out, lk = store.open_new_folder(Path("runs") / f"compare-{_now()}", "compare")
+        out, lk = store.open_new_folder(Path("runs") / f"compare-{timestamp()}", "compare")
     else:
         out = Path(out)
         lk = store.open_folder(out, "compare", force=force,
@@ -823,12 +823,6 @@ def load_suite(path: Path | str, seeds: int | None = None,
     return suite
 
 
-def _now() -> str:
-    import time
-
-    return time.strftime("%Y%m%d-%H%M%S")
-
-
 def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = False,
                   progress: Progress | None = None, stop=None,
                   startup_seconds: float = 0.0) -> dict:
@@ -839,7 +833,7 @@ def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = 
     progress = progress or Progress()
     clock = Clock(startup_seconds)
     if out is None:
-        out, lk = store.open_new_folder(Path("runs") / f"suite-{_now()}", "suite")
+        out, lk = store.open_new_folder(Path("runs") / f"suite-{timestamp()}", "suite")
     else:
         out = Path(out)
         lk = store.open_folder(out, "suite", force=force)

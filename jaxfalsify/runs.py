@@ -541,5 +541,10 @@ def run_lines(s: dict) -> list[str]:
                 "- (too few evaluations to tell).")]
 
 
+def timestamp() -> str:
+    """The local time in default folder names, ``YYYYmmdd-HHMMSS``."""
+    return time.strftime("%Y%m%d-%H%M%S")
+
+
 def default_run_dir(strategy: str) -> Path:
-    return Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{strategy.replace('/', '-')}"
+    return Path("runs") / f"{timestamp()}-{strategy.replace('/', '-')}"

@@ -244,6 +244,19 @@ def test_top_distinct_and_scenario_hash_by_hand():
     assert h.dtype == np.uint32 and len(np.unique(h)) == 8000
 
 
+def _search(strat, p, outcome, key, updates):
+    """The search on a synthetic world as one scan (``outcome(idx) -> (reward, robustness,
+    collision)``, each ``(B,)``): every update's ``(indices, reward, collision)``."""
+    def upd(state, k):
+        k1, k2 = jax.random.split(k)
+        idx, state = strat.ask(k1, state, p)
+        r, rob, hit = outcome(idx)
+        return strat.tell_outcome(k2, state, idx, r, rob, hit, p), (idx, r, hit)
+
+    k0, k1 = jax.random.split(key)
+    return jax.lax.scan(upd, strat.init(k0, p), jax.random.split(k1, updates))[1]
+
+
 def test_default_never_repeats_a_scenario_before_a_collision():
     """reinforce/default's novelty filter: 30 updates of 32 on a space of 10,000 scenarios
     with a smooth objective and no collision: 960 evaluations, all distinct (the learner
@@ -252,18 +265,12 @@ def test_default_never_repeats_a_scenario_before_a_collision():
     strat, p = search.make("reinforce/default", shape)
     target = jnp.array([7, 2, 5, 4])
 
-    def loop(key):
-        def upd(state, k):
-            k1, k2 = jax.random.split(k)
-            idx, state = strat.ask(k1, state, p)
-            rob = jnp.sqrt(jnp.sum(jnp.square(idx - target), -1)).astype(jnp.float32) + 0.5
-            state = strat.tell_outcome(k2, state, idx, -0.01 * rob, rob,
-                                       jnp.zeros(strat.batch, bool), p)
-            return state, idx
-        k0, k1 = jax.random.split(key)
-        return jax.lax.scan(upd, strat.init(k0, p), jax.random.split(k1, 30))[1]
+    def outcome(idx):
+        rob = jnp.sqrt(jnp.sum(jnp.square(idx - target), -1)).astype(jnp.float32) + 0.5
+        return -0.01 * rob, rob, jnp.zeros(strat.batch, bool)
 
-    idx = np.asarray(jax.jit(loop)(jax.random.key(0))).reshape(-1, 4)
+    idx = jax.jit(lambda k: _search(strat, p, outcome, k, 30)[0])(jax.random.key(0))
+    idx = np.asarray(idx).reshape(-1, 4)
     flat = np.ravel_multi_index(idx.T, shape)
     assert len(flat) == 960 and len(np.unique(flat)) == 960
     # and it found the unique optimum (960 distinct uniform draws: probability 9.6 %)
@@ -285,16 +292,8 @@ def test_default_repeats_only_its_own_collisions_and_holds_still_without_signal(
         rob = d.astype(jnp.float32) * 0.5 + (~hit) * 0.1
         return jnp.where(hit, 0.25 + 0.001 * idx[..., 3], -0.01 * rob), rob, hit
 
-    def loop(key):
-        def upd(state, k):
-            k1, k2 = jax.random.split(k)
-            idx, state = strat.ask(k1, state, p)
-            r, rob, hit = outcome(idx)
-            return strat.tell_outcome(k2, state, idx, r, rob, hit, p), (idx, hit)
-        k0, k1 = jax.random.split(key)
-        return jax.lax.scan(upd, strat.init(k0, p), jax.random.split(k1, 60))[1]
-
-    idx, hit = (np.asarray(a) for a in jax.jit(loop)(jax.random.key(1)))
+    idx, _, hit = (np.asarray(a) for a in jax.jit(
+        lambda k: _search(strat, p, outcome, k, 60))(jax.random.key(1)))
     idx, hit = idx.reshape(-1, 4), hit.reshape(-1)
     flat = np.ravel_multi_index(idx.T, shape)
     assert hit.any()
@@ -725,18 +724,8 @@ def island_runs(request):
     """A learner on the island for seeds 0..3, 80 updates each (the paper's 4000 evaluations
     for the default's batch of 50), one compiled call."""
     strat, p = search.make(request.param, ISLAND_SHAPE)
-
-    def one(key):
-        def upd(state, k):
-            k1, k2 = jax.random.split(k)
-            idx, state = strat.ask(k1, state, p)
-            r, rob, col = island_outcome(idx)
-            return strat.tell_outcome(k2, state, idx, r, rob, col, p), (idx, r)
-
-        k0, k1 = jax.random.split(key)
-        return jax.lax.scan(upd, strat.init(k0, p), jax.random.split(k1, 80))[1]
-
-    idx, r = jax.jit(jax.vmap(one))(jax.vmap(jax.random.key)(jnp.arange(4)))
+    idx, r, _ = jax.jit(jax.vmap(lambda k: _search(strat, p, island_outcome, k, 80)))(
+        jax.vmap(jax.random.key)(jnp.arange(4)))
     return request.param, np.asarray(idx).reshape(4, -1, 3), np.asarray(r).reshape(4, -1)
 
 

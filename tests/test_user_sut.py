@@ -223,6 +223,17 @@ def test_sweep_and_compare_by_import_path(tiny, tmp_path):
     assert result["sut"] == SPEC and [r["strategy"] for r in result["rows"]] == ["random"]
 
 
+def _sut_with_helper(folder, module: str, helper: str, decel: float, body: str) -> None:
+    """Write a user SUT ``module:AEB`` whose ``act`` (``body``) reads ``DECEL`` from a helper
+    module it imports, ``helper`` (``DECEL = decel``)."""
+    (folder / f"{helper}.py").write_text(f"DECEL = {decel}\n")
+    (folder / f"{module}.py").write_text(
+        f"import jax.numpy as jnp\nimport {helper}\nfrom jaxfalsify.sut import SUT\n\n\n"
+        f"def act(obs, state, params, key):\n{body}\n\n\n"
+        "def init(key, params):\n    return jnp.bool_(False)\n\n\n"
+        f"AEB = SUT('{module.replace('_', '-')}', act, init, None, stochastic=False)\n")
+
+
 def test_program_cache_keys_on_the_users_code(tmp_path, monkeypatch):
     """The per-user program cache must never hand back a program built from other code: a
     user SUT's key changes when a helper module it imports changes (not only its own file),
@@ -237,13 +248,8 @@ def test_program_cache_keys_on_the_users_code(tmp_path, monkeypatch):
     from jaxfalsify.search.base import Strategy
 
     monkeypatch.syspath_prepend(str(tmp_path))
-    (tmp_path / "decel_helper.py").write_text("DECEL = 5.0\n")
-    (tmp_path / "helper_sut.py").write_text(
-        "import jax.numpy as jnp\nimport decel_helper\nfrom jaxfalsify.sut import SUT\n\n\n"
-        "def act(obs, state, params, key):\n"
-        "    return jnp.float32(-decel_helper.DECEL), state\n\n\n"
-        "def init(key, params):\n    return jnp.bool_(False)\n\n\n"
-        "AEB = SUT('helper-sut', act, init, None, stochastic=False)\n")
+    _sut_with_helper(tmp_path, "helper_sut", "decel_helper", 5.0,
+                     "    return jnp.float32(-decel_helper.DECEL), state")
     sut = sut_lib.resolve("helper_sut:AEB")
     before = sut_lib.cache_key(sut)
     assert before == sut_lib.cache_key(sut)  # stable while nothing changes
@@ -283,14 +289,10 @@ def test_ground_truths_and_fingerprints_follow_helpers_and_parameter_order(tmp_p
     from jaxfalsify.space import space_from_dict
 
     monkeypatch.syspath_prepend(str(tmp_path))
-    (tmp_path / "gt_helper.py").write_text("DECEL = 8.0\n")
-    (tmp_path / "gt_sut.py").write_text(
-        "import jax.numpy as jnp\nimport gt_helper\nfrom jaxfalsify.sut import SUT\n\n\n"
-        "def act(obs, state, params, key):\n"
-        "    brake = obs.ego_speed * 3.0 > jnp.abs(obs.ped_x - obs.ego_x)\n"
-        "    return jnp.where(brake, -gt_helper.DECEL, 0.0).astype(jnp.float32), state\n\n\n"
-        "def init(key, params):\n    return jnp.bool_(False)\n\n\n"
-        "AEB = SUT('gt-sut', act, init, None, stochastic=False)\n")
+    _sut_with_helper(tmp_path, "gt_sut", "gt_helper", 8.0,
+                     "    brake = obs.ego_speed * 3.0 > jnp.abs(obs.ped_x - obs.ego_x)\n"
+                     "    return jnp.where(brake, -gt_helper.DECEL, 0.0).astype(jnp.float32), "
+                     "state")
     doc = {"parameters": {"ego_offset": {"values": [2.0, 6.0, 10.0]},
                           "ped_speed": {"values": [0.8, 1.2, 1.6, 2.0]}}}
     sp = space_from_dict(doc)
