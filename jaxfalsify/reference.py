@@ -102,13 +102,17 @@ def reference_evaluate(scenario: dict, sut: str = "carla-tm", world: World = WOR
         ahead = px + PL / 2 > x1 + L / 2
         hr_flags[:, k] = valid & ahead & (_rss(v1) > centre_after)
         n += valid
+        # contact during the tick: the times the ego's centre enters and leaves the x band
+        # (roots of its constant-acceleration motion) against the walker's y band times
+        swept = _swept_overlap(x, v, a, py, vp, px, ego_y, (L + PL) / 2, (W + PW) / 2, dt)
+        hit = valid & (((gx <= 0) & (gy <= 0)) | swept)
+        d = np.where(hit, 0.0, d)
         min_d = np.where(valid, np.minimum(min_d, d), min_d)
         last_c = np.where(valid, centre_before, last_c)
         cx = np.where(px > x1, v1, -v1)
         cy = np.where(y1 < ego_y, vp, -vp)
-        ttc = _ttc_vector(gx, gy, cx, cy, L + PL, W + PW)
+        ttc = np.where(hit, 0.0, _ttc_vector(gx, gy, cx, cy, L + PL, W + PW))
         min_ttc = np.where(valid, np.minimum(min_ttc, ttc), min_ttc)
-        hit = valid & (gx <= 0) & (gy <= 0)
         collided |= hit
         coll_step = np.where(hit, k + 1, coll_step)
         done = hit | (x > w.end_x)
@@ -132,6 +136,35 @@ def reference_evaluate(scenario: dict, sut: str = "carla-tm", world: World = WOR
         high_risk_share=hr / np.maximum(n, 1),
         high_risk_share_second_half=second / np.maximum(n - n // 2, 1),
         robustness=min_d - w.epsilon, steps=n, min_ttc=min_ttc, **(hist if record else {}))
+
+
+def _reach_time(x, v, a, target):
+    """First time [s] at which ``x + v t + a t^2 / 2`` (stopping at v = 0) reaches
+    ``target`` >= x: the smaller root of the quadratic, in the cancellation-free form
+    ``2 D / (v + sqrt(v^2 + 2 a D))``; inf where it never does."""
+    D = target - x
+    disc = v * v + 2 * a * D
+    den = v + np.sqrt(np.maximum(disc, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where((disc >= 0) & (den > 0), 2 * D / np.where(den > 0, den, 1.0), np.inf)
+    return np.where(D <= 0, 0.0, t)
+
+
+def _swept_overlap(x, v, a, py, vp, px, ego_y, hx, hy, dt):
+    """Do the boxes overlap at some instant of a tick of ``dt`` s? The ego's centre is in
+    the band ``|x - px| <= hx`` between the times it reaches ``px - hx`` and passes
+    ``px + hx``; the walker's centre in ``|y - ego_y| <= hy`` between the times its linear
+    motion crosses the band's edges."""
+    t_in, t_out = _reach_time(x, v, a, px - hx), _reach_time(x, v, a, px + hx)
+    t_out = np.where(x > px + hx, -np.inf, t_out)  # already past: never in the band again
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (ego_y - hy - py) / vp, (ego_y + hy - py) / vp
+    inside = np.abs(py - ego_y) <= hy
+    ya = np.where(vp != 0, np.minimum(t1, t2), np.where(inside, 0.0, np.inf))
+    yb = np.where(vp != 0, np.maximum(t1, t2), np.where(inside, np.inf, -np.inf))
+    lo = np.maximum.reduce([t_in, ya, np.zeros_like(x)])
+    hi = np.minimum.reduce([t_out, yb, np.full_like(x, dt)])
+    return lo <= hi
 
 
 def _box_gap(x, py, w):

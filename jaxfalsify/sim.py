@@ -259,6 +259,32 @@ def rollout(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array,
     def box_gap(ego_x, ped_y):
         return metrics.box_gaps(w.crosswalk_x - ego_x, ped_y - w.ego_y, half_x, half_y)
 
+    def swept_contact(x0, v0, a, y0, vp):
+        """Do the boxes overlap at some instant of a tick ``[0, dt]`` that starts at ego
+        centre ``x0`` [m], speed ``v0`` [m/s], constant acceleration ``a`` [m/s^2] (stopping
+        at v = 0) and walker centre ``y0`` [m] at constant speed ``vp`` [m/s]? The walker's
+        centre is inside the y-overlap band ``|y - ego_y| <= half_y`` for one interval of
+        time ``[ta, tb]`` (it moves linearly); the ego's centre moves monotonically, so over
+        that interval it spans ``[x(ta), x(tb)]``, which must meet ``|x - crosswalk_x| <=
+        half_x``."""
+        lo, hi = w.ego_y - half_y - y0, w.ego_y + half_y - y0  # walker displacement band
+        moving = vp != 0
+        inv = 1.0 / jnp.where(moving, vp, 1.0)
+        t_lo, t_hi = lo * inv, hi * inv
+        ta = jnp.where(moving, jnp.minimum(t_lo, t_hi), jnp.where(lo <= 0, 0.0, jnp.inf))
+        tb = jnp.where(moving, jnp.maximum(t_lo, t_hi), jnp.where(hi >= 0, dt, -jnp.inf))
+        ta, tb = jnp.maximum(ta, 0.0), jnp.minimum(tb, dt)
+        t_stop = jnp.where(a < 0, v0 / jnp.maximum(-a, 1e-6), jnp.inf)
+
+        def x_at(t):
+            t = jnp.minimum(t, t_stop)
+            return x0 + v0 * t + 0.5 * a * t * t
+
+        inside = ta <= tb
+        ta, tb = jnp.where(inside, ta, 0.0), jnp.where(inside, tb, 0.0)
+        return inside & (x_at(ta) <= w.crosswalk_x + half_x) \
+            & (x_at(tb) >= w.crosswalk_x - half_x)
+
     def centre(ego_x, ped_y):
         """3-D distance between the actors' origins (the original's ``loc.distance``)."""
         return jnp.sqrt((w.crosswalk_x - ego_x) ** 2 + (ped_y - w.ego_y) ** 2 + w.origin_dz ** 2)
@@ -297,11 +323,14 @@ def rollout(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array,
         # the pedestrian is RSS's front object until the ego's front bumper has passed it
         ahead = w.crosswalk_x + w.ped_length / 2 > x1 + w.ego_length / 2
         hr = move & ahead & (d_min > d_centre)
-        overlap = (gap_x <= 0) & (gap_y <= 0)
+        # contact at any instant of the tick, not only at its end: the walker can clip a
+        # corner of the passing car between two samples
+        overlap = ((gap_x <= 0) & (gap_y <= 0)) | swept_contact(c.ego_x, c.ego_v, a, c.ped_y, vp)
+        dist = jnp.where(overlap, 0.0, dist)
         closing_y = jnp.where(y1 < w.ego_y, vp, -vp)
         ttc = metrics.time_to_collision(gap_x, gap_y, jnp.where(w.crosswalk_x > x1, v1, -v1),
                                         closing_y, 2 * half_x, 2 * half_y)
-        ttc = jnp.where(move, ttc, jnp.inf)
+        ttc = jnp.where(move, jnp.where(overlap, 0.0, ttc), jnp.inf)
 
         nonfinite = c.nonfinite | (valid & bad)
         collided_now = move & overlap

@@ -179,9 +179,30 @@ def _none_closed_form(ego_offset, ped_speed, ped_offset):
     m = k - k1
     x_late = x1 + dt * (m * p.cruise_speed - e1 * (1 + r) * (1 - r**m) / (2 * (1 - r)))
     x = np.where(k <= k1, -ego_offset + p.accel_max * (k * dt) ** 2 / 2, x_late)
-    y = W.road_right + W.walker_base - (ped_offset + 1) + ped_speed * k * dt
-    overlap = ((np.abs(W.crosswalk_x - x) <= (W.ego_length + W.ped_length) / 2)
-               & (np.abs(y - W.ego_y) <= (W.ego_width + W.ped_width) / 2))
+    y0 = W.road_right + W.walker_base - (ped_offset + 1)
+    hx, hy = (W.ego_length + W.ped_length) / 2, (W.ego_width + W.ped_width) / 2
+    # contact at any instant of the tick that reaches state k (from state k-1): the walker's
+    # centre is in the band |y - ego_y| <= hy for t in [ta, tb] (linear); the ego's, moving at
+    # the tick's constant acceleration (speeds recovered from x_k - x_{k-1} = (v_{k-1} + v_k)
+    # dt / 2, v_0 = 0), is in |x - crosswalk_x| <= hx between the roots of its quadratic
+    v = np.zeros_like(x)
+    for i in range(1, x.size):
+        v[i] = 2 * (x[i] - x[i - 1]) / dt - v[i - 1]
+    overlap = np.zeros(x.size, bool)
+    ta = (W.ego_y - hy - y0) / ped_speed - (k - 1) * dt  # into the tick reaching state k
+    tb = (W.ego_y + hy - y0) / ped_speed - (k - 1) * dt
+    for i in range(1, x.size):
+        lo, hi = max(ta[i], 0.0), min(tb[i], dt)
+        if lo > hi:
+            continue
+        a = (v[i] - v[i - 1]) / dt
+        reach = np.roots([a / 2, v[i - 1], x[i - 1] - (W.crosswalk_x - hx)])
+        t_in = 0.0 if x[i - 1] >= W.crosswalk_x - hx else min(
+            [r.real for r in reach if abs(r.imag) < 1e-12 and r.real >= 0] or [np.inf])
+        reach = np.roots([a / 2, v[i - 1], x[i - 1] - (W.crosswalk_x + hx)])
+        t_out = -np.inf if x[i - 1] > W.crosswalk_x + hx else min(
+            [r.real for r in reach if abs(r.imag) < 1e-12 and r.real >= 0] or [np.inf])
+        overlap[i] = max(lo, t_in) <= min(hi, t_out)
     # state k is reached by step k-1, which runs unless a state before it was beyond the end
     ended = np.concatenate([[False, False], np.cumsum(x > W.end_x)[:-2] > 0])
     hits = np.nonzero(overlap & ~ended)[0]
