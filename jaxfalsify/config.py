@@ -46,6 +46,12 @@ def jsonable(x: Any) -> Any:
 
 
 def _toml_value(v: Any) -> str:
+    if isinstance(v, np.ndarray):  # an array as a (nested) list of its elements
+        if v.ndim == 0:
+            return _toml_value(v[()])
+        return "[" + ", ".join(_toml_value(e) for e in v) + "]"
+    if isinstance(v, np.generic):  # np.float64 is a float whose repr is 'np.float64(1.2)'
+        v = plain(v)
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, int):
@@ -75,7 +81,10 @@ def dumps_toml(doc: dict[str, Any], _prefix: str = "") -> str:
         if isinstance(v, dict):
             tables.append((k, v))
         elif v is not None:
-            lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
+            try:
+                lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
+            except ValueError as e:  # name the key
+                raise ValueError(f"{_prefix}{k}: {e}") from None
     out = "\n".join(lines)
     for k, v in tables:
         name = f"{_prefix}{_toml_key(k)}"

@@ -39,7 +39,9 @@ KNOWN_PARAMETERS: dict[str, dict[str, Any]] = {
     "ped_speed": dict(unit="m/s", default=1.46, domain=(0.0, 5.0), integer=False,
                       doc="pedestrian nominal walking speed"),
     "ped_offset": dict(unit="m", default=3.5, domain=(0.0, 20.0), integer=False,
-                       doc="pedestrian start distance behind the kerb, minus 1 m"),
+                       doc="the pedestrian starts ped_offset + 1 m back (towards the kerb) "
+                           "from its base spawn point, which lies 4.5 m (World.walker_base) "
+                           "inside the right kerb: 3.5 starts at the kerb"),
     "weather": dict(unit="preset", default=0.0, domain=(0.0, weather.N_PRESETS - 1.0),
                     integer=True, doc="CARLA weather preset index (name-sorted)"),
     "ped_speed_change": dict(unit="m/s", default=0.0, domain=(-3.0, 3.0), integer=False,
@@ -114,8 +116,9 @@ class Parameter:
         d, a, n = self.distribution, self.args, self.samples
         if d == "values":
             out = np.asarray(a, dtype=np.float64)
-        elif d == "uniform":
-            out = np.round(rng.uniform(a[0], a[1], n), self.decimals)
+        elif d == "uniform":  # rounded draws stay in the declared range (the grid's ends)
+            lo, hi = decimal_grid(a[0], a[1], self.decimals)
+            out = np.clip(np.round(rng.uniform(a[0], a[1], n), self.decimals), lo, hi)
         elif d == "normal":
             out = np.round(rng.normal(a[0], a[1], n), self.decimals)
         else:  # integers, inclusive, without replacement
@@ -140,6 +143,19 @@ class Parameter:
             if self.distribution != "integers":
                 d["decimals"] = self.decimals
         return d
+
+
+def decimal_grid(low: float, high: float, decimals: int) -> tuple[float, float]:
+    """The smallest and largest multiple of ``10**-decimals`` in ``[low, high]`` as the floats
+    ``np.round(x, decimals)`` gives (exact decimal arithmetic on the shortest repr of each
+    bound, so 0.29 counts as a multiple of 0.01); ``low > high`` when there is none."""
+    from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
+
+    def snap(x: float, how) -> float:
+        k = Decimal(repr(float(x))).scaleb(decimals).to_integral_value(rounding=how)
+        return float(k.scaleb(-decimals))
+
+    return snap(low, ROUND_CEILING), snap(high, ROUND_FLOOR)
 
 
 def uniform(name: str, low: float, high: float, samples: int, decimals: int = 3) -> Parameter:
@@ -195,6 +211,12 @@ def make_parameter(name: str, distribution: str, args: tuple, samples: int,
         low, high = args
         if not (low < high or (distribution == "integers" and low == high)):
             raise ValueError(f"{key}: empty or inverted range low={low} high={high}")
+        if distribution == "uniform":
+            g_lo, g_hi = decimal_grid(low, high, decimals)
+            if g_lo > g_hi:
+                raise ValueError(f"{key}: no multiple of {10.0 ** -decimals:g} (decimals="
+                                 f"{decimals}) lies in [{low:g}, {high:g}]; widen the range or "
+                                 "raise decimals")
         if distribution == "integers":
             if low != int(low) or high != int(high):
                 raise ValueError(f"{key}: integers needs integer low/high (got {low}, {high})")
@@ -458,18 +480,27 @@ def parse_parameter(name: str, spec: Any, where: str) -> Parameter:
     if unit != parameter_spec(name)["unit"]:
         raise ValueError(f"{where}.unit: '{name}' is in {parameter_spec(name)['unit']!r}, "
                          f"not {unit!r}")
+    if "distribution" in spec and not isinstance(spec["distribution"], str):
+        raise ValueError(f"{where}.distribution: must be a string (one of "
+                         f"{', '.join(DISTRIBUTIONS)})")
     if "decimals" in spec and ("values" in spec or spec.get("distribution") == "integers"):
         raise ValueError(f"{where}.decimals applies to uniform and normal draws only")
     if "values" in spec:
         dist = spec.get("distribution", "values")
         if dist != "values":
             raise ValueError(f"{where}: 'values' given with distribution '{dist}'")
+        extra = set(spec) & {"low", "high", "mean", "sd"}
+        if extra:
+            raise ValueError(f"{where}.{sorted(extra)[0]} does not apply to explicit 'values'")
         vals = spec["values"]
         if not isinstance(vals, list):
             raise ValueError(f"{where}.values must be a list (got {vals!r})")
-        if "samples" in spec and spec["samples"] != len(vals):
-            raise ValueError(f"{where}.samples={spec['samples']!r} disagrees with "
-                             f"{len(vals)} values")
+        if "samples" in spec:
+            n = spec["samples"]
+            if isinstance(n, bool) or not isinstance(n, int) or n <= 0:
+                raise ValueError(f"{where}.samples must be a positive integer (got {n!r})")
+            if n != len(vals):
+                raise ValueError(f"{where}.samples={n} disagrees with {len(vals)} values")
         return make_parameter(name, "values", tuple(vals), len(vals), where=where)
     if "distribution" not in spec:
         raise ValueError(f"{where}: needs 'distribution' ({', '.join(DISTRIBUTIONS)}) or 'values'")
@@ -496,6 +527,9 @@ def space_from_dict(doc: dict[str, Any], seed: int = 0, default_name: str = "cus
     if unknown:
         raise ValueError(f"unknown top-level key '{sorted(unknown)[0]}' "
                          f"(allowed: {', '.join(sorted(_TOP_KEYS))})")
+    if "description" in doc and not isinstance(doc["description"], str):
+        raise ValueError(f"description must be a string (got "
+                         f"{type(doc['description']).__name__} {doc['description']!r:.40})")
     params = doc.get("parameters")
     if not isinstance(params, dict) or not params:
         raise ValueError("'parameters' table is missing or empty")

@@ -204,27 +204,42 @@ class Calibrations:
 
 
 def calibrations(sut: sut_lib.SUT, sut_params: Mapping[str, Any]) -> Calibrations:
-    """Expand ``{name: value or [values]}`` into the calibrations (C order, the last named
-    parameter fastest); one-line ValueError naming a bad name or value."""
+    """Expand ``{name: value or [values]}`` into the calibrations: C order over the swept
+    parameters in the SUT's declared order (the last declared parameter fastest), whatever
+    order they are given in, so a sweep and its resume (whose ``config.toml`` lists them in
+    declared order) number the calibrations alike. One-line ValueError naming a bad name or
+    value, or values a swept parameter repeats in float32 (the simulator's precision)."""
+    order = {n: i for i, n in enumerate(sut_lib.param_names(sut))}
+    items = sorted(dict(sut_params).items(), key=lambda kv: order.get(kv[0], len(order)))
     fixed, swept = {}, []
-    for name, v in dict(sut_params).items():
+    for name, v in items:  # sorted is stable: unknown names keep their order, at the end
         if isinstance(v, np.ndarray) and v.ndim == 1:  # an array of values, like a list
             v = v.tolist()
         if isinstance(v, (list, tuple)):
+            v = [cfg.plain(x) if isinstance(x, np.generic) else x for x in v]
             if len(v) == 0:
                 raise ValueError(f"sut_params.{name}: an empty list of values")
             if len(v) == 1:
                 fixed[name] = v[0]
             else:
                 swept.append((name, tuple(v)))
-        else:
-            fixed[name] = v
+        else:  # a NumPy scalar as the Python number it is (np.float32 1.2 as 1.2)
+            fixed[name] = cfg.plain(v) if isinstance(v, (np.generic, np.ndarray)) \
+                and np.ndim(v) == 0 else v
+    count = math.prod(len(vals) for _, vals in swept)
+    if count > 4096:  # before building them
+        raise ValueError(f"sut_params: {count} calibrations; at most 4096 per sweep")
+    for name, vals in swept:  # each value checked (a bad one named) before the float32 test
+        for x in vals:
+            sut_lib.with_params(sut, {**fixed, name: x}, where="sut_params")
+        as32 = np.asarray(vals, np.float64).astype(np.float32)
+        if len(set(as32.tolist())) != len(vals):
+            raise ValueError(f"sut_params.{name}: values {list(vals)} repeat in float32 (the "
+                             "simulator's precision): the calibrations would be identical")
     instances = []
     for combo in itertools.product(*(vals for _, vals in swept)):
         over = {**fixed, **{n: c for (n, _), c in zip(swept, combo)}}
         instances.append(sut_lib.with_params(sut, over, where="sut_params"))
-    if len(instances) > 4096:
-        raise ValueError(f"sut_params: {len(instances)} calibrations; at most 4096 per sweep")
     sut_lib.check_traceable(sut, instances[0])
     return Calibrations(sut, tuple(instances),
                         tuple((n, tuple(float(x) for x in vals)) for n, vals in swept))
@@ -433,6 +448,7 @@ def _layout(config: SweepConfig, space: Space, calib: Calibrations, out: Path,
     planned = plan_chunks(max(end - begin, 1), max(256, config.chunk // calib.count))
     fingerprint = json.loads(json.dumps(
         {"config": config.to_toml(space, num_processes), "chunk": planned,
+         "calibrations": cfg.jsonable([sut_lib.params_dict(p) for p in calib.instances]),
          "range": [begin, end], "world": repr(world),
          "code": cache.source_hash(calib.sut.act, calib.sut.init)}))
     return begin, end, planned, out / checkpoint_name(process_id, num_processes), fingerprint
