@@ -8,7 +8,9 @@ it; the pedestrian comes from the right. A marked crosswalk crosses it at ``x = 
 One episode (written for one concrete scenario; ``vmap`` + ``jit`` are applied outside):
 
 * The ego starts at rest ``ego_offset`` m behind its base, and its SUT drives it.
-* The pedestrian starts ``ped_offset + 1`` m behind the right kerb (as the original spawns it)
+* The pedestrian starts ``ped_offset + 1`` m back (towards the kerb) from its base spawn
+  point, which lies ``walker_base`` (4.5 m) inside the right kerb, on the road: with
+  ``ped_offset`` 3 it starts 0.5 m inside the kerb (as the original spawns it),
   and walks straight across, starting when the ego starts moving (t = 0), with the original
   code's speed profile (:func:`ped_speed_profile`).
 * Every 0.1 s step (one tick of the original's loop): the SUT observes, the ego integrates

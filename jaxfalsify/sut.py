@@ -293,7 +293,8 @@ class SensorAEBParams(AutopilotParams):
     * rain: range ``* (1 - rain_range_loss * precipitation/100)``, latency
       ``+ rain_latency * precipitation/100`` (Zang et al. 2019, IEEE VT Magazine);
     * wet road: friction falls from ``mu_dry`` to ``mu_wet`` as deposits go 0 -> 100 %;
-      the full brake is limited to ``mu * g``.
+      the AEB's full stage brakes at ``mu * g`` (the tyres' limit; the autopilot's
+      ``full_brake``, its pedal at brake 1.0, is not used by the AEB).
 
     Braking is staged on TTC: ``partial_brake`` below ``ttc_partial`` s, full below
     ``ttc_full`` s. The TTC is the constant-velocity one of :func:`metrics.time_to_collision`
@@ -302,7 +303,9 @@ class SensorAEBParams(AutopilotParams):
     keeps braking for a pedestrian inside its path until the car stops or the pedestrian is out.
 
     ``latency`` counts from the first step a demand is perceived: with ``dt`` 0.1 s a latency
-    of 0.1 s brakes one step after that, 0 on the same step. (Earlier the first perceived
+    of 0.1 s brakes one step after that, 0 on the same step. The weather's terms add to it
+    (at least ``dark_latency * (1 - 0.965)`` = 0.014 s, the brightest preset's illuminance
+    being 0.965) and it is served in whole steps, so the default brakes two steps after. (Earlier the first perceived
     step counted as 0.1 s already, so every latency acted 0.1 s early and 0 never let the car
     drive; the default went from 0.2 to 0.1 s with the fix, which keeps the SUT's behaviour.)
     """
