@@ -546,7 +546,7 @@ def cmd_export(args, stop, startup) -> int:
     if args.ego not in ("controller", "replay"):
         raise UsageError(f"--ego {args.ego!r}: expected controller or replay")
     check_out_plain(args.out, EXPORT_FILES, args.force)
-    files = export(args.run_dir, args.out, args.scenario, ego=args.ego)
+    files = export(args.run_dir, args.out, args.scenario, ego=args.ego, force=args.force)
     scenarios = [f for f in files if f.suffix == ".xosc" and not f.name.startswith("logical")
                  and f.name != "template.xosc"]
     extra = ", template.xosc" if any(f.name == "template.xosc" for f in files) else ""

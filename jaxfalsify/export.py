@@ -4,13 +4,17 @@
 Writes, to one folder:
 
 * per scenario, ``<name>.xosc`` (OpenSCENARIO 1.3; ``best.xosc`` or ``critical_NNN.xosc``);
-* ``crossing.xodr`` (OpenDRIVE: the straight 4-lane road with a crosswalk object), shared;
+* ``crossing.xodr`` (OpenDRIVE 1.7: the straight 4-lane road with a crosswalk object), shared;
 * ``logical.xosc``: the run's logical scenario as a ``ParameterValueDistribution`` over the
   exported scenario file (the template): one deterministic ``DistributionSet`` per space
   parameter holding its discretised values, so a tool enumerating it re-runs the sweep;
 * ``logical_stochastic.xosc``: the same parameters as the space declares them (normal, uniform,
   integer or explicit value sets) as a stochastic distribution (OpenSCENARIO allows one kind
-  per file).
+  per file); ``weather`` and ``ped_change_step`` drawn normal or uniform as the integers their
+  rounded draw can give, weighted by probability (:func:`integer_draws`).
+
+Without ``force`` an export refuses a file it would write that is already in the folder; every
+file header carries the run's date (:func:`run_date`), so an export is byte-reproducible.
 
 Every scenario file declares the space's parameters (``ParameterDeclarations``: names as in the
 space, type double, the concrete value with the space's decimals) and the known scenario
@@ -33,7 +37,8 @@ Two ways to export the ego (``ego``):
 The CARLA weather preset becomes an ``EnvironmentAction`` (cloudiness -> oktas, precipitation ->
 rain of up to 10 mm/h, sun altitude -> sun elevation, water deposits -> road wetness; friction
 unchanged as in CARLA); in controller mode a space with several weather values also switches
-the environment on ``$weather`` (one ``ParameterCondition``-triggered event per value).
+the environment on ``$weather`` (one ``ParameterCondition``-triggered event per value either
+distribution may set, :func:`distribution_values`).
 
 The pedestrian's profile in events. The simulator's speed during step k (of ``dt``) is
 ``max(s_k, 0)`` with ``s = ped_speed - 5 * ped_accel`` for steps 0..5, then ``s`` grows by
@@ -41,8 +46,10 @@ The pedestrian's profile in events. The simulator's speed during step k (of ``dt
 ``s + n * ped_accel``), i.e. at ``ped_accel / dt`` m/s^2. A linear ramp at that rate starting
 at ``5.5 * dt`` (half a step early: the midpoint of each step's speed) passes every step's
 speed at the step's middle, so the walked distance equals the simulator's at the end of the
-ramp and differs by ``ped_accel * dt / 8`` (<= 1.3 mm in the paper's space) during it. In the
-extended space, the six-step window from step ``T = ped_change_step`` walks at the last
+ramp and differs by ``ped_accel * dt / 8`` (<= 1.3 mm in the paper's space) during it. In a
+space declaring ``ped_speed_change`` or ``ped_change_step`` (the extended space; the simulator
+opens the window whatever the change, a change of 0 holds the speed), the six-step window from
+step ``T = ped_change_step`` walks at the last
 step's speed + ``ped_speed_change`` and pauses the growth: a step to that speed at ``T * dt``,
 a step back to the ramp's value at ``(T + 6) * dt``, then the ramp again. A negative profile
 speed (a slow walker with a large increment) walks at 0; a ramp from a negative value starts,
@@ -55,7 +62,7 @@ Road frame: our x + ``X_OFFSET`` along the road (OpenDRIVE's road starts at x = 
 from __future__ import annotations
 
 import ast
-import fnmatch
+import datetime
 import math
 import operator
 import os
@@ -90,22 +97,38 @@ def schema_path(kind: str = "xosc") -> Path:
     return base / ("OpenSCENARIO_1_3_1.xsd" if kind == "xosc" else "opendrive_17_core.xsd")
 
 
-def write_road(path: Path, world) -> Path:
+def write_road(path: Path, world, date: datetime.datetime | None = None) -> Path:
+    """``crossing.xodr``: OpenDRIVE 1.7 (the header says so: the file is checked against the
+    1.7 XSD), its header dated ``date`` (default: now)."""
     from scenariogeneration import xodr
+    from scenariogeneration.helpers import printToFile
 
     road = xodr.create_road(xodr.Line(ROAD_LENGTH), id=0, left_lanes=int(world.lanes_left),
                             right_lanes=int(world.lanes_right), lane_width=world.lane_width)
     # centred across the road (t: lateral offset from the reference line, left positive)
     road.add_object(xodr.Object(s=world.crosswalk_x + X_OFFSET,
                                 t=(world.road_left + world.road_right) / 2,
-                                Type=xodr.ObjectType.crosswalk, id="1", name="crosswalk",
+                                Type=xodr.ObjectType.crosswalk, name="crosswalk",
                                 width=world.road_left - world.road_right, length=3.0,
                                 height=0.0, hdg=0.0))
-    odr = xodr.OpenDrive("jaxfalsify_crossing")
+    odr = xodr.OpenDrive("jaxfalsify_crossing", revMajor="1", revMinor="7")
     odr.add_road(road)
     odr.adjust_roads_and_lanes()
-    odr.write_xml(str(path))
+    root = odr.get_element()
+    root.find("header").set("date", _date_text(date))  # scenariogeneration writes now()
+    for obj in root.iter("object"):  # the crosswalk, the road's only object
+        # its id: scenariogeneration numbers objects across a process (a second export would
+        # get another id, and a printed warning for a given one); its subtype (optional)
+        # written as the text "None"
+        obj.set("id", "1")
+        if obj.get("subtype") == "None":
+            del obj.attrib["subtype"]
+    printToFile(root, str(path))
     return path
+
+
+def _date_text(date: datetime.datetime | None) -> str:
+    return (date or datetime.datetime.now()).isoformat()
 
 
 def environment(weather_index: int):
@@ -213,11 +236,20 @@ def value_of(text: str, params: dict[str, float]) -> float:
 
 
 # ---------------------------------------------------------------- declarations
+WINDOW_PARAMETERS = ("ped_speed_change", "ped_change_step")
+
+
+def has_window(names) -> bool:
+    """Whether scenarios over the parameters ``names`` have the speed-change window: either of
+    its parameters declared (the simulator opens it at ``ped_change_step`` whatever the
+    change: a space declaring only the step still pauses the growth there)."""
+    return any(n in names for n in WINDOW_PARAMETERS)
+
+
 def _used_parameters(space) -> tuple[str, ...]:
     """Known scenario parameters a controller-mode file references."""
     base = ("ego_offset", "ped_speed", "ped_accel", "ped_offset", "weather")
-    extra = ("ped_speed_change", "ped_change_step") if "ped_speed_change" in space.names else ()
-    return base + extra
+    return base + (WINDOW_PARAMETERS if has_window(space.names) else ())
 
 
 def parameter_values(space, indices) -> dict[str, str]:
@@ -288,7 +320,8 @@ def _describe(name: str, params: dict) -> str:
 
 
 def write_scenario(path: Path, road_file: str, traj: dict, params: dict, world,
-                   name: str, declarations: dict[str, str] | None = None) -> Path:
+                   name: str, declarations: dict[str, str] | None = None,
+                   date: datetime.datetime | None = None) -> Path:
     """Replay mode: one ``.xosc`` in which both actors follow a simulated trajectory (fields
     ``(T,)`` of one scenario); ``declarations`` ``{name: value text}`` are declared (not
     referenced: the trajectories carry the values)."""
@@ -329,7 +362,8 @@ def write_scenario(path: Path, road_file: str, traj: dict, params: dict, world,
         sb.add_maneuver(man, actor)
     sce = xosc.Scenario(_describe(name, params), "jaxfalsify",
                         _declarations(declarations or {}), _entities(world), sb,
-                        xosc.RoadNetwork(roadfile=road_file), xosc.Catalog())
+                        xosc.RoadNetwork(roadfile=road_file), xosc.Catalog(),
+                        creation_date=date)
     sce.write_xml(str(path))
     return path
 
@@ -378,7 +412,8 @@ def _speed_event(name: str, target: str, dynamics, trigger):
 
 
 def write_controller_scenario(path: Path, road_file: str, space, values: dict[str, str],
-                              request: dict[str, float], world, name: str) -> Path:
+                              request: dict[str, float], world, name: str,
+                              date: datetime.datetime | None = None) -> Path:
     """Controller mode: one ``.xosc`` for the concrete scenario ``values`` (``{name: value
     text}``, :func:`parameter_values`) in which the ego gets its start, route and launch
     request (``request``, :func:`ego_request`) and the pedestrian's path and speed profile
@@ -386,7 +421,7 @@ def write_controller_scenario(path: Path, road_file: str, space, values: dict[st
     from scenariogeneration import xosc
 
     dt = float(world.dt)
-    window = "ped_speed_change" in values
+    window = has_window(values)
     ex = ped_expressions(world, window)
     ego_s = _expr(f"{_num(X_OFFSET)} - $ego_offset")
     ped_x = world.crosswalk_x + X_OFFSET
@@ -489,15 +524,10 @@ def write_controller_scenario(path: Path, road_file: str, space, values: dict[st
     mg.add_maneuver(speed_man)
     act.add_maneuver_group(mg)
 
-    # the weather on $weather, for a template whose distribution varies it
-    w_idx = space.names.index("weather") if "weather" in space.names else None
-    # every preset the deterministic or the stochastic distribution may set (the stochastic
-    # one draws from the declared range, not only the space's drawn values)
-    w_all = [] if w_idx is None else sorted({int(v) for v in space.table[w_idx]} | set(
-        range(int(space.parameters[w_idx].args[0]), int(space.parameters[w_idx].args[1]) + 1)
-        if space.parameters[w_idx].distribution == "integers" else
-        (int(v) for v in space.parameters[w_idx].args)
-        if space.parameters[w_idx].distribution == "values" else ()))
+    # the weather on $weather, for a template whose distribution varies it: every preset the
+    # deterministic or the stochastic distribution may set (the stochastic one draws from the
+    # declared range, not only the space's drawn values)
+    w_all = distribution_values(space, "weather")
     if len(w_all) > 1:
         w_man = xosc.Maneuver("weather")
         for v in w_all:
@@ -515,14 +545,68 @@ def write_controller_scenario(path: Path, road_file: str, space, values: dict[st
     sb.add_story(story)
     sce = xosc.Scenario(_describe(name, {k: float(v) for k, v in values.items()}), "jaxfalsify",
                         _declarations(values, request), _entities(world), sb,
-                        xosc.RoadNetwork(roadfile=road_file), xosc.Catalog())
+                        xosc.RoadNetwork(roadfile=road_file), xosc.Catalog(),
+                        creation_date=date)
     sce.write_xml(str(path))
     return path
 
 
 # ---------------------------------------------------------------- the logical scenario
+def _normal_cdf(x: float, mean: float, sd: float) -> float:
+    return 0.5 * math.erfc(-(x - mean) / (sd * math.sqrt(2.0)))
+
+
+def integer_draws(par) -> list[tuple[int, float]] | None:
+    """A parameter the simulator reads as an integer (``KNOWN_PARAMETERS``' ``integer``:
+    ``weather``, ``ped_change_step``) declared ``uniform`` or ``normal``: ``[(value,
+    probability)]`` of every integer the space's draw can give (a draw rounded to an integer;
+    uniform: clipped to the range's integers, so ``v`` has the probability of ``[v - 0.5,
+    v + 0.5)`` within the range; normal: that of ``N(mean, sd^2)``, truncated to the
+    parameter's domain); values of probability 0 (below 1e-15) left out. None for every other
+    parameter (it is drawn continuously)."""
+    from jaxfalsify.space import decimal_grid
+
+    spec = KNOWN_PARAMETERS.get(par.name)
+    if spec is None or not spec["integer"] or par.distribution not in ("uniform", "normal"):
+        return None
+    if par.distribution == "uniform":
+        lo, hi = (float(a) for a in par.args)
+        g_lo, g_hi = (int(round(g)) for g in decimal_grid(lo, hi, 0))
+        mass = {v: (min(hi, v + 0.5) if v < g_hi else hi) - (max(lo, v - 0.5) if v > g_lo else lo)
+                for v in range(g_lo, g_hi + 1)}
+    else:
+        mean, sd = (float(a) for a in par.args)
+        d_lo, d_hi = spec["domain"]
+        mass = {v: _normal_cdf(v + 0.5, mean, sd) - _normal_cdf(v - 0.5, mean, sd)
+                for v in range(math.ceil(d_lo), math.floor(d_hi) + 1)}
+    total = sum(mass.values())
+    out = [(v, m / total) for v, m in mass.items() if m / total > 1e-15]
+    norm = sum(w for _, w in out)
+    return [(v, float(f"{w / norm:.12g}")) for v, w in out]
+
+
+def distribution_values(space, name: str) -> list[int]:
+    """The integer values of the parameter ``name`` (``weather``) that the deterministic or
+    the stochastic distribution (:func:`write_distribution`) may set: the space's values and
+    every integer its declaration allows (``integers``: the range; ``values``: the list;
+    ``uniform``, ``normal``: :func:`integer_draws`); [] when the space does not declare it."""
+    if name not in space.names:
+        return []
+    p = space.names.index(name)
+    par = space.parameters[p]
+    out = {int(v) for v in space.table[p]}
+    if par.distribution == "integers":
+        out |= set(range(int(par.args[0]), int(par.args[1]) + 1))
+    elif par.distribution == "values":
+        out |= {int(v) for v in par.args}
+    else:
+        out |= {v for v, _ in integer_draws(par) or ()}
+    return sorted(out)
+
+
 def write_distribution(path: Path, space, scenario_file: str, kind: str = "deterministic",
-                       test_runs: int | None = None) -> Path:
+                       test_runs: int | None = None,
+                       date: datetime.datetime | None = None) -> Path:
     """The logical scenario as an OpenSCENARIO ``ParameterValueDistribution`` over the
     template ``scenario_file`` (a path relative to ``path``'s folder).
 
@@ -531,7 +615,10 @@ def write_distribution(path: Path, space, scenario_file: str, kind: str = "deter
     the sweep. ``stochastic``: each parameter as the space declares it (``normal`` ->
     ``NormalDistribution`` with variance sd^2 truncated to the parameter's domain, ``uniform``
     -> ``UniformDistribution``, ``integers`` and ``values`` -> equally weighted
-    ``ProbabilityDistributionSet``; integer ranges over 10,000 values -> ``UniformDistribution``),
+    ``ProbabilityDistributionSet``; integer ranges over 10,000 values -> ``UniformDistribution``;
+    a parameter the simulator reads as an integer, ``weather`` or ``ped_change_step``,
+    declared ``uniform`` or ``normal`` -> a ``ProbabilityDistributionSet`` over the integers
+    its draw can give, weighted by their probability, :func:`integer_draws`),
     ``test_runs`` draws (default: the space's size, at most 2**32 - 1), seeded with the space's
     seed. Not expressible there: the rounding to the declared decimals and the draw of one
     fixed value set per run.
@@ -551,7 +638,11 @@ def write_distribution(path: Path, space, scenario_file: str, kind: str = "deter
         for par in space.parameters:
             a = par.args
             lo, hi = KNOWN_PARAMETERS.get(par.name, {"domain": (-math.inf, math.inf)})["domain"]
-            if par.distribution == "normal":
+            if (draws := integer_draws(par)) is not None:  # weather, ped_change_step
+                d = xosc.ProbabilityDistributionSet()
+                for v, w in draws:
+                    d.add_set(f"{v:d}", w)
+            elif par.distribution == "normal":
                 rng = xosc.Range(lo, hi) if math.isfinite(lo) and math.isfinite(hi) else None
                 d = xosc.NormalDistribution(a[0], float(f"{a[1] ** 2:.12g}"), rng)
             elif par.distribution == "uniform":
@@ -571,27 +662,77 @@ def write_distribution(path: Path, space, scenario_file: str, kind: str = "deter
     pvd = xosc.ParameterValueDistribution(
         f"jaxfalsify logical scenario '{space.name}' (seed {space.seed}, {space.size} "
         f"concrete scenarios), {kind}", "jaxfalsify", scenario_file, dist)
+    pvd.header.creation_date = date  # None: now
     pvd.write_xml(str(path))
     return path
 
 
 # ---------------------------------------------------------------- the export command
-EXPORT_FILES = ("crossing.xodr", "best.xosc", "critical_*.xosc", "template.xosc",
-                "logical.xosc", "logical_stochastic.xosc")  # what an export writes (and replaces)
+# what an export writes (and, with force, replaces), as globs for the CLI's check of --out
+# (``critical_[0-9][0-9][0-9]*.xosc`` also covers 4-digit numbers) and as the exact names
+EXPORT_FILES = ("crossing.xodr", "best.xosc", "critical_[0-9][0-9][0-9]*.xosc", "template.xosc",
+                "logical.xosc", "logical_stochastic.xosc")
+_EXPORT_NAME = re.compile(r"(crossing\.xodr|best\.xosc|critical_\d{3,}\.xosc|template\.xosc"
+                          r"|logical\.xosc|logical_stochastic\.xosc)\Z")
 
 
-def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller") -> list[Path]:
+def is_export_file(name: str) -> bool:
+    """Whether ``name`` is a file name an export writes (``critical_001.xosc``, not a user's
+    ``critical_mine.xosc``)."""
+    return _EXPORT_NAME.match(name) is not None
+
+
+def run_date(run_dir: Path) -> datetime.datetime:
+    """The date an export's file headers carry: the run's completion (its ``summary.json``'s
+    modification time, UTC, whole seconds), so exporting one run twice gives the same bytes."""
+    mtime = (Path(run_dir) / "summary.json").stat().st_mtime
+    return datetime.datetime.fromtimestamp(int(mtime), tz=datetime.timezone.utc)
+
+
+def _check_out(out: Path, force: bool) -> None:
+    """``out`` can take an export: a folder (or a path to one that can be created) that is
+    not a result folder and, without ``force``, holds no file an export writes."""
+    from jaxfalsify.store import folder_kind
+
+    anc = next((a for a in (out, *out.parents) if a.exists() or a.is_symlink()), None)
+    if anc is not None and not anc.is_dir():
+        raise ValueError(f"{out}: {anc} exists and is not a folder" if anc != out
+                         else f"{out} exists and is not a folder")
+    if anc != out:
+        return
+    if (kind := folder_kind(out)) is not None:
+        raise ValueError(f"{out} holds a {kind}; choose another folder")
+    there = sorted(f.name for f in out.iterdir() if is_export_file(f.name))
+    if there and not force:
+        raise ValueError(f"{out} already holds {there[0]}"
+                         f"{f' (and {len(there) - 1} more)' if len(there) > 1 else ''}; "
+                         "pass force=True (--force) to replace an earlier export's files")
+    odd = [n for n in there if (out / n).is_dir() and not (out / n).is_symlink()]
+    if odd:
+        raise ValueError(f"{out / odd[0]} is a folder: an export writes a file of that name")
+
+
+def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller",
+           force: bool = False) -> list[Path]:
     """Export the run's best scenario (``best``) or all its distinct critical ones
     (``critical``) to ``out``, the ego under the user's controller (``controller``) or
     replaying its simulated trajectory (``replay``), with ``crossing.xodr`` and the logical
     scenario (``logical.xosc``, ``logical_stochastic.xosc``); returns the files written:
     the road, the scenarios, (replay: ``template.xosc``, the controller-mode file the
-    distributions vary), the two distributions. An earlier export's files in ``out`` are
-    replaced (``EXPORT_FILES``); other files are left alone."""
+    distributions vary), the two distributions.
+
+    A file an export writes (:func:`is_export_file`, the names of ``EXPORT_FILES``) already
+    in ``out`` is refused (ValueError naming it) unless ``force``, which replaces an earlier
+    export's files (no stale ``critical_NNN.xosc`` stays beside a new ``best.xosc``); other
+    files are left alone. Everything is written into a temporary folder inside ``out``, then
+    moved in: a failed export leaves ``out`` as it was (a folder it created is removed). The
+    file headers carry the run's date (:func:`run_date`): two exports of a run are identical."""
     if which not in SCENARIO_CHOICES:
         raise ValueError(f"--scenario {which!r}: expected best or critical")
     if ego not in EGO_MODES:
         raise ValueError(f"--ego {ego!r}: expected controller or replay")
+    final = Path(out)
+    _check_out(final, force)
     sp, rc, summary, ep = load_run(run_dir)
     if which == "best":
         rows = [analysis.best(ep)]
@@ -599,25 +740,55 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
         rows = [c["row"] for c in analysis.distinct_critical(*analysis.from_episodes(ep, sp))]
         if not rows:
             raise ValueError(f"{run_dir}: the run found no critical scenario to export")
-    final = Path(out)
+    date = run_date(run_dir)
+    created = []  # the folders this export creates, deepest first (removed on failure)
+    for a in (final, *final.parents):
+        if a.exists():
+            break
+        created.append(a)
     final.mkdir(parents=True, exist_ok=True)
-    # written into a temporary folder beside the result, then moved in: a failure leaves the
-    # folder as it was, and a new export replaces an earlier one's files (no stale scenarios)
-    with tempfile.TemporaryDirectory(dir=final, prefix=".export-") as tmp:
-        files = _write_export(Path(tmp), sp, rc, ep, rows, which, ego)
-        for old in final.iterdir():
-            if old.is_file() and any(fnmatch.fnmatch(old.name, pat) for pat in EXPORT_FILES):
-                old.unlink()
-        for f in files:
-            os.replace(f, final / f.name)
+    try:
+        with tempfile.TemporaryDirectory(dir=final, prefix=".export-") as tmp:
+            files = _write_export(Path(tmp), sp, rc, ep, rows, which, ego, date)
+            _move_in(Path(tmp), files, final)
+    except BaseException:
+        for a in created:
+            try:
+                a.rmdir()
+            except OSError:
+                break
+        raise
     return [final / f.name for f in files]
 
 
-def _write_export(out: Path, sp, rc, ep, rows, which: str, ego: str) -> list[Path]:
+def _move_in(tmp: Path, files: list[Path], final: Path) -> None:
+    """Move ``files`` (in ``tmp``, a folder inside ``final``) into ``final`` in place of an
+    earlier export's files; on a failure, put the earlier files back."""
+    backup = tmp / ".replaced"
+    backup.mkdir()
+    old, new = [], []
+    try:
+        for f in sorted(final.iterdir()):
+            if is_export_file(f.name):
+                os.replace(f, backup / f.name)
+                old.append(f.name)
+        for f in files:
+            os.replace(f, final / f.name)
+            new.append(f.name)
+    except BaseException:
+        for n in new:
+            (final / n).unlink(missing_ok=True)
+        for n in old:
+            os.replace(backup / n, final / n)
+        raise
+
+
+def _write_export(out: Path, sp, rc, ep, rows, which: str, ego: str,
+                  date: datetime.datetime | None = None) -> list[Path]:
     import jaxfalsify as jf
 
     world = jf.WORLD
-    road = write_road(out / "crossing.xodr", world)
+    road = write_road(out / "crossing.xodr", world, date)
     idx = indices_of(ep, sp, rows)
     full = sp.scenario(idx)
     sut_params = dict(rc.sut_params)
@@ -641,17 +812,18 @@ def _write_export(out: Path, sp, rc, ep, rows, which: str, ego: str) -> list[Pat
         if ego == "replay":
             params = {n: float(np.asarray(full[n])[k]) for n in full}
             files.append(write_scenario(out / f"{label}.xosc", road.name, tr, params, world,
-                                        title, values))
+                                        title, values, date))
             if template is None:
                 template = write_controller_scenario(out / "template.xosc", road.name, sp,
-                                                     values, req, world, f"template ({title})")
+                                                     values, req, world, f"template ({title})",
+                                                     date)
         else:
             files.append(write_controller_scenario(out / f"{label}.xosc", road.name, sp, values,
-                                                   req, world, title))
+                                                   req, world, title, date))
     if template is not None:
         files.append(template)
     scenario_file = (template or files[1]).name
-    files.append(write_distribution(out / "logical.xosc", sp, scenario_file))
+    files.append(write_distribution(out / "logical.xosc", sp, scenario_file, date=date))
     files.append(write_distribution(out / "logical_stochastic.xosc", sp, scenario_file,
-                                    "stochastic", len(np.asarray(ep["reward"]))))
+                                    "stochastic", len(np.asarray(ep["reward"])), date))
     return files

@@ -122,9 +122,9 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
     traj = resimulate(sp, rc, ep, [row])
     tr = {k: np.asarray(v)[0] for k, v in vars(traj).items()}
     valid = tr["valid"]
-    corridor = _tm_polygons(rc, tr, w) if rc.sut == "carla-tm" else None
-    # the start (t = 0), then the state after each simulated step
     sc = sp.scenario(indices_of(ep, sp, [row]))
+    corridor = _tm_polygons(rc, tr, w, sc) if rc.sut == "carla-tm" else None
+    # the start (t = 0), then the state after each simulated step
     ex0, py0 = jf.sim.start_positions(float(sc["ego_offset"][0]), float(sc["ped_offset"][0]), w)
 
     def actors(t, ego_x, ego_y, ped_x, ped_y, braking):
@@ -308,13 +308,19 @@ def check_save_path(path: Path) -> Path:
     return path
 
 
-def _tm_polygons(rc, tr: dict, w) -> tuple:
+def _tm_polygons(rc, tr: dict, w, scenario: dict | None = None) -> tuple:
     """carla-tm's geodesic corridor and the walker's grown box at every recorded step, as
-    ``(x0, x1, y0, y1)`` arrays (the SUT's own geometry, see ``sut.tm_polygons``)."""
+    ``(x0, x1, y0, y1)`` arrays (the SUT's own geometry, see ``sut.tm_polygons``), with the
+    SUT parameters the scenario ran with: the run's ``sut_params`` and the scenario's
+    ``sut.NAME`` values (``scenario``: one scenario's parameters, scalars or arrays of one
+    value), as ``figures.resimulate`` simulates it."""
     from jaxfalsify import sut as sut_lib
+    from jaxfalsify.space import SUT_PREFIX, is_sut_parameter
 
     s = sut_lib.resolve(rc.sut)
-    params = sut_lib.with_params(s, dict(rc.sut_params))
+    over = {k[len(SUT_PREFIX):]: float(np.asarray(v).reshape(-1)[0])
+            for k, v in (scenario or {}).items() if is_sut_parameter(k)}
+    params = sut_lib.with_params(s, {**dict(rc.sut_params), **over})
     n = len(tr["t"])
     full = lambda v: np.full(n, v, np.float32)  # noqa: E731
     obs = sut_lib.Observation(

@@ -208,3 +208,276 @@ def test_value_of_evaluates_references_and_expressions():
     assert value_of("${floor(1 / $a + 0.5) * sqrt(($b) * ($b)) - pow(2, 3)}", p) == 0.0
     with pytest.raises(ValueError, match="unsupported"):
         value_of("${__import__(1)}", p)
+
+
+# ------------------------------------------------------------------ review fixes
+def _space(tmp_path, text, name="s"):
+    import jaxfalsify as jf
+
+    f = tmp_path / f"{name}.toml"
+    f.write_text(text)
+    return jf.load_space(f)
+
+
+def test_a_space_with_only_ped_change_step_pauses_the_growth_there(tmp_path, xsd):
+    """The simulator opens the window at ``ped_change_step`` whatever the change (a change of
+    0 holds the speed, the growth paused six steps): a space declaring only the step exports a
+    pedestrian that walks the simulator's distance, not an unpaused ramp."""
+    import jaxfalsify as jf
+    from jaxfalsify import export, sim
+
+    sp = _space(tmp_path, 'name = "stepcha"\n[parameters.ego_offset]\nvalues = [9.0]\n'
+                '[parameters.ped_speed]\nvalues = [1.237]\n[parameters.ped_accel]\n'
+                'values = [0.007]\n[parameters.ped_offset]\nvalues = [3.5]\n'
+                '[parameters.ped_change_step]\nvalues = [10, 20]\n')
+    req = export.ego_request("carla-tm", {}, jf.WORLD)
+    n = 300
+    for i, step in enumerate(sp.table[sp.names.index("ped_change_step")]):
+        idx = [0] * len(sp.names)
+        idx[sp.names.index("ped_change_step")] = i
+        values = export.parameter_values(sp, idx)
+        f = export.write_controller_scenario(tmp_path / f"s{i}.xosc", "crossing.xodr", sp,
+                                             values, req, jf.WORLD, "case")
+        xsd.validate(str(f))
+        root = ET.parse(f).getroot()
+        params = declarations(root)
+        simv = np.asarray(sim.ped_speed_profile(
+            np.arange(n, dtype=np.float32), np.float32(params["ped_speed"]),
+            np.float32(params["ped_accel"]), np.float32(params.get("ped_speed_change", 0.0)),
+            np.float32(step)))
+        ref, _, _ = oracle_profile(1.237, 0.007, 0.0, int(step), n)
+        np.testing.assert_allclose(simv, ref, atol=2e-5)  # the simulator pauses the growth
+        t, v, pos = integrate(speed_events(root, params), n * DT)
+        ends = np.round(np.arange(1, n + 1) * DT / 1e-3).astype(int)
+        np.testing.assert_allclose(pos[ends], np.cumsum(ref) * DT, atol=0.007 * DT / 8 + 1e-6,
+                                   rtol=0)
+
+
+def _recording_column(path, entity, column):
+    from rerun.chunk import RrdReader
+
+    out = []
+    for c in RrdReader(path).stream().to_chunks():
+        if c.entity_path == entity:
+            rb = c.to_record_batch()
+            if column in rb.schema.names:
+                out.extend(rb.column(column).to_pylist())
+    return out
+
+
+@pytest.fixture(scope="module")
+def sut_run(tmp_path_factory):
+    """A 4-evaluation grid run (carla-tm) over a space with a SUT parameter dimension."""
+    from jaxfalsify.cli import main
+
+    d = tmp_path_factory.mktemp("sutw")
+    space = d / "sutw.toml"
+    space.write_text('name = "sutw"\n[parameters.ego_offset]\nvalues = [5.0, 9.0]\n'
+                     '[parameters.ped_speed]\nvalues = [1.237, 1.5]\n'
+                     '[parameters.ped_offset]\nvalues = [3.5]\n'
+                     '[parameters."sut.walker_time"]\nvalues = [3.0]\n')
+    run = d / "run"
+    assert main(["run", "--space", str(space), "--strategy", "grid", "--evaluations", "4",
+                 "--batch", "4", "--out", str(run), "--quiet", "--no-figures"]) == 0
+    return run
+
+
+def test_replay_grows_the_walker_box_with_the_spaces_sut_parameter(sut_run, tmp_path):
+    """The recorded walker box is grown by the scenario's ``sut.walker_time`` (3 s), as the
+    run simulated it, not the SUT's default (1.5 s): half size = half the walker's size +
+    walker_time * its speed."""
+    import jaxfalsify as jf
+    from jaxfalsify.replay import record
+    from jaxfalsify.sut import CarlaTMParams
+
+    f = record(sut_run, "best", save=tmp_path / "best.rrd")
+    half = np.asarray([np.asarray(h)[0] for h in _recording_column(
+        f, "/world/walker_grown_box", "Boxes2D:half_sizes")])
+    speed = np.concatenate([np.ravel(s) for s in _recording_column(
+        f, "/metrics/ped_speed", "Scalars:scalars")])
+    assert len(half) == len(speed) > 10 and speed.max() > 1.0
+    w = jf.WORLD
+    np.testing.assert_allclose(half[:, 0], w.ped_length / 2 + 3.0 * speed, atol=1e-4)
+    np.testing.assert_allclose(half[:, 1], w.ped_width / 2 + 3.0 * speed, atol=1e-4)
+    assert CarlaTMParams().walker_time != 3.0  # the default would have failed
+
+
+@pytest.mark.parametrize("decl", ['distribution = "uniform"\nlow = 0\nhigh = 14\nsamples = 3\n'
+                                  'decimals = 0\n',
+                                  'distribution = "uniform"\nlow = 2.2\nhigh = 9.7\nsamples = 4\n'
+                                  'decimals = 0\n',
+                                  'distribution = "normal"\nmean = 7\nsd = 2.5\nsamples = 3\n'
+                                  'decimals = 0\n'], ids=["uniform", "uniform-inner", "normal"])
+def test_every_weather_the_stochastic_file_may_draw_has_its_event(tmp_path, xsd, decl):
+    """A weather drawn uniform/normal: logical_stochastic.xosc draws integers only (weighted
+    as the space's own rounded draw gives them, estimated here by drawing 400,000 times with
+    the space's rule), and every value it may draw starts exactly one weather event, the one
+    setting that preset."""
+    import dataclasses
+
+    import jaxfalsify as jf
+    from jaxfalsify import export, weather
+
+    sp = _space(tmp_path, 'name = "w"\n[parameters.ego_offset]\nvalues = [9.0]\n'
+                '[parameters.weather]\n' + decl)
+    p = sp.names.index("weather")
+    req = export.ego_request("carla-tm", {}, jf.WORLD)
+    f = export.write_controller_scenario(tmp_path / "t.xosc", "crossing.xodr", sp,
+                                         export.parameter_values(sp, [0] * len(sp.names)), req,
+                                         jf.WORLD, "t")
+    d = export.write_distribution(tmp_path / "st.xosc", sp, "t.xosc", "stochastic", 10)
+    det = export.write_distribution(tmp_path / "det.xosc", sp, "t.xosc")
+    for x in (f, d, det):
+        xsd.validate(str(x))
+    dist = next(e for e in ET.parse(d).getroot().iter("StochasticDistribution")
+                if e.attrib["parameterName"] == "weather")
+    assert dist.find("UniformDistribution") is None and dist.find("NormalDistribution") is None
+    drawn = {float(e.attrib["value"]): float(e.attrib["weight"]) for e in dist.iter("Element")}
+    assert all(v.is_integer() for v in drawn) and sum(drawn.values()) == pytest.approx(1.0)
+    # the oracle: the space's own draw, many times
+    big = dataclasses.replace(sp.parameters[p], samples=400_000).discretise(1)
+    lo, hi = jf.space.KNOWN_PARAMETERS["weather"]["domain"]
+    big = big[(big >= lo) & (big <= hi)]  # the file's normal is truncated to the domain
+    vals, counts = np.unique(big, return_counts=True)
+    freq = dict(zip(vals.tolist(), (counts / counts.sum()).tolist()))
+    for v in set(freq) | set(drawn):
+        assert drawn.get(v, 0.0) == pytest.approx(freq.get(v, 0.0), abs=0.004), v
+    assert set(drawn) >= set(freq)
+    may = set(drawn) | {float(e.attrib["value"])
+                        for e in ET.parse(det).getroot().iter("DistributionSetElement")}
+    assert may >= {float(v) for v in sp.table[p]}
+
+    # the events a drawn value starts (the condition resolved as an engine would)
+    rules = {"equalTo": lambda a, b: a == b, "greaterOrEqual": lambda a, b: a >= b,
+             "greaterThan": lambda a, b: a > b, "lessThan": lambda a, b: a < b,
+             "lessOrEqual": lambda a, b: a <= b, "notEqualTo": lambda a, b: a != b}
+    root = ET.parse(f).getroot()
+    man = next(m for m in root.iter("Maneuver") if m.attrib["name"] == "weather")
+
+    def starts(ev, value):
+        for g in ev.find("StartTrigger").findall("ConditionGroup"):
+            conds = [c.find(".//ParameterCondition") for c in g.findall("Condition")]
+            if all(rules[c.attrib["rule"]](value, float(c.attrib["value"]))
+                   for c in conds if c is not None and c.attrib["parameterRef"] == "weather"):
+                return True
+        return False
+
+    for v in may:
+        hits = [ev for ev in man.findall("Event") if starts(ev, v)]
+        assert len(hits) == 1, v
+        assert hits[0].find(".//Environment").attrib["name"] == weather.PRESETS[int(v)][0]
+
+
+def _snapshot(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def test_library_export_refuses_existing_files_without_force(sut_run, tmp_path):
+    """``export(..., force=False)`` refuses a file an export writes (one line naming it), an
+    existing file as the folder; ``force=True`` replaces an earlier export's files only
+    (``critical_NNN.xosc``, not a user's ``critical_mine.xosc``)."""
+    import fnmatch
+
+    from jaxfalsify.export import EXPORT_FILES, export
+
+    out = tmp_path / "osc"
+    out.mkdir()
+    (out / "critical_mine.xosc").write_text("mine")
+    (out / "notes.txt").write_text("notes")
+    first = export(sut_run, out)  # a user's files do not count
+    assert sorted(p.name for p in first) == ["best.xosc", "crossing.xodr", "logical.xosc",
+                                             "logical_stochastic.xosc"]
+    (out / "critical_001.xosc").write_text("stale, from an earlier critical export")
+    before = _snapshot(out)
+    with pytest.raises(ValueError) as e:
+        export(sut_run, out)
+    msg = str(e.value)
+    assert "\n" not in msg and "best.xosc" in msg and "force" in msg
+    assert _snapshot(out) == before
+    export(sut_run, out, force=True)
+    after = _snapshot(out)
+    assert "critical_001.xosc" not in after  # an earlier export's scenario, replaced
+    assert after["critical_mine.xosc"] == b"mine" and after["notes.txt"] == b"notes"
+    assert set(after) == {"best.xosc", "crossing.xodr", "logical.xosc", "logical_stochastic.xosc",
+                          "critical_mine.xosc", "notes.txt"}
+    # the CLI's check of --out uses the same names
+    assert not any(fnmatch.fnmatch("critical_mine.xosc", g) for g in EXPORT_FILES)
+    assert any(fnmatch.fnmatch("critical_012.xosc", g) for g in EXPORT_FILES)
+
+    f = tmp_path / "afile"
+    f.write_text("x")
+    for bad in (f, f / "sub"):
+        with pytest.raises(ValueError) as e:
+            export(sut_run, bad)
+        assert "\n" not in str(e.value) and "not a folder" in str(e.value)
+    assert f.read_text() == "x"
+
+
+def test_a_failed_export_leaves_the_folder_as_it_was(sut_run, tmp_path, monkeypatch):
+    """A writer failing (OSError): a folder the export created is gone, an earlier export's
+    files stay as they were; a failure while moving the files in puts the earlier ones back."""
+    import os
+    from pathlib import Path
+
+    from jaxfalsify import export as ex
+
+    def broken(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    new = tmp_path / "a" / "b"
+    with monkeypatch.context() as m:
+        m.setattr(ex, "write_distribution", broken)
+        with pytest.raises(OSError, match="No space left"):
+            ex.export(sut_run, new)
+    assert not (tmp_path / "a").exists()
+
+    out = tmp_path / "osc"
+    ex.export(sut_run, out)
+    (out / "notes.txt").write_text("mine")
+    before = _snapshot(out)
+    with monkeypatch.context() as m:
+        m.setattr(ex, "write_distribution", broken)
+        with pytest.raises(OSError, match="No space left"):
+            ex.export(sut_run, out, force=True)
+    assert _snapshot(out) == before
+    real = os.replace
+    calls = []
+
+    def fails_late(src, dst):  # the third new file moved in fails (the earlier ones moved)
+        if Path(dst).parent == out and Path(src).parent.name.startswith(".export-"):
+            calls.append(dst)
+            if len(calls) == 3:
+                raise OSError(5, "Input/output error")
+        return real(src, dst)
+
+    with monkeypatch.context() as m:
+        m.setattr(ex.os, "replace", fails_late)
+        with pytest.raises(OSError, match="Input/output"):
+            ex.export(sut_run, out, which="best", ego="replay", force=True)
+    assert len(calls) == 3
+    assert _snapshot(out) == before
+    assert sorted(p.name for p in out.iterdir()) == sorted(before)  # no temporary folder left
+
+
+def test_an_export_is_byte_reproducible_and_its_road_says_opendrive_1_7(sut_run, tmp_path):
+    """Two exports of one run (in one process) are byte-identical (the headers carry the
+    run's date, not the time of writing); the road's header says OpenDRIVE 1.7, the XSD it
+    is checked against, and the crosswalk has no subtype "None"."""
+    import time
+
+    from jaxfalsify.export import export
+
+    export(sut_run, tmp_path / "one", ego="replay")
+    time.sleep(1.1)
+    export(sut_run, tmp_path / "two", ego="replay")
+    one, two = _snapshot(tmp_path / "one"), _snapshot(tmp_path / "two")
+    assert one == two and len(one) == 5
+    road = ET.parse(tmp_path / "one" / "crossing.xodr").getroot()
+    header = road.find("header")
+    assert (header.attrib["revMajor"], header.attrib["revMinor"]) == ("1", "7")
+    schema("xodr").validate(str(tmp_path / "one" / "crossing.xodr"))
+    [obj] = road.iter("object")
+    assert obj.attrib["type"] == "crosswalk" and "subtype" not in obj.attrib
+    for name in one:
+        if name.endswith(".xosc"):
+            schema().validate(str(tmp_path / "one" / name))
