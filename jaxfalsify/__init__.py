@@ -41,6 +41,13 @@ except KeyboardInterrupt:
 
     _os._exit(130)
 
+if _command_line():  # refused before any command starts (library calls refuse in
+    try:  # runs.execute and wherever a program is built: jaxfalsify.cache.check_settings)
+        _cache.check_settings()
+    except ValueError as _e:
+        print(f"jaxfalsify: error: {_e}", file=_sys.stderr)
+        raise SystemExit(2) from None
+
 __all__ = ["rss_safe_distance", "simulate", "evaluate", "load_space", "Space", "World", "WORLD",
            "Outcome", "Trajectory", "SUT", "Observation"]
 __version__ = "0.2.0"

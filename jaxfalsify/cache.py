@@ -61,8 +61,38 @@ def enable_compilation_cache() -> str | None:
     return path
 
 
+# JAX settings that change what a traced program computes (random draws, dtypes, matmul
+# precision, key layout): every cached program and ground truth is keyed by them, and a
+# run's checkpoint fingerprint holds them (a resume under other settings is refused)
+TRACING_SETTINGS = ("jax_threefry_partitionable", "jax_enable_x64",
+                    "jax_default_matmul_precision", "jax_default_prng_impl",
+                    "jax_numpy_dtype_promotion")
+
+X64_ERROR = ("jaxfalsify runs in float32: unset JAX_ENABLE_X64 (jax_enable_x64 is on; "
+             "jaxfalsify's programs assume 32-bit integers and floats)")
+
+
+def program_settings() -> dict[str, str]:
+    """The current values of :data:`TRACING_SETTINGS` (as strings)."""
+    import jax
+
+    return {n: str(getattr(jax.config, n, None)) for n in TRACING_SETTINGS}
+
+
+def check_settings() -> None:
+    """ValueError (one line) if JAX is set up in a way jaxfalsify does not support: 64-bit
+    mode (``JAX_ENABLE_X64``; every program and result is float32/int32)."""
+    import jax
+
+    if getattr(jax.config, "jax_enable_x64", False):
+        raise ValueError(X64_ERROR)
+
+
 def key_of(doc) -> str:
-    """A stable content hash of a JSON-able description (cache file names)."""
+    """A stable content hash of a JSON-able description (cache file names), and of the JAX
+    settings that change traced programs (:func:`program_settings`): a program or ground
+    truth cached under other settings is never reused."""
+    doc = {"doc": doc, "jax_settings": program_settings()}
     text = json.dumps(doc, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
@@ -221,12 +251,15 @@ def exported_jit(fn, name: str, static: dict | None, key_args: tuple, example_ar
     ``fn``'s arguments and results must be standard containers (lists, tuples, dicts) of
     arrays. The program is keyed by ``static`` (everything else ``fn`` depends on: its
     configuration), the shapes and dtypes of ``key_args`` (the arguments that determine all
-    others' shapes), jaxfalsify's code, the jax version and the backend; ``example_args()``
+    others' shapes), jaxfalsify's code, the jax version, the backend and the JAX settings
+    that change tracing (:func:`program_settings`, through :func:`key_of`); ``example_args()``
     builds the full example arguments only when the program must be exported. Falls back to
     plain ``jax.jit`` when caching is off, ``static`` is None (e.g. a SUT without a source
     file), on several devices, or if the program cannot be exported.
     """
     import jax
+
+    check_settings()  # (a 64-bit program fails to trace, or silently computes otherwise)
 
     def plain():
         ex = example_args()

@@ -46,7 +46,9 @@ class Plan(NamedTuple):
 
     @property
     def n_chunks(self) -> int:
-        return self.n_updates // self.updates_per_chunk
+        """Chunks to run: the last one may hold updates past ``n_updates``, which change
+        nothing (see :func:`make_campaign`) and whose records are dropped."""
+        return -(-self.n_updates // self.updates_per_chunk)
 
     def done_after(self, chunks: int) -> int:
         """Evaluations committed after ``chunks`` chunks."""
@@ -54,17 +56,24 @@ class Plan(NamedTuple):
 
 
 def plan(budget: int, batch: int, chunks_target: int = 20, every: int | None = None) -> Plan:
-    """Updates needed for the budget, and a chunking of them (a divisor) for progress and
-    checkpoints: about ``chunks_target`` chunks, or at most ``every`` updates per chunk.
-    Results do not depend on the chunking (the same update function is scanned)."""
+    """Updates needed for the budget, and a chunking of them for progress and checkpoints:
+    about ``chunks_target`` chunks, or at most ``every`` updates per chunk. A divisor of the
+    updates when one is at least half that length; else chunks of equal length whose last
+    one runs past the budget (at most one update per chunk wasted; a prime number of updates
+    still gives about ``chunks_target`` chunks). Results do not depend on the chunking (the
+    same update function is scanned, and updates past the budget change nothing)."""
     if isinstance(budget, bool) or not isinstance(budget, int) or budget <= 0:
         raise ValueError(f"evaluations must be a positive integer (got {budget!r})")
     if isinstance(batch, bool) or not isinstance(batch, int) or batch <= 0:
         raise ValueError(f"batch must be a positive integer (got {batch!r})")
     n_updates = -(-budget // batch)
-    per = min(every, n_updates) if every else max(1, n_updates // chunks_target)
+    want = min(every, n_updates) if every else max(1, n_updates // chunks_target)
+    per = want
     while n_updates % per:
         per -= 1
+    if 2 * per < want:  # no divisor near the length wanted: equal chunks, the last partial
+        n_chunks = -(-n_updates // want)
+        per = -(-n_updates // n_chunks)  # (<= want; n_chunks * per - n_updates < n_chunks)
     return Plan(batch, n_updates, per, budget)
 
 
@@ -135,13 +144,27 @@ def make_campaign(c: Campaign):
         state = strategy.tell_outcome(k_tell, state, idx, r, rob, out.collision & counted,
                                       args.strategy_params)
         rec = {"indices": idx, **{f: getattr(out, f) for f in RECORD_FIELDS}}
-        return {**carry, "state": state, "key": key, "update": carry["update"] + 1}, rec
+        new = {**carry, "state": state, "key": key, "update": carry["update"] + 1}
+        # an update past the budget (the last chunk's tail when the chunk length does not
+        # divide the updates) leaves the carry as it was; its records are dropped (collect)
+        active = carry["update"] * B < args.budget
+        return jax.tree.map(lambda n, o: jnp.where(active, n, o), new, carry), rec
 
     def run_chunk(carry, args: Args):
         return jax.lax.scan(lambda cr, _: one_update(cr, args), carry, None,
                             length=c.updates_per_chunk)
 
     return init, run_chunk
+
+
+def environment() -> dict:
+    """What a campaign's results depend on besides its configuration and code: JAX's tracing
+    settings (:func:`jaxfalsify.cache.program_settings`), the backend (float32 results differ
+    between CPU and GPU) and the local device count (on several devices the batch is sharded,
+    and the partitioned program's float math can differ in the last bits, which a learning
+    strategy such as ``reinforce/default`` amplifies into other proposals)."""
+    return {**cache.program_settings(), "backend": jax.default_backend(),
+            "local_devices": jax.local_device_count()}
 
 
 def _is_key(x) -> bool:
@@ -166,7 +189,8 @@ def static_key(c: Campaign) -> dict | None:
 
 
 @functools.lru_cache(maxsize=64)
-def _program(c: Campaign, args_tree, args_avals: tuple, n_seeds: int) -> cache.Program:
+def _program(c: Campaign, args_tree, args_avals: tuple, n_seeds: int,
+             settings: tuple = ()) -> cache.Program:  # settings: keys the in-process cache
     init, run_chunk = make_campaign(c)
 
     def fn(carry_leaves, key_data, args_leaves, fresh):
@@ -208,7 +232,7 @@ def program(c: Campaign, args: Args, n_seeds: int) -> cache.Program:
     with :func:`jaxfalsify.cache.exported_jit`, per machine)."""
     leaves, tree = jax.tree.flatten(args)
     avals = tuple(jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) for x in leaves)
-    return _program(c, tree, avals, n_seeds)
+    return _program(c, tree, avals, n_seeds, tuple(cache.program_settings().items()))
 
 
 @dataclasses.dataclass

@@ -25,9 +25,9 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     """
     coordinator = coordinator or os.environ.get("JAX_COORDINATOR_ADDRESS")
     if num_processes is None and "JAX_NUM_PROCESSES" in os.environ:
-        num_processes = int(os.environ["JAX_NUM_PROCESSES"])
+        num_processes = _env_int("JAX_NUM_PROCESSES")
     if process_id is None and "JAX_PROCESS_ID" in os.environ:
-        process_id = int(os.environ["JAX_PROCESS_ID"])
+        process_id = _env_int("JAX_PROCESS_ID")
     if not coordinator:
         raise ValueError("--distributed needs --coordinator HOST:PORT "
                          "(or JAX_COORDINATOR_ADDRESS)")
@@ -54,6 +54,15 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
                          f"runtime within {timeout} s ({type(e).__name__}: "
                          f"{str(e).splitlines()[0][:120] if str(e) else ''})") from None
     return process_id, num_processes
+
+
+def _env_int(name: str) -> int:
+    """The environment variable ``name`` as an int, or a one-line ValueError naming it."""
+    text = os.environ[name]
+    try:
+        return int(text.strip())
+    except ValueError:
+        raise ValueError(f"{name}={text[:40]!r}: expected an integer") from None
 
 
 def _probe(host: str, port: int, timeout: float) -> None:

@@ -75,9 +75,10 @@ def fixed_sut_params(params: Mapping[str, Any], sp: Space) -> dict[str, Any]:
 
 
 def check_space_sut(sp: Space, sut: sut_lib.SUT, given: Any = ()) -> None:
-    """ValueError naming a space parameter ``sut.NAME`` the SUT does not have, or one also
-    given a value (``given``: the names of ``--sut-param``/``sut_params``), which the space's
-    values would silently override."""
+    """ValueError naming a space parameter ``sut.NAME`` the SUT does not have, one with a
+    value outside the SUT's interval for it (its ``RANGES``, as ``--sut-param`` is checked),
+    or one also given a value (``given``: the names of ``--sut-param``/``sut_params``), which
+    the space's values would silently override."""
     from jaxfalsify.space import SUT_PREFIX, is_sut_parameter
 
     known = sut_lib.param_names(sut)
@@ -88,6 +89,16 @@ def check_space_sut(sp: Space, sut: sut_lib.SUT, given: Any = ()) -> None:
         if is_sut_parameter(n) and n[len(SUT_PREFIX):] in given:
             raise ValueError(f"--sut-param {n[len(SUT_PREFIX):]}: the space already varies it "
                              f"(its parameter {n}); give its values in one place")
+    import dataclasses
+
+    if dataclasses.is_dataclass(sut.default_params):  # its values in the SUT's RANGES
+        from jaxfalsify.pytree import check_ranges
+
+        for n, vals in zip(sp.names, sp.exact_values):
+            if is_sut_parameter(n):
+                for v in (vals.min(), vals.max()):  # an interval holds all if these
+                    check_ranges(sut.default_params, {n[len(SUT_PREFIX):]: float(v)},
+                                 f"space parameter {n}: SUT '{sut.name}'")
 
 
 def check_mapping(key: str, m) -> dict:
@@ -252,10 +263,13 @@ def critical_csv(res: campaign.Result) -> str:
 
 
 def fingerprint(rc: RunConfig, b: Built) -> dict:
-    """What a checkpoint must have been written under: the resolved config, the plan, and the
-    code (jaxfalsify's, a user SUT's and strategy's files: :func:`jaxfalsify.cache.source_hash`)."""
+    """What a checkpoint must have been written under: the resolved config, the plan, the
+    code (jaxfalsify's, a user SUT's and strategy's files: :func:`jaxfalsify.cache.source_hash`)
+    and the environment that changes results (:func:`jaxfalsify.campaign.environment`: JAX's
+    tracing settings, the backend and the local device count)."""
     code = cache.source_hash(b.sut.act, b.sut.init, type(b.strategy))
-    return json.loads(json.dumps({"config": rc.to_toml(), "plan": list(b.plan), "code": code}))
+    return json.loads(json.dumps({"config": rc.to_toml(), "plan": list(b.plan), "code": code,
+                                  "environment": campaign.environment()}))
 
 
 def restore(ckpt: store.CampaignCheckpoint, b: Built, seed: int):
@@ -315,13 +329,18 @@ class RunOutcome:
 def _stats_progress(progress: Progress, total: int, desc: str, start_from: int = 0):
     """The campaign's per-chunk callback: start the bar after the first (compiling) chunk and
     show the best reward and collisions so far."""
-    state = {"best": -np.inf, "collisions": 0, "seen": 0, "started": False}
+    state = {"best": -np.inf, "collisions": 0, "seen": 0, "started": False, "evals": 0}
 
     def update(done, records):
         for rec in records[state["seen"]:]:
-            r = np.where(np.isnan(rec["reward"]), -np.inf, rec["reward"])
+            shape = rec["reward"].shape[1:]  # (S, U, B): one seed's evaluations in order
+            first = state["evals"]
+            state["evals"] += int(np.prod(shape))
+            # the overflow of the last batch (past the budget) is discarded: not counted
+            keep = (first + np.arange(int(np.prod(shape))) < total).reshape(shape)
+            r = np.where(np.isnan(rec["reward"]) | ~keep, -np.inf, rec["reward"])
             state["best"] = max(state["best"], float(r.max()))
-            state["collisions"] += int(np.sum(rec["collision"] & ~rec["nonfinite"]))
+            state["collisions"] += int(np.sum(rec["collision"] & ~rec["nonfinite"] & keep))
         state["seen"] = len(records)
         if not state["started"]:
             progress.start(total, done, "eval", desc)
@@ -389,6 +408,7 @@ def execute(config: RunConfig, out: Path | str | None, *, resume: bool = False,
       :class:`Interrupted`.
     """
     cfg.check_type(config, RunConfig, "config")
+    cache.check_settings()  # before anything is written
 
     clock = Clock(startup_seconds)
     progress = progress or Progress()

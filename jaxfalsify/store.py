@@ -285,7 +285,17 @@ class CampaignCheckpoint:
         if not self.exists():
             return None, []
         st = read_json(self.state_path)
-        if st.get("fingerprint") != self.fingerprint:
+        theirs, ours = st.get("fingerprint"), self.fingerprint
+        if isinstance(theirs, dict) and isinstance(ours, dict) and \
+                theirs.get("environment") != ours.get("environment") and \
+                isinstance(theirs.get("environment"), dict) and \
+                isinstance(ours.get("environment"), dict):
+            te, oe = theirs["environment"], ours["environment"]
+            k = next(k for k in sorted(set(te) | set(oe)) if te.get(k) != oe.get(k))
+            raise CheckpointError(f"checkpoint {self.state_path} was written with {k} = "
+                                  f"{te.get(k)} (here {oe.get(k)}); resume it with the same "
+                                  "JAX settings and devices")
+        if theirs != ours:
             raise CheckpointError(f"checkpoint {self.state_path} was written by another "
                                   "configuration or code (config.toml, the SUT's or "
                                   "jaxfalsify's source changed?)")
@@ -510,7 +520,31 @@ class FolderLock:
             raise FolderError(f"{self.path.parent} is being written by process {pid} "
                               f"({what}); wait for it to end or choose another folder") from None
         self.fd = fd
+        self.claim(kind)  # the holder's pid is readable from the moment the lock is held
         return self
+
+    def check_free(self) -> None:
+        """Raise the :class:`FolderError` naming the holder if another process holds this
+        lock (an existing lock file only: nothing is created); else return."""
+        try:
+            fd = os.open(self.path, os.O_RDONLY | os.O_NOFOLLOW)
+        except OSError:
+            return
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                return
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 64, 0).decode(errors="replace").split()
+                pid = holder[0] if holder else "unknown"
+                what = holder[1] if len(holder) > 1 else "jaxfalsify"
+                raise FolderError(f"{self.path.parent} is being written by process {pid} "
+                                  f"({what}); wait for it to end or choose another folder"
+                                  ) from None
+            fcntl.flock(fd, fcntl.LOCK_UN)
+        finally:
+            os.close(fd)
 
     def claim(self, kind: str) -> None:
         """Record this process as the writer in the lock file, as soon as it holds the lock
@@ -544,7 +578,11 @@ def open_folder(out: Path, kind: str, *, force: bool = False, resume: bool = Fal
     process may have written it meanwhile). On failure nothing is left behind: a folder this
     call created for its lock file is removed again."""
     out = Path(out)
-    check_out(out, kind, force=force, resume=resume)
+    try:
+        check_out(out, kind, force=force, resume=resume)
+    except FolderError:  # the folder looks unfinished because another process writes it:
+        FolderLock(out, name).check_free()  # name that process instead
+        raise
     existed = out.exists()
     lk = lock(out, kind, name)
     try:

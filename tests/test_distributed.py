@@ -256,3 +256,16 @@ def test_a_process_without_scenarios_writes_no_part(tmp_path):
     rows = pq.read_table(out / parts[0]).to_pydict()
     alone = sweep_arrays(jf.load_space(str(space)))
     assert rows["scenario"] == [0] and rows["reward"] == [float(alone["reward"][0])]
+
+
+@pytest.mark.parametrize("var", ["JAX_NUM_PROCESSES", "JAX_PROCESS_ID"])
+def test_a_non_integer_process_variable_is_named(monkeypatch, var):
+    from jaxfalsify.distributed import initialize
+
+    monkeypatch.setenv("JAX_COORDINATOR_ADDRESS", "127.0.0.1:1234")
+    monkeypatch.setenv("JAX_NUM_PROCESSES", "2")
+    monkeypatch.setenv("JAX_PROCESS_ID", "0")
+    monkeypatch.setenv(var, "abc")
+    with pytest.raises(ValueError) as e:
+        initialize()
+    assert var in str(e.value) and "\n" not in str(e.value)
