@@ -121,6 +121,33 @@ def test_a_suites_relative_paths_are_the_suite_files(tmp_path, monkeypatch):
     assert sut_lib.folder_name(entry.sut) == "mine-AEB"
 
 
+def test_the_shipped_suite_loads_with_every_space_and_sut():
+    """experiments/suite/suite.toml, as shipped: every entry's space file builds (shape from
+    its own TOML's sample counts), its SUT and calibration resolve and are in range, and the
+    suite spans what issue 13 asks for (>= 6 spaces, >= 2 SUTs)."""
+    import tomllib
+
+    from jaxfalsify import sut as sut_lib
+
+    path = Path(__file__).parent.parent / "experiments" / "suite" / "suite.toml"
+    suite = compare.load_suite(str(path))
+    raw = tomllib.loads(path.read_text())["entry"]
+    assert len(suite.entries) == len(raw) >= 6
+    assert len({e.sut for e in suite.entries}) >= 2
+    for entry, doc in zip(suite.entries, raw):
+        assert Path(entry.space).name == doc["space"]
+        space_doc = tomllib.loads(Path(entry.space).read_text())
+        space = jf.load_space(entry.space)
+        assert space.name == Path(entry.space).stem == space_doc["name"]
+        specs = [spec for name, spec in space_doc["parameters"].items() if name != "sut"]
+        specs += list(space_doc["parameters"].get("sut", {}).values())
+        assert space.shape == tuple(spec.get("samples", len(spec.get("values", ())))
+                                    for spec in specs)
+        sut, params = sut_lib.make(entry.sut, **dict(entry.sut_params))
+        for name, value in entry.sut_params.items():
+            assert float(getattr(params, name)) == value
+
+
 @pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_compare_suite_end_to_end(tmp_path, capsys):
     space = tmp_path / "tiny.toml"
