@@ -161,6 +161,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--suite", type=Path, metavar="FILE",
                    help="a benchmark suite (e.g. experiments/suite/suite.toml): every entry's "
                    "space and SUT, at every budget of the suite")
+    c.add_argument("--entries", metavar="NAMES",
+                   help="with --suite: only the entries of these spaces, comma-separated "
+                   "(e.g. aeb-9e6,island-dash)")
     c.add_argument("--space", help="built-in name or TOML file (default paper)")
     c.add_argument("--space-seed", type=_int("--space-seed"), dest="space_seed",
                    help="discretisation seed of the space (default 0)")
@@ -399,6 +402,8 @@ def cmd_compare(args, stop, startup) -> int:
                              "--strategies reinforce/default,cmaes)")
     if args.suite is not None:
         return _compare_suite(args, names, stop, startup)
+    if args.entries is not None:
+        raise UsageError("--entries picks entries of a suite: it needs --suite FILE")
     if args.distributed and not args.out:
         raise UsageError("compare --distributed needs --out (a folder all processes share)")
     budgets = ()
@@ -458,8 +463,14 @@ def _compare_suite(args, names, stop, startup) -> int:
         if given:
             raise UsageError(f"--suite takes its spaces, SUTs and budgets from the suite file; "
                              f"drop {flag}")
+    entries = None
+    if args.entries is not None:
+        entries = tuple(n.strip() for n in args.entries.split(",") if n.strip())
+        if not entries:
+            raise UsageError(f"--entries {args.entries!r}: no space named (e.g. "
+                             "--entries aeb-9e6,island-dash)")
     suite = compare.load_suite(args.suite, seeds=args.seeds, strategies=names,
-                               jobs=args.jobs or 0)
+                               jobs=args.jobs or 0, entries=entries)
     result = compare.execute_suite(suite, args.out, force=args.force,
                                    progress=_progress(args.quiet), stop=stop,
                                    startup_seconds=startup)

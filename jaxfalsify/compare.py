@@ -765,19 +765,30 @@ _SUITE_KEYS = {"name", "budgets", "seeds", "strategies", "entry"}
 _ENTRY_KEYS = {"space", "sut", "sut_params", "space_seed", "exclude"}
 
 
+def entry_name(entry: SuiteEntry) -> str:
+    """The name of a suite entry's space, as the suite's report heads its section (a TOML
+    file's ``name``, e.g. ``aeb-9e6``, or a built-in space's name)."""
+    from jaxfalsify.space import load_space
+
+    return load_space(entry.space, entry.space_seed).name
+
+
 def load_suite(path: Path | str, seeds: int | None = None,
-               strategies: tuple[str, ...] | None = None, jobs: int = 0) -> SuiteConfig:
+               strategies: tuple[str, ...] | None = None, jobs: int = 0,
+               entries: tuple[str, ...] | None = None) -> SuiteConfig:
     """A suite from its TOML file (one-line ValueError naming the bad key); ``seeds`` and
-    ``strategies`` override the file's; ``jobs`` as in :class:`CompareConfig`."""
+    ``strategies`` override the file's; ``jobs`` as in :class:`CompareConfig`; ``entries``
+    keeps only the entries of these spaces (by :func:`entry_name`, in the file's order; a
+    name matching no entry is refused)."""
     path = Path(path)
     doc = cfg.read_toml(path, "--suite")
     where = str(path)
     cfg.check_keys(doc, _SUITE_KEYS, where)
-    entries = doc.get("entry")
-    if not isinstance(entries, list) or not entries:
+    tables = doc.get("entry")
+    if not isinstance(tables, list) or not tables:
         raise ValueError(f"{where}: needs at least one [[entry]] table")
     out = []
-    for k, e in enumerate(entries):
+    for k, e in enumerate(tables):
         key = f"{where}: entry[{k}]"
         if not isinstance(e, dict):
             raise ValueError(f"{key} must be a table")
@@ -799,6 +810,13 @@ def load_suite(path: Path | str, seeds: int | None = None,
             raise ValueError(f"{key}.exclude must be a list of strategy names")
         out.append(SuiteEntry(sp, sut, sut_params,
                               e.get("space_seed", 0), tuple(exclude)))
+    if entries is not None:
+        known = [entry_name(e) for e in out]
+        for name in entries:
+            if name not in known:
+                raise ValueError(f"--entries: no entry of space '{name}' in {where} "
+                                 f"(entries: {', '.join(dict.fromkeys(known))})")
+        out = [e for e, name in zip(out, known) if name in entries]
     from jaxfalsify.runs import check_int
     from jaxfalsify.space import check_name
 

@@ -148,6 +148,35 @@ def test_the_shipped_suite_loads_with_every_space_and_sut():
             assert float(getattr(params, name)) == value
 
 
+def test_suite_entries_picks_spaces_by_name(tmp_path, capsys):
+    """``--entries`` / ``load_suite(entries=...)`` keeps the entries of the named spaces (the
+    name a space file declares, not its file name), in the file's order with their own SUTs;
+    a name matching none is refused in one line naming it and the suite's names, before
+    anything is written, and ``--entries`` needs ``--suite``."""
+    (tmp_path / "tiny.toml").write_text(TINY_SPACE)
+    (tmp_path / "other.toml").write_text(TINY_SPACE.replace('name = "tiny"', 'name = "tiny2"'))
+    suite = tmp_path / "suite.toml"
+    suite.write_text('strategies = ["random"]\n[[entry]]\nspace = "tiny.toml"\n'
+                     '[[entry]]\nspace = "other.toml"\nsut = "sensor-aeb"\n'
+                     'sut_params = { ttc_full = 1.5 }\n[[entry]]\nspace = "tiny.toml"\n'
+                     'sut = "none"\n')
+    full = compare.load_suite(suite).entries
+    picked = compare.load_suite(suite, entries=("tiny2",)).entries
+    assert picked == (full[1],) and dict(picked[0].sut_params) == {"ttc_full": 1.5}
+    both = compare.load_suite(suite, entries=("tiny2", "tiny")).entries
+    assert both == full  # the file's order, every entry of a named space
+    with pytest.raises(ValueError, match=r"no entry of space 'other' .*entries: tiny, tiny2\)"):
+        compare.load_suite(suite, entries=("other",))
+    capsys.readouterr()
+    out = tmp_path / "o"
+    assert main(["compare", "--suite", str(suite), "--entries", "tiny2,nope", "--out",
+                 str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'nope'" in err[0] and not out.exists()
+    assert main(["compare", "--entries", "tiny2", "--out", str(out)]) == 2
+    assert "needs --suite" in capsys.readouterr().err and not out.exists()
+
+
 @pytest.mark.slow  # heavy: kept out of the default run, in .ci/run's slow pass
 def test_compare_suite_end_to_end(tmp_path, capsys):
     space = tmp_path / "tiny.toml"
