@@ -114,7 +114,7 @@ def _typed(value, default, what: str):
 register("reinforce/default", AutoregressiveReinforce, batch=32, learners=1, queue=32,
          resample=8, surrogate=128, anchored=True, advantage="rank", signal="shaped", lr=0.02,
          lr_found=0.03, sigma_min=0.001, repeat_found=0.5, anchor_decay=0.9,
-         anchor_decay_found=0.85, global_share_found=0.0, zoom=0.3, kappa=1.0,
+         anchor_decay_found=0.85, global_share_found=0.0, zoom=0.3, kappa=1.0, edge_mass=0.2,
          doc="the autoregressive LSTM controller + REINFORCE (ours): draws around the best "
          "scenarios found so far (a learnt local move, multi-scale) and afresh, a GP picking "
          "which draws are asked until the first collision, no repeats until a collision, rank "

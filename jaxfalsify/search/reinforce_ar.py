@@ -27,10 +27,12 @@ a reward that is flat until the first collision, failures that are rare.
   in a few moves and small ones searched value by value. The factor is drawn from a known
   distribution that no weight changes, so the policy gradient conditions on it (kept per draw
   in ``zooms``) and stays unbiased.
-* **Moves that stop at a bound** (``edge_mass``, off by default): that share of an anchored
-  move's Gaussian mass beyond the first / last value goes to that value (1: moves clipped to
-  the box, as evolution strategies clip; 0: renormalised inside it). For failures on the box's
-  faces (README: ``huge-aeb``); it costs on interior failures, so it is not the default.
+* **Moves that partly stop at a bound** (``edge_mass``; 0 in this class, 0.2 in
+  ``reinforce/default``): that share of an anchored move's Gaussian mass beyond the first /
+  last value goes to that value, the rest is renormalised inside the box (1: moves clipped to
+  the box, as evolution strategies clip; 0: never). Helps where failures touch the box's faces
+  (README: ``huge-aeb``, ``aeb-9e6``); a large share costs on interior failures (evaluations
+  on the faces and corners), 0.2 does not measurably.
 * **No repeats until a collision** (``resample``): a deterministic SUT gives the same outcome
   twice, so a repeated scenario wastes an evaluation. The controller draws ``resample``
   candidates per scenario it asks and takes the first ones not evaluated before (a ``memory``
