@@ -116,7 +116,8 @@ register("reinforce/default", AutoregressiveReinforce, batch=32, learners=1, que
          lr_found=0.03, sigma_min=0.001, repeat_found=0.5, anchor_decay=0.9,
          anchor_decay_found=0.85, global_share_found=0.0, zoom=0.3, kappa=1.0, edge_mass=0.2,
          doc="the autoregressive LSTM controller + REINFORCE (ours): draws around the best "
-         "scenarios found so far (a learnt local move, multi-scale) and afresh, a GP picking "
+         "scenarios found so far (a learnt local move, multi-scale, partly stopping at the "
+         "bounds) and afresh, a GP picking "
          "which draws are asked until the first collision, no repeats until a collision, rank "
          "baseline of the STL-robustness-shaped signal, 32 per update")
 register("reinforce/factorised", Reinforce, batch=50, chains=0, advantage="normalised",
