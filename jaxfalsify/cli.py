@@ -390,16 +390,22 @@ def cmd_sweep(args, stop, startup) -> int:
     return _late_signal(stop)
 
 
+def _names(flag: str, value: str | None, what: str, example: str) -> tuple[str, ...] | None:
+    """A comma-separated list of names given to ``flag`` (None when the flag is not given);
+    one that names nothing is refused."""
+    if value is None:
+        return None
+    names = tuple(n.strip() for n in value.split(",") if n.strip())
+    if not names:
+        raise UsageError(f"{flag} {value!r}: no {what} named (e.g. {flag} {example})")
+    return names
+
+
 def cmd_compare(args, stop, startup) -> int:
     from jaxfalsify import compare
     from jaxfalsify.progress import timing_line
 
-    names = None
-    if args.strategies is not None:
-        names = tuple(n.strip() for n in args.strategies.split(",") if n.strip())
-        if not names:
-            raise UsageError(f"--strategies {args.strategies!r}: no strategy named (e.g. "
-                             "--strategies reinforce/default,cmaes)")
+    names = _names("--strategies", args.strategies, "strategy", "reinforce/default,cmaes")
     if args.suite is not None:
         return _compare_suite(args, names, stop, startup)
     if args.entries is not None:
@@ -463,12 +469,7 @@ def _compare_suite(args, names, stop, startup) -> int:
         if given:
             raise UsageError(f"--suite takes its spaces, SUTs and budgets from the suite file; "
                              f"drop {flag}")
-    entries = None
-    if args.entries is not None:
-        entries = tuple(n.strip() for n in args.entries.split(",") if n.strip())
-        if not entries:
-            raise UsageError(f"--entries {args.entries!r}: no space named (e.g. "
-                             "--entries aeb-9e6,island-dash)")
+    entries = _names("--entries", args.entries, "space", "aeb-9e6,island-dash")
     suite = compare.load_suite(args.suite, seeds=args.seeds, strategies=names,
                                jobs=args.jobs or 0, entries=entries)
     result = compare.execute_suite(suite, args.out, force=args.force,

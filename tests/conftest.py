@@ -44,6 +44,18 @@ def random_scenarios(n, seed=0, extended=False):
     return sc
 
 
+def space_file_fixture(text: str, name: str):
+    """A module-scoped fixture: ``text`` (a space's TOML) written to ``<tmp>/<name>.toml``,
+    its path returned (``small_space = space_file_fixture(SMALL, "small")`` in a module)."""
+    @pytest.fixture(scope="module")
+    def space_file(tmp_path_factory):
+        path = tmp_path_factory.mktemp("space") / f"{name}.toml"
+        path.write_text(text)
+        return path
+
+    return space_file
+
+
 @pytest.fixture(scope="module")
 def table_ii():
     """Trajectories and outcomes of the paper's Table II scenarios (batched: [challenging, non])."""

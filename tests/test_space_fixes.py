@@ -9,6 +9,7 @@ import tomllib
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from conftest import space_file_fixture
 
 import jaxfalsify as jf
 from jaxfalsify import config as cfg
@@ -33,11 +34,7 @@ values = [0, 8]
 """
 
 
-@pytest.fixture(scope="module")
-def fix_space(tmp_path_factory):
-    f = tmp_path_factory.mktemp("space") / "fix.toml"
-    f.write_text(SPACE)
-    return f
+fix_space = space_file_fixture(SPACE, "fix")
 
 
 def _rows(path):

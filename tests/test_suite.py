@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import TINY_SPACE, run_campaign
+from conftest import TINY_SPACE, run_campaign, space_file_fixture
 
 import jaxfalsify as jf
 from jaxfalsify import compare, runs
@@ -19,11 +19,7 @@ values = [0.5, 0.9, 2.0]
 """
 
 
-@pytest.fixture(scope="module")
-def sut_space(tmp_path_factory):
-    path = tmp_path_factory.mktemp("sutspace") / "cal.toml"
-    path.write_text(SUT_SPACE)
-    return path
+sut_space = space_file_fixture(SUT_SPACE, "cal")
 
 
 def test_sut_parameters_are_dimensions_of_a_space(sut_space):

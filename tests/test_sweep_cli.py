@@ -9,6 +9,7 @@ import jax
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from conftest import space_file_fixture
 
 import jaxfalsify as jf
 from jaxfalsify.cli import main
@@ -34,11 +35,7 @@ values = [0, 8]
 """
 
 
-@pytest.fixture(scope="module")
-def small_space(tmp_path_factory):
-    f = tmp_path_factory.mktemp("space") / "small.toml"
-    f.write_text(SMALL)
-    return f
+small_space = space_file_fixture(SMALL, "small")
 
 
 def test_sweep_arrays_equal_direct_evaluation(small_space):

@@ -14,17 +14,13 @@ from jaxfalsify import sut as sut_lib
 from jaxfalsify import report
 from jaxfalsify.cli import main
 from jaxfalsify.sweep import sweep_arrays
-from conftest import TINY_SPACE
+from conftest import TINY_SPACE, space_file_fixture
 
 EXAMPLE = Path(__file__).parent.parent / "experiments" / "example_aeb.py"
 SPEC = f"{EXAMPLE}:AEB"
 
 
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    f = tmp_path_factory.mktemp("space") / "tiny.toml"
-    f.write_text(TINY_SPACE)
-    return f
+tiny = space_file_fixture(TINY_SPACE, "tiny")
 
 
 def test_resolved_by_file_path_and_by_module(monkeypatch):
