@@ -605,6 +605,39 @@ def test_ard_refine_picks_the_scale_of_highest_marginal_likelihood():
     assert ell[2] >= 1.0 and ell[0] < ell[2]
 
 
+@pytest.mark.parametrize("prior", [-0.5, 1.0])
+def test_gp_prior_mean_matches_constant_mean_regression(prior):
+    """A constant prior mean (``prior`` standard deviations from the data's mean) against
+    float64 GP regression with that mean: posterior mean ``m0 + k K^-1 (t - m0)`` at new points,
+    the prior mean itself far from every point, the ARD step's choice and likelihood on the
+    shifted targets."""
+    shape, hist, xs, y = _gp_data(1)
+    ok = np.isfinite(y)
+    mu, sd = y[ok].mean(), y[ok].std()
+    t = (y[ok] - mu) / sd
+    x = surrogate.unit(jnp.asarray(hist), shape)
+    ell = np.array([0.12, 0.25, 0.5])
+    rng = np.random.default_rng(3)
+    z = rng.uniform(0, 1, (25, 3))
+    m = surrogate.fit(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), prior)
+    mean, var, _ = surrogate.predict(m, jnp.asarray(z, jnp.float32))
+    k = _np_kernel(xs[ok], xs[ok], ell) + surrogate.NOISE * np.eye(ok.sum())
+    kz = _np_kernel(z, xs[ok], ell)
+    m_ref = prior + kz @ np.linalg.solve(k, t - prior)
+    v_ref = 1.0 - np.einsum("ij,ji->i", kz, np.linalg.solve(k, kz.T))
+    np.testing.assert_allclose(np.asarray(mean), m_ref, atol=2e-3 * np.ptp(t))
+    np.testing.assert_allclose(np.asarray(var), v_ref, atol=1e-4)
+    far, far_var, _ = surrogate.predict(m, jnp.full((1, 3), 50.0))
+    assert float(far[0]) == pytest.approx(prior, abs=1e-6) and float(far_var[0]) == 1.0
+    e = np.full(3, surrogate.ARD_START)
+    for p in (0, 1, 2):
+        r = surrogate.refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(e, jnp.float32), p,
+                             prior)
+        e, lml = _np_ard_step(xs[ok], t - prior, e, p)
+        np.testing.assert_allclose(np.asarray(r.ell), e, rtol=1e-6)
+        assert float(r.lml) == pytest.approx(lml, rel=1e-3, abs=1e-2)
+
+
 def test_ard_refine_keeps_the_scale_without_enough_data():
     """With fewer than MIN_POINTS valid points every scale fits equally (no model): the length
     scale stays as it was (it took the first candidate, 0.03, at the first ask)."""

@@ -48,7 +48,10 @@ a reward that is flat until the first collision, failures that are rare.
   ``surrogate`` evaluations and its queue of best scenarios picks which of the new candidates
   (``resample`` per asked scenario) are asked: by GP-BUCB, the highest ``mean + kappa * std``
   first, each further pick's std shrunk as if the earlier ones had been observed, so a batch
-  spreads over the promising candidates. One length scale per parameter, refined by marginal
+  spreads over the promising candidates. The GP's prior mean ``prior_mean`` (standard
+  deviations from its data's mean; -0.5 in ``reinforce/default``) expects unexplored regions
+  somewhat worse than the average evaluation, so far-away uncertain candidates stop crowding
+  out those beside a promising plateau. One length scale per parameter, refined by marginal
   likelihood one parameter per update. The policy still proposes every candidate and learns
   from what is asked.
 * **Baseline**: centred ranks of the learning signal within the batch (``advantage="rank"``:
@@ -105,6 +108,8 @@ class ARParams:
     edge_explore: float = 0.0  # share of a uniform draw's values put on a bound (the first
     # or last value; for failures on the box's faces)
     kappa: float = 1.0  # surrogate: candidates picked by GP mean + kappa * std (standardised)
+    prior_mean: float = 0.0  # surrogate: the GP's prior mean, in standard deviations of the
+    # signal from its mean over the GP's data (< 0: unexplored regions expected worse)
     zoom: float = 0.0  # anchored: multi-scale moves, the widest as a fraction of a
     # parameter's range (each draw's width is log-uniform between the learnt width and that
     # many times wider; 0: off)
@@ -115,7 +120,8 @@ class ARParams:
               "global_share_found": "(-inf, 1]",
               "anchor_decay": "[0, 1]", "anchor_decay_found": "(-inf, 1]",
               "repeat_found": "[0, 1]", "uniform_mix": "[0, 1]", "edge_mass": "[0, 1]",
-              "edge_explore": "[0, 1]", "kappa": "[0, inf)", "zoom": "[0, inf)"}
+              "edge_explore": "[0, 1]", "kappa": "[0, inf)", "zoom": "[0, inf)",
+              "prior_mean": "[-5, 5]"}
 
 
 @pytree.dataclass
@@ -381,7 +387,8 @@ class AutoregressiveReinforce(Strategy):
         y = jnp.concatenate([jnp.where(dup, -jnp.inf, state.history_signal),
                              state.queue_signal.reshape(-1)])
         movable = jnp.asarray([p for p, n in enumerate(self.shape) if n > 1] or [0])
-        model = gp.refine(x, y, state.ell, movable[state.told % movable.shape[0]])
+        model = gp.refine(x, y, state.ell, movable[state.told % movable.shape[0]],
+                          params.prior_mean)
         z = gp.unit(idx, self.shape)
         order = jax.vmap(lambda zl, al: gp.batch_ucb(model, zl, al, params.kappa,
                                                      self.per_learner))(z, allowed)

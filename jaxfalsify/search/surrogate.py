@@ -9,8 +9,12 @@ exploration-exploitation tradeoffs in Gaussian process bandit optimization", JML
 so a batch spreads over the promising candidates instead of piling onto one. Everything here
 is fixed-shape and jit-friendly: empty data slots are masked, not dropped.
 
-Model: zero-mean GP on the standardised signal, squared-exponential kernel on the value ranks
-scaled to ``[0, 1]`` per parameter, a nugget of ``NOISE``. Length scales are chosen by the log
+Model: a GP on the standardised signal with a constant prior mean ``prior`` (in standard
+deviations from the data's mean: 0 by default; ``reinforce/default`` uses -0.5, so a region
+without data is expected somewhat worse than the average evaluation, and an uncertain candidate
+far from everything wins a pick only where the model sees little that is good nearby),
+squared-exponential kernel on the value ranks scaled to ``[0, 1]`` per parameter, a nugget of
+``NOISE``. Length scales are chosen by the log
 marginal likelihood (Rasmussen & Williams, *Gaussian Processes for Machine Learning*, 2006,
 Alg. 2.1, Eq. 2.30): one for all parameters among ``LENGTH_SCALES`` (:func:`posterior`), or
 one per parameter (automatic relevance determination), refined one parameter per update among
@@ -46,7 +50,9 @@ class Model(NamedTuple):
     ok: jax.Array  # (H,) bool, filled slots
     ell: jax.Array  # (P,) length scales, fractions of each range
     chol: jax.Array  # (H, H) Cholesky factor of K + nugget (empty slots: identity rows)
-    alpha: jax.Array  # (H,) (K + nugget)^-1 t, t the standardised targets (0 in empty slots)
+    alpha: jax.Array  # (H,) (K + nugget)^-1 t, t the standardised targets less the prior
+    # mean (0 in empty slots)
+    prior: jax.Array  # () the prior mean, standardised
     mu: jax.Array  # () the signal's mean over the filled slots
     sd: jax.Array  # () its standard deviation (1 if 0)
     lml: jax.Array  # () log marginal likelihood, up to a constant
@@ -100,9 +106,10 @@ def _sq_dist(a: jax.Array, b: jax.Array, ell: jax.Array) -> jax.Array:
     return jnp.sum(jnp.square((a[:, None, :] - b[None, :, :]) / ell), -1)
 
 
-def fit(x: jax.Array, y: jax.Array, ell) -> Model:
+def fit(x: jax.Array, y: jax.Array, ell, prior=0.0) -> Model:
     """The GP of signals ``y (H,)`` at ``x (H, P)`` (a non-finite ``y`` marks an empty slot)
-    with length scales ``ell`` (a scalar or ``(P,)``)."""
+    with length scales ``ell`` (a scalar or ``(P,)``) and prior mean ``prior`` (standard
+    deviations from the signals' mean)."""
     ell = jnp.broadcast_to(jnp.asarray(ell, jnp.float32), x.shape[-1:])
     ok = jnp.isfinite(y)
     n = jnp.maximum(jnp.sum(ok), 1)
@@ -110,7 +117,8 @@ def fit(x: jax.Array, y: jax.Array, ell) -> Model:
     mu = jnp.sum(y0) / n
     sd = jnp.sqrt(jnp.sum(jnp.where(ok, (y0 - mu) ** 2, 0.0)) / n)
     sd = jnp.where(sd > 0, sd, 1.0)
-    t = jnp.where(ok, (y0 - mu) / sd, 0.0)  # standardised targets, 0 in empty slots
+    prior = jnp.asarray(prior, jnp.float32)
+    t = jnp.where(ok, (y0 - mu) / sd - prior, 0.0)  # standardised, less the prior; 0 if empty
     # an empty slot is an independent unit-variance point with target 0: no influence
     k = jnp.where(ok[:, None] & ok[None, :], jnp.exp(-0.5 * _sq_dist(x, x, ell)), 0.0) \
         + jnp.diag(jnp.where(ok, NOISE, 1.0))
@@ -119,7 +127,7 @@ def fit(x: jax.Array, y: jax.Array, ell) -> Model:
     # log marginal likelihood up to a constant (empty slots add log 1 = 0)
     lml = -0.5 * t @ alpha - jnp.sum(jnp.log(jnp.diag(chol)))
     lml = jnp.where(jnp.isfinite(lml), lml, -jnp.inf)
-    return Model(x, ok, ell, chol, alpha, mu, sd, lml, jnp.sum(ok) >= MIN_POINTS)
+    return Model(x, ok, ell, chol, alpha, prior, mu, sd, lml, jnp.sum(ok) >= MIN_POINTS)
 
 
 def best_fit(x: jax.Array, y: jax.Array, ells: jax.Array) -> Model:
@@ -129,13 +137,13 @@ def best_fit(x: jax.Array, y: jax.Array, ells: jax.Array) -> Model:
     return jax.tree.map(lambda a: a[jnp.argmax(models.lml)], models)
 
 
-def refine(x: jax.Array, y: jax.Array, ell: jax.Array, p) -> Model:
-    """ARD, one coordinate at a time: the best fit over ``ARD_SCALES`` for parameter ``p``'s
-    length scale, the others kept at ``ell (P,)``. Without enough data for a model every
+def refine(x: jax.Array, y: jax.Array, ell: jax.Array, p, prior=0.0) -> Model:
+    """ARD, one coordinate at a time: the best fit (prior mean ``prior``, see :func:`fit`)
+    over ``ARD_SCALES`` for parameter ``p``'s length scale, the others kept at ``ell (P,)``. Without enough data for a model every
     candidate's likelihood is the same, and ``ell`` is kept as it is."""
     cands = jnp.asarray(ARD_SCALES, jnp.float32)
     ells = jnp.broadcast_to(ell, (len(ARD_SCALES),) + ell.shape).at[:, p].set(cands)
-    models = jax.vmap(lambda e: fit(x, y, e))(ells)
+    models = jax.vmap(lambda e: fit(x, y, e, prior))(ells)
     lml = jnp.where(models.enough, models.lml,  # no model: the current scale's candidate
                     jnp.where(cands == ell[p], 0.0, -jnp.inf))
     return jax.tree.map(lambda a: a[jnp.argmax(lml)], models)
@@ -144,11 +152,11 @@ def refine(x: jax.Array, y: jax.Array, ell: jax.Array, p) -> Model:
 def predict(m: Model, z: jax.Array):
     """``(mean (N,), var (N,), v (H, N))`` at ``z (N, P)``, standardised (the signal's units:
     ``mu + sd * mean``, ``sd^2 * var``); ``v = L^-1 k(X, z)``. Without a model: mean 0, var
-    1."""
+    1; far from the data the mean tends to the prior mean."""
     ks = jnp.where(m.ok[None, :], jnp.exp(-0.5 * _sq_dist(z, m.x, m.ell)), 0.0)  # (N, H)
     v = solve_lower(m.chol, ks.T)  # (H, N)
     v = jnp.where(m.enough, v, 0.0)
-    mean = jnp.where(m.enough, ks @ m.alpha, 0.0)
+    mean = jnp.where(m.enough, m.prior + ks @ m.alpha, 0.0)
     return mean, jnp.maximum(1.0 - jnp.sum(v * v, 0), 0.0), v
 
 
