@@ -56,6 +56,19 @@ def space_file_fixture(text: str, name: str):
     return space_file
 
 
+def grid_run(folder, name: str, space_text: str, evaluations: int, *flags: str):
+    """Write a space's TOML to ``folder/<name>.toml`` and run ``jaxfalsify run --strategy
+    grid`` on it (``--quiet``, extra ``flags``) into ``folder/run``; that run folder."""
+    from jaxfalsify.cli import main
+
+    space = folder / f"{name}.toml"
+    space.write_text(space_text)
+    run = folder / "run"
+    assert main(["run", "--space", str(space), "--strategy", "grid", "--evaluations",
+                 str(evaluations), "--out", str(run), "--quiet", *flags]) == 0
+    return run
+
+
 @pytest.fixture(scope="module")
 def table_ii():
     """Trajectories and outcomes of the paper's Table II scenarios (batched: [challenging, non])."""

@@ -11,6 +11,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
+from conftest import grid_run
 
 DT = 0.1
 
@@ -268,18 +269,12 @@ def _recording_column(path, entity, column):
 @pytest.fixture(scope="module")
 def sut_run(tmp_path_factory):
     """A 4-evaluation grid run (carla-tm) over a space with a SUT parameter dimension."""
-    from jaxfalsify.cli import main
-
-    d = tmp_path_factory.mktemp("sutw")
-    space = d / "sutw.toml"
-    space.write_text('name = "sutw"\n[parameters.ego_offset]\nvalues = [5.0, 9.0]\n'
-                     '[parameters.ped_speed]\nvalues = [1.237, 1.5]\n'
-                     '[parameters.ped_offset]\nvalues = [3.5]\n'
-                     '[parameters."sut.walker_time"]\nvalues = [3.0]\n')
-    run = d / "run"
-    assert main(["run", "--space", str(space), "--strategy", "grid", "--evaluations", "4",
-                 "--batch", "4", "--out", str(run), "--quiet", "--no-figures"]) == 0
-    return run
+    return grid_run(tmp_path_factory.mktemp("sutw"), "sutw",
+                    'name = "sutw"\n[parameters.ego_offset]\nvalues = [5.0, 9.0]\n'
+                    '[parameters.ped_speed]\nvalues = [1.237, 1.5]\n'
+                    '[parameters.ped_offset]\nvalues = [3.5]\n'
+                    '[parameters."sut.walker_time"]\nvalues = [3.0]\n',
+                    4, "--batch", "4", "--no-figures")
 
 
 def test_replay_grows_the_walker_box_with_the_spaces_sut_parameter(sut_run, tmp_path):

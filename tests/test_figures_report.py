@@ -6,6 +6,7 @@ import re
 import numpy as np
 import pytest
 
+from conftest import grid_run
 from jaxfalsify.cli import main
 
 SIZES = {"reward_per_episode.png": (500, 800), "distance_challenging.png": (500, 1200),
@@ -570,14 +571,10 @@ def test_export_writes_explicit_values_as_written(tmp_path):
 
     import jaxfalsify as jf
 
-    space = tmp_path / "vals.toml"
-    space.write_text('name = "vals"\n[parameters.ego_offset]\nvalues = [9]\n'
-                     '[parameters.ped_offset]\nvalues = [3.5]\n'
-                     '[parameters.ped_accel]\nvalues = [0.0075, 0.0125]\n'
-                     '[parameters.ped_speed]\nvalues = [1.1335, 1.2375]\n')
-    run = tmp_path / "run"
-    assert main(["run", "--space", str(space), "--strategy", "grid", "--evaluations", "4",
-                 "--out", str(run), "--quiet", "--no-figures"]) == 0
+    run = grid_run(tmp_path, "vals", 'name = "vals"\n[parameters.ego_offset]\nvalues = [9]\n'
+                   '[parameters.ped_offset]\nvalues = [3.5]\n'
+                   '[parameters.ped_accel]\nvalues = [0.0075, 0.0125]\n'
+                   '[parameters.ped_speed]\nvalues = [1.1335, 1.2375]\n', 4, "--no-figures")
     assert main(["export", str(run), "--scenario", "critical", "--out",
                  str(tmp_path / "x")]) == 0
     ep = pq.read_table(run / "episodes.parquet").to_pydict()
@@ -601,10 +598,6 @@ def test_a_run_where_everything_collided_shows_no_typical_scenario(tmp_path, mon
     import matplotlib.figure
     import pyarrow.parquet as pq
 
-    space = tmp_path / "allcol.toml"
-    space.write_text('name = "allcol"\n[parameters.ego_offset]\nvalues = [7]\n'
-                     '[parameters.ped_accel]\nvalues = [0.035, 0.081]\n[parameters.ped_speed]\n'
-                     'values = [1.133]\n[parameters.ped_offset]\nvalues = [3]\n')
     seen = {}
     save = matplotlib.figure.Figure.savefig
 
@@ -614,9 +607,11 @@ def test_a_run_where_everything_collided_shows_no_typical_scenario(tmp_path, mon
         return save(fig, fname, **kw)
 
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", record)
-    assert main(["run", "--space", str(space), "--strategy", "grid", "--evaluations", "2",
-                 "--out", str(tmp_path / "r"), "--quiet"]) == 0
-    assert all(pq.read_table(tmp_path / "r" / "episodes.parquet").to_pydict()["collision"])
+    run = grid_run(tmp_path, "allcol",
+                   'name = "allcol"\n[parameters.ego_offset]\nvalues = [7]\n'
+                   '[parameters.ped_accel]\nvalues = [0.035, 0.081]\n[parameters.ped_speed]\n'
+                   'values = [1.133]\n[parameters.ped_offset]\nvalues = [3]\n', 2)
+    assert all(pq.read_table(run / "episodes.parquet").to_pydict()["collision"])
     titles = [t for ts, _ in seen.values() for t in ts]
     assert "challenging (best)" in titles and "non-challenging (typical)" not in titles
     bars = [ticks for ts, ticks in seen.values() if "challenging" in ticks]
