@@ -676,11 +676,13 @@ def test_batch_ucb_matches_sequential_conditioning():
     assert set(got[:2]) == {5, 40} and list(got[2:]) == [0, 1, 2]
 
 
-def _np_screen(st, cand, allowed, shape, kappa, b):
+def _np_screen(st, cand, allowed, shape, kappa, b, prior=0.0):
     """reinforce/default's screening in float64: the GP's data are the history ring and the
     queue of best scenarios (a history row that is also a filled queue row or an earlier
     history row dropped), scaled to [0, 1]; parameter ``told mod (movable parameters)`` gets
-    the ARD scale of highest exact marginal likelihood; then GP-BUCB over the candidates.
+    the ARD scale of highest exact marginal likelihood; then GP-BUCB over the candidates. The
+    GP's prior mean ``prior`` (standard deviations from the data's mean) is taken off the
+    standardised targets (a constant added back to every candidate's mean ranks them alike).
     Returns (picks, ell)."""
     span = np.maximum(np.array(shape) - 1.0, 1.0)
     hist, hs = np.asarray(st.history), np.asarray(st.history_signal, np.float64)
@@ -690,7 +692,7 @@ def _np_screen(st, cand, allowed, shape, kappa, b):
     x = np.concatenate([hist, q]) / span
     y = np.concatenate([np.where(dup, -np.inf, hs), qs])
     x, y = x[np.isfinite(y)], y[np.isfinite(y)]
-    t = (y - y.mean()) / y.std()
+    t = (y - y.mean()) / y.std() - prior
     movable = [p for p, n in enumerate(shape) if n > 1]
     ell, _ = _np_ard_step(x, t, np.asarray(st.ell), movable[int(st.told) % len(movable)])
     return _np_bucb(x, t, cand / span, allowed, ell, kappa, b), ell
@@ -725,7 +727,8 @@ def test_surrogate_screening_asks_the_gp_bucb_picks():
     c = jax.jit(on.candidates)(key, st, p)
     cand, allowed = np.asarray(c["idx"][0]), np.asarray(c["allowed"][0])
     assert allowed.sum() >= on.batch
-    picks, ell = _np_screen(st, cand, allowed, shape, float(p.kappa), on.batch)
+    picks, ell = _np_screen(st, cand, allowed, shape, float(p.kappa), on.batch,
+                            float(p.prior_mean))
     idx, st2 = jax.jit(on.ask)(key, st, p)
     np.testing.assert_array_equal(np.asarray(idx), cand[picks])
     np.testing.assert_allclose(np.asarray(st2.ell), ell, rtol=1e-6)
