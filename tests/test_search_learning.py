@@ -326,6 +326,35 @@ def test_default_repeats_only_its_own_collisions_and_holds_still_without_signal(
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def test_entropy_until_fades_the_bonus_after_a_collision_linearly():
+    """``entropy_until`` U: a learner with a collision, told a batch after ``told * batch``
+    evaluations, steps as with the constant bonus ``entropy_found * (1 - told * batch / U)``
+    (0 from U on); without a collision the bonus is ``entropy``, unfaded."""
+    shape = (10, 10, 10, 10)
+    strat, p = search.make("reinforce/default", shape, entropy_found=0.2, entropy_until=1280.0)
+    plain = pytree.replace(p, entropy_until=0.0)
+    idx = jnp.asarray(np.random.default_rng(0).integers(0, 10, (32, 4)), jnp.int32)
+    sig = jnp.linspace(-1.0, 1.0, 32, dtype=jnp.float32)
+
+    def weights(params, told, seen=True):
+        st = strat.init(jax.random.key(0), params)
+        st = pytree.replace(st, seen=jnp.full_like(st.seen, seen), told=jnp.int32(told))
+        return jax.tree.leaves(strat.tell(jax.random.key(1), st, idx, sig, params).weights)
+
+    def same(a, b):
+        return all(np.allclose(np.asarray(x), np.asarray(y), rtol=1e-6, atol=1e-7)
+                   for x, y in zip(a, b))
+
+    # 640 of 1280 evaluations done: half the bonus; 1280 or more: none; 0: all of it
+    assert same(weights(p, 20), weights(pytree.replace(plain, entropy_found=0.1), 20))
+    assert not same(weights(p, 20), weights(plain, 20))  # the fade changes the step
+    assert same(weights(p, 40), weights(pytree.replace(plain, entropy_found=0.0), 40))
+    assert same(weights(p, 60), weights(pytree.replace(plain, entropy_found=0.0), 60))
+    assert same(weights(p, 0), weights(plain, 0))
+    # before a collision the bonus is entropy, whatever the fade
+    assert same(weights(p, 30, seen=False), weights(plain, 30, seen=False))
+
+
 def test_top_distinct_carries_the_collision_flags():
     """The queue's collided flags follow their rows: best distinct first, a repeated row
     counted once with its first (best) entry's flag, empty (-inf) slots unflagged."""

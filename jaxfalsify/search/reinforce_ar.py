@@ -61,7 +61,9 @@ a reward that is flat until the first collision, failures that are rare.
   :func:`jaxfalsify.search.base.shaped_signal`: STL robustness (min distance - epsilon) until
   a collision, the paper's reward among collisions (collisions always rank first).
 * **Entropy** bonus ``entropy`` on the per-step entropies while the learner has seen no
-  collision, ``entropy_found`` after; learning rate ``lr``, then ``lr_found``.
+  collision, ``entropy_found`` after (faded linearly to 0 at ``entropy_until`` evaluations
+  of the search when that is > 0: explore among the failures, then converge; 0 in
+  ``reinforce/default``); learning rate ``lr``, then ``lr_found``.
 * ``learners`` independent controllers (own weights, Adam moments, queue) may share the batch.
 
 Without ``anchored``/``resample`` this is a plain autoregressive REINFORCE learner. Evaluations
@@ -91,6 +93,8 @@ class ARParams:
     lr_found: float = -1.0  # learning rate once the learner has a collision (< 0: lr)
     entropy: float = 0.02  # entropy bonus while the learner has seen no collision
     entropy_found: float = 0.0  # entropy bonus once it has
+    entropy_until: float = 0.0  # > 0: entropy_found falls linearly to 0 at this many
+    # evaluations of the search (explore among the failures first, then converge)
     sigma_min: float = 0.05  # narrowest bump, as a fraction of a parameter's range (1e-4..1;
     # never narrower than half a value step)
     global_share: float = 0.25  # anchored: share of draws without an anchor
@@ -116,6 +120,7 @@ class ARParams:
 
     # a negative *_found value means "as before the first collision"
     RANGES = {"lr": "[0, inf)", "entropy": "[0, inf)", "entropy_found": "[0, inf)",
+              "entropy_until": "[0, inf)",
               "sigma_min": "[0.0001, 1]", "global_share": "[0, 1]",
               "global_share_found": "(-inf, 1]",
               "anchor_decay": "[0, 1]", "anchor_decay_found": "(-inf, 1]",
@@ -432,7 +437,11 @@ class AutoregressiveReinforce(Strategy):
             flat = jnp.max(jnp.where(ok, sig, -jnp.inf), -1, keepdims=True) \
                 <= jnp.min(jnp.where(ok, sig, jnp.inf), -1, keepdims=True)
             adv = jnp.where(ok & ~flat, (x - mean) / (std + 1e-8), 0.0)
-        beta = jnp.where(seen, params.entropy_found, params.entropy)  # (L,)
+        done = (state.told * self.batch).astype(jnp.float32)  # evaluations before this batch
+        fade = jnp.where(params.entropy_until > 0,
+                         jnp.clip(1.0 - done / jnp.maximum(params.entropy_until, 1.0), 0.0, 1.0),
+                         1.0)
+        beta = jnp.where(seen, params.entropy_found * fade, params.entropy)  # (L,)
         acts = indices.reshape(L, b, P)
         anc = state.anchors.reshape(L, b, P)
         pres = state.anchored.reshape(L, b)
