@@ -62,8 +62,8 @@ a reward that is flat until the first collision, failures that are rare.
   a collision, the paper's reward among collisions (collisions always rank first).
 * **Entropy** bonus ``entropy`` on the per-step entropies while the learner has seen no
   collision, ``entropy_found`` after (faded linearly to 0 at ``entropy_until`` evaluations
-  of the search when that is > 0: explore among the failures, then converge; 0 in
-  ``reinforce/default``); learning rate ``lr``, then ``lr_found``.
+  of the search when that is > 0: explore among the failures, then converge; 0.1 faded out
+  at 2000 in ``reinforce/default``); learning rate ``lr``, then ``lr_found``.
 * ``learners`` independent controllers (own weights, Adam moments, queue) may share the batch.
 
 Without ``anchored``/``resample`` this is a plain autoregressive REINFORCE learner. Evaluations

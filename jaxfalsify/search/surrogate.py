@@ -139,8 +139,9 @@ def best_fit(x: jax.Array, y: jax.Array, ells: jax.Array) -> Model:
 
 def refine(x: jax.Array, y: jax.Array, ell: jax.Array, p, prior=0.0) -> Model:
     """ARD, one coordinate at a time: the best fit (prior mean ``prior``, see :func:`fit`)
-    over ``ARD_SCALES`` for parameter ``p``'s length scale, the others kept at ``ell (P,)``. Without enough data for a model every
-    candidate's likelihood is the same, and ``ell`` is kept as it is."""
+    over ``ARD_SCALES`` for parameter ``p``'s length scale, the others kept at ``ell (P,)``.
+    Without enough data for a model every candidate's likelihood is the same, and ``ell`` is
+    kept as it is."""
     cands = jnp.asarray(ARD_SCALES, jnp.float32)
     ells = jnp.broadcast_to(ell, (len(ARD_SCALES),) + ell.shape).at[:, p].set(cands)
     models = jax.vmap(lambda e: fit(x, y, e, prior))(ells)
