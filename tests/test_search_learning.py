@@ -713,7 +713,8 @@ def test_batch_ucb_matches_sequential_conditioning():
 def _np_screen(st, cand, allowed, shape, kappa, b, prior=0.0):
     """reinforce/default's screening in float64: the GP's data are the history ring and the
     queue of best scenarios (a history row that is also a filled queue row or an earlier
-    history row dropped), scaled to [0, 1]; parameter ``told mod (movable parameters)`` gets
+    history row dropped), scaled to [0, 1]; while ``told`` < the number of movable parameters
+    each of them in turn, after that only parameter ``told mod (movable parameters)``, gets
     the ARD scale of highest exact marginal likelihood; then GP-BUCB over the candidates. The
     GP's prior mean ``prior`` (standard deviations from the data's mean) is taken off the
     standardised targets (a constant added back to every candidate's mean ranks them alike).
@@ -728,7 +729,10 @@ def _np_screen(st, cand, allowed, shape, kappa, b, prior=0.0):
     x, y = x[np.isfinite(y)], y[np.isfinite(y)]
     t = (y - y.mean()) / y.std() - prior
     movable = [p for p, n in enumerate(shape) if n > 1]
-    ell, _ = _np_ard_step(x, t, np.asarray(st.ell), movable[int(st.told) % len(movable)])
+    ell = np.asarray(st.ell, np.float64)
+    for p in (movable if int(st.told) < len(movable)
+              else [movable[int(st.told) % len(movable)]]):
+        ell, _ = _np_ard_step(x, t, ell, p)
     return _np_bucb(x, t, cand / span, allowed, ell, kappa, b), ell
 
 
@@ -761,12 +765,16 @@ def test_surrogate_screening_asks_the_gp_bucb_picks():
     c = jax.jit(on.candidates)(key, st, p)
     cand, allowed = np.asarray(c["idx"][0]), np.asarray(c["allowed"][0])
     assert allowed.sum() >= on.batch
-    picks, ell = _np_screen(st, cand, allowed, shape, float(p.kappa), on.batch,
-                            float(p.prior_mean))
-    idx, st2 = jax.jit(on.ask)(key, st, p)
-    np.testing.assert_array_equal(np.asarray(idx), cand[picks])
-    np.testing.assert_allclose(np.asarray(st2.ell), ell, rtol=1e-6)
-    assert len({tuple(i) for i in np.asarray(idx)}) == on.batch
+    ask = jax.jit(on.ask)
+    # told 3 < 4 movable parameters: every scale refined in turn; told 5: parameter 5 mod 4
+    for told in (3, 5):
+        st_t = dataclasses.replace(st, told=jnp.int32(told))
+        picks, ell = _np_screen(st_t, cand, allowed, shape, float(p.kappa), on.batch,
+                                float(p.prior_mean))
+        idx, st2 = ask(key, st_t, p)
+        np.testing.assert_array_equal(np.asarray(idx), cand[picks])
+        np.testing.assert_allclose(np.asarray(st2.ell), ell, rtol=1e-6)
+        assert len({tuple(i) for i in np.asarray(idx)}) == on.batch
     seen = dataclasses.replace(st, seen=jnp.ones_like(st.seen))
     np.testing.assert_array_equal(np.asarray(on.ask(key, seen, p)[0]),
                                   np.asarray(off.ask(key, seen, p)[0]))

@@ -52,7 +52,8 @@ a reward that is flat until the first collision, failures that are rare.
   deviations from its data's mean; -0.5 in ``reinforce/default``) expects unexplored regions
   somewhat worse than the average evaluation, so far-away uncertain candidates stop crowding
   out those beside a promising plateau. One length scale per parameter, refined by marginal
-  likelihood one parameter per update. The policy still proposes every candidate and learns
+  likelihood: every parameter's in turn at each of the first updates (as many as the
+  parameters that vary), then one parameter per update. The policy still proposes every candidate and learns
   from what is asked.
 * **Baseline**: centred ranks of the learning signal within the batch (``advantage="rank"``:
   scale-free, robust to the jump a collision makes) or the signal standardised
@@ -378,8 +379,9 @@ class AutoregressiveReinforce(Strategy):
 
     def _screen(self, state, idx, allowed, params):
         """GP-BUCB picks ``(L, b)`` among each learner's candidates ``idx (L, C, P)`` (only
-        ``allowed (L, C)`` ones while any is left), with the length scale of one parameter
-        (in turn, over those with two or more values) refined first."""
+        ``allowed (L, C)`` ones while any is left), with the GP's length scales refined
+        first: during the first updates (as many as the parameters with two or more values)
+        every such parameter's in turn, then one per update in turn."""
         L, K, P = self.learners, max(self.queue, 1), self.n_params
         q = state.queue.reshape(L * K, P)
         # the GP's data: the last evaluations and the best ones, a scenario counted once
@@ -391,9 +393,23 @@ class AutoregressiveReinforce(Strategy):
         x = gp.unit(jnp.concatenate([hist, q]), self.shape)
         y = jnp.concatenate([jnp.where(dup, -jnp.inf, state.history_signal),
                              state.queue_signal.reshape(-1)])
-        movable = jnp.asarray([p for p, n in enumerate(self.shape) if n > 1] or [0])
-        model = gp.refine(x, y, state.ell, movable[state.told % movable.shape[0]],
-                          params.prior_mean)
+        movable = [p for p, n in enumerate(self.shape) if n > 1] or [0]
+
+        def sweep():  # every movable parameter's scale in turn (a coordinate sweep)
+            ell = state.ell
+            for p in movable:
+                model = gp.refine(x, y, ell, p, params.prior_mean)
+                ell = model.ell
+            return model
+
+        def one():  # round robin: one parameter per update
+            p = jnp.asarray(movable)[state.told % len(movable)]
+            return gp.refine(x, y, state.ell, p, params.prior_mean)
+
+        # the first len(movable) updates sweep every scale, so all are fitted from the first
+        # data on (a round robin alone leaves the last parameter at its starting scale for
+        # len(movable) updates, while the rare spaces' first collisions come after 3-5)
+        model = jax.lax.cond(state.told < len(movable), sweep, one)
         z = gp.unit(idx, self.shape)
         order = jax.vmap(lambda zl, al: gp.batch_ucb(model, zl, al, params.kappa,
                                                      self.per_learner))(z, allowed)

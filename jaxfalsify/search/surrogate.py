@@ -17,8 +17,9 @@ squared-exponential kernel on the value ranks scaled to ``[0, 1]`` per parameter
 ``NOISE``. Length scales are chosen by the log
 marginal likelihood (Rasmussen & Williams, *Gaussian Processes for Machine Learning*, 2006,
 Alg. 2.1, Eq. 2.30): one for all parameters among ``LENGTH_SCALES`` (:func:`posterior`), or
-one per parameter (automatic relevance determination), refined one parameter per update among
-``ARD_SCALES`` (:func:`refine`): a parameter that does not matter (CARLA's weather for the
+one per parameter (automatic relevance determination), refined one parameter at a time among
+``ARD_SCALES`` (:func:`refine`; ``reinforce/default`` refines every parameter in turn at each
+of its first updates, then one per update): a parameter that does not matter (CARLA's weather for the
 Traffic Manager) gets a long scale and stops spreading the candidates.
 """
 
