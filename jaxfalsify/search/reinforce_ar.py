@@ -53,8 +53,8 @@ a reward that is flat until the first collision, failures that are rare.
   somewhat worse than the average evaluation, so far-away uncertain candidates stop crowding
   out those beside a promising plateau. One length scale per parameter, refined by marginal
   likelihood: every parameter's in turn at each of the first updates (as many as the
-  parameters that vary), then one parameter per update. The policy still proposes every candidate and learns
-  from what is asked.
+  parameters that vary), then one parameter per update. The policy still proposes every
+  candidate and learns from what is asked.
 * **Baseline**: centred ranks of the learning signal within the batch (``advantage="rank"``:
   scale-free, robust to the jump a collision makes) or the signal standardised
   (``"normalised"``).

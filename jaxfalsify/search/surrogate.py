@@ -19,8 +19,8 @@ marginal likelihood (Rasmussen & Williams, *Gaussian Processes for Machine Learn
 Alg. 2.1, Eq. 2.30): one for all parameters among ``LENGTH_SCALES`` (:func:`posterior`), or
 one per parameter (automatic relevance determination), refined one parameter at a time among
 ``ARD_SCALES`` (:func:`refine`; ``reinforce/default`` refines every parameter in turn at each
-of its first updates, then one per update): a parameter that does not matter (CARLA's weather for the
-Traffic Manager) gets a long scale and stops spreading the candidates.
+of its first updates, then one per update): a parameter that does not matter (CARLA's weather
+for the Traffic Manager) gets a long scale and stops spreading the candidates.
 """
 
 from __future__ import annotations
