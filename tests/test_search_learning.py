@@ -520,11 +520,12 @@ def test_gp_cholesky_and_triangular_solves_match_float64_numpy():
                                                        b.astype(np.float32))
     ref = np.linalg.cholesky(k)
     np.testing.assert_allclose(chol, ref, atol=2e-4)
+    chol, lo, up = (np.asarray(a, np.float64) for a in (chol, lo, up))  # products in NumPy,
+    # not through JAX arrays (a GPU would multiply those in TF32)
     for i in range(3):
         # the solves, through the float32 factor: residuals against the float64 products
-        c64 = np.asarray(chol[i], np.float64)
-        np.testing.assert_allclose(c64 @ lo[i], b[i], atol=1e-3)
-        np.testing.assert_allclose(c64.T @ up[i], b[i], atol=1e-3)
+        np.testing.assert_allclose(chol[i] @ lo[i], b[i], atol=1e-3)
+        np.testing.assert_allclose(chol[i].T @ up[i], b[i], atol=1e-3)
         np.testing.assert_allclose(lo[i], np.linalg.solve(ref[i], b[i]), rtol=0.05, atol=0.05)
     bad = np.eye(4, dtype=np.float32)
     bad[2, 2] = -1.0

@@ -59,7 +59,8 @@ class CEM(Strategy):
         elite = (rank < n_elite) & jnp.isfinite(rewards)
         n = elite.sum()
         weight = elite.astype(jnp.float32) / jnp.maximum(n, 1)  # (B,)
-        freq = jnp.einsum("b,bpn->pn", weight, jax.nn.one_hot(indices, self.width))
+        freq = jnp.einsum("b,bpn->pn", weight, jax.nn.one_hot(indices, self.width),
+                          precision=jax.lax.Precision.HIGHEST)  # not TF32 on GPUs
         probs = (1 - params.smoothing) * state.probs + params.smoothing * freq
         probs = jnp.where(mask, jnp.maximum(probs, params.min_prob), 0.0)
         probs = probs / probs.sum(-1, keepdims=True)

@@ -30,6 +30,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxfalsify.search.controller import mm  # full float32 products (not TF32) on GPUs
+
 LENGTH_SCALES = (0.03, 0.06, 0.12, 0.25, 0.5)  # candidates, fractions of every range
 ARD_SCALES = (0.03, 0.06, 0.12, 0.25, 0.5, 1.0, 4.0)  # candidates per parameter
 ARD_START = 0.12  # every parameter's scale before it is refined
@@ -74,7 +76,7 @@ def cholesky(a: jax.Array) -> jax.Array:
     rows = jnp.arange(n)
 
     def column(j, chol):
-        c = a[:, j] - chol @ chol[j, :]  # columns >= j of chol are still 0
+        c = a[:, j] - mm(chol, chol[j, :])  # columns >= j of chol are still 0
         d = jnp.sqrt(c[j])
         return chol.at[:, j].set(jnp.where(rows > j, c / d, jnp.where(rows == j, d, 0.0)))
 
@@ -85,7 +87,7 @@ def solve_lower(chol: jax.Array, b: jax.Array) -> jax.Array:
     """``x (n, m)`` with ``chol @ x = b``, ``chol (n, n)`` lower triangular (forward
     substitution)."""
     def row(i, x):
-        return x.at[i].set((b[i] - chol[i] @ x) / chol[i, i])
+        return x.at[i].set((b[i] - mm(chol[i], x)) / chol[i, i])
 
     return jax.lax.fori_loop(0, b.shape[0], row, jnp.zeros_like(b))
 
@@ -97,7 +99,7 @@ def solve_upper(chol: jax.Array, b: jax.Array) -> jax.Array:
 
     def row(k, x):
         i = n - 1 - k
-        return x.at[i].set((b[i] - chol[:, i] @ x) / chol[i, i])
+        return x.at[i].set((b[i] - mm(chol[:, i], x)) / chol[i, i])
 
     return jax.lax.fori_loop(0, n, row, jnp.zeros_like(b))
 
@@ -126,7 +128,7 @@ def fit(x: jax.Array, y: jax.Array, ell, prior=0.0) -> Model:
     chol = cholesky(k)
     alpha = solve_upper(chol, solve_lower(chol, t[:, None]))[:, 0]
     # log marginal likelihood up to a constant (empty slots add log 1 = 0)
-    lml = -0.5 * t @ alpha - jnp.sum(jnp.log(jnp.diag(chol)))
+    lml = -0.5 * mm(t, alpha) - jnp.sum(jnp.log(jnp.diag(chol)))
     lml = jnp.where(jnp.isfinite(lml), lml, -jnp.inf)
     return Model(x, ok, ell, chol, alpha, prior, mu, sd, lml, jnp.sum(ok) >= MIN_POINTS)
 
@@ -158,7 +160,7 @@ def predict(m: Model, z: jax.Array):
     ks = jnp.where(m.ok[None, :], jnp.exp(-0.5 * _sq_dist(z, m.x, m.ell)), 0.0)  # (N, H)
     v = solve_lower(m.chol, ks.T)  # (H, N)
     v = jnp.where(m.enough, v, 0.0)
-    mean = jnp.where(m.enough, m.prior + ks @ m.alpha, 0.0)
+    mean = jnp.where(m.enough, m.prior + mm(ks, m.alpha), 0.0)
     return mean, jnp.maximum(1.0 - jnp.sum(v * v, 0), 0.0), v
 
 
@@ -197,8 +199,8 @@ def batch_ucb(m: Model, z: jax.Array, allowed: jax.Array, kappa, b: int) -> jax.
         s = jnp.where(allowed & ~taken, mean + kappa * jnp.sqrt(var), -jnp.inf)
         i = jnp.where(jnp.any(allowed & ~taken), jnp.argmax(s), jnp.argmin(taken))
         # posterior covariance with the pick, given the data and the earlier picks
-        kzi = jnp.exp(-0.5 * _sq_dist(z, z[i][None], m.ell)[:, 0]) - v.T @ v[:, i] \
-            - u.T @ u[:, i]
+        kzi = jnp.exp(-0.5 * _sq_dist(z, z[i][None], m.ell)[:, 0]) - mm(v.T, v[:, i]) \
+            - mm(u.T, u[:, i])
         c = kzi / jnp.sqrt(var[i] + NOISE)
         return (jnp.maximum(var - c * c, 0.0), u.at[j].set(c), taken.at[i].set(True)), i
 
