@@ -570,40 +570,46 @@ def test_gp_surrogate_matches_textbook_regression_with_empty_slots(ell_true):
     assert np.all(np.asarray(m2) == 0) and np.all(np.asarray(s2) == 0)
 
 
-def _np_kernel(a, b, ell):
-    return np.exp(-0.5 * (((a[:, None] - b[None]) / ell) ** 2).sum(-1))
+def _np_kernel(a, b, ell, kind="se"):
+    """Squared exponential, or Matern 5/2 (Rasmussen & Williams Eq. 4.17, nu = 5/2), of the
+    scaled distances, in float64."""
+    sq = (((a[:, None] - b[None]) / ell) ** 2).sum(-1)
+    if kind == "matern52":
+        r = np.sqrt(5.0 * sq)
+        return (1.0 + r + r ** 2 / 3.0) * np.exp(-r)
+    return np.exp(-0.5 * sq)
 
 
-def _np_lml(x, t, ell):
+def _np_lml(x, t, ell, kind="se"):
     """Exact log marginal likelihood (Eq. 2.30, up to a constant) in float64."""
-    k = _np_kernel(x, x, ell) + surrogate.NOISE * np.eye(len(x))
+    k = _np_kernel(x, x, ell, kind) + surrogate.NOISE * np.eye(len(x))
     return -0.5 * t @ np.linalg.solve(k, t) - 0.5 * np.linalg.slogdet(k)[1]
 
 
-def _np_ard_step(x, t, ell, p):
+def _np_ard_step(x, t, ell, p, kind="se"):
     """``ell`` with parameter ``p``'s scale the one of ARD_SCALES of highest exact marginal
     likelihood, and that likelihood."""
     lmls = []
     for sc in surrogate.ARD_SCALES:
         e = np.array(ell, np.float64)
         e[p] = sc
-        lmls.append(_np_lml(x, t, e))
+        lmls.append(_np_lml(x, t, e, kind))
     out = np.array(ell, np.float64)
     out[p] = surrogate.ARD_SCALES[int(np.argmax(lmls))]
     return out, max(lmls)
 
 
-def _np_bucb(x, t, zs, allowed, ell, kappa, b):
+def _np_bucb(x, t, zs, allowed, ell, kappa, b, kind="se"):
     """GP-BUCB by refitting, pick by pick: the mean from the data ``(x, t)`` alone, the
     variance conditioned on the data and on the earlier picks (observed with the nugget), the
     allowed untaken candidate of highest mean + kappa * std."""
-    mean = _np_kernel(zs, x, ell) @ np.linalg.solve(
-        _np_kernel(x, x, ell) + surrogate.NOISE * np.eye(len(x)), t)
+    mean = _np_kernel(zs, x, ell, kind) @ np.linalg.solve(
+        _np_kernel(x, x, ell, kind) + surrogate.NOISE * np.eye(len(x)), t)
     picks = []
     for _ in range(b):
         xa = np.concatenate([x, zs[picks]])
-        k = _np_kernel(xa, xa, ell) + surrogate.NOISE * np.eye(len(xa))
-        kz = _np_kernel(zs, xa, ell)
+        k = _np_kernel(xa, xa, ell, kind) + surrogate.NOISE * np.eye(len(xa))
+        kz = _np_kernel(zs, xa, ell, kind)
         var = 1.0 - np.einsum("ij,ji->i", kz, np.linalg.solve(k, kz.T))
         score = np.where(allowed, mean + kappa * np.sqrt(np.maximum(var, 0)), -np.inf)
         score[picks] = -np.inf
@@ -622,26 +628,28 @@ def _gp_data(seed, n=40, shape=(30, 20, 50)):
     return shape, hist, xs, y
 
 
-def test_ard_refine_picks_the_scale_of_highest_marginal_likelihood():
+@pytest.mark.parametrize("kind", surrogate.KERNELS)
+def test_ard_refine_picks_the_scale_of_highest_marginal_likelihood(kind):
     """One ARD step against float64: for each parameter in turn the chosen length scale is the
     one of ARD_SCALES whose exact log marginal likelihood is highest, the others kept; the
-    parameter that does not matter ends on a long scale."""
+    parameter that does not matter ends on a long scale (either kernel)."""
     shape, hist, xs, y = _gp_data(0)
     ok = np.isfinite(y)
     t = (y[ok] - y[ok].mean()) / y[ok].std()
     x = surrogate.unit(jnp.asarray(hist), shape)
-    refine = jax.jit(surrogate.refine)
+    refine = jax.jit(surrogate.refine, static_argnames="kind")
     ell = np.full(3, surrogate.ARD_START)
     for p in (0, 1, 2, 0, 1, 2):
-        m = refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), p)
-        ell, lml = _np_ard_step(xs[ok], t, ell, p)
+        m = refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), p,
+                   kind=kind)
+        ell, lml = _np_ard_step(xs[ok], t, ell, p, kind)
         np.testing.assert_allclose(np.asarray(m.ell), ell, rtol=1e-6)
         assert float(m.lml) == pytest.approx(lml, rel=1e-3, abs=1e-2)
     assert ell[2] >= 1.0 and ell[0] < ell[2]
 
 
-@pytest.mark.parametrize("prior", [-0.5, 1.0])
-def test_gp_prior_mean_matches_constant_mean_regression(prior):
+@pytest.mark.parametrize("prior, kind", [(-0.5, "se"), (1.0, "se"), (-0.5, "matern52")])
+def test_gp_prior_mean_matches_constant_mean_regression(prior, kind):
     """A constant prior mean (``prior`` standard deviations from the data's mean) against
     float64 GP regression with that mean: posterior mean ``m0 + k K^-1 (t - m0)`` at new points,
     the prior mean itself far from every point, the ARD step's choice and likelihood on the
@@ -654,23 +662,32 @@ def test_gp_prior_mean_matches_constant_mean_regression(prior):
     ell = np.array([0.12, 0.25, 0.5])
     rng = np.random.default_rng(3)
     z = rng.uniform(0, 1, (25, 3))
-    m = surrogate.fit(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), prior)
-    mean, var, _ = surrogate.predict(m, jnp.asarray(z, jnp.float32))
-    k = _np_kernel(xs[ok], xs[ok], ell) + surrogate.NOISE * np.eye(ok.sum())
-    kz = _np_kernel(z, xs[ok], ell)
+    m = surrogate.fit(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), prior,
+                      kind)
+    mean, var, _ = surrogate.predict(m, jnp.asarray(z, jnp.float32), kind)
+    k = _np_kernel(xs[ok], xs[ok], ell, kind) + surrogate.NOISE * np.eye(ok.sum())
+    kz = _np_kernel(z, xs[ok], ell, kind)
     m_ref = prior + kz @ np.linalg.solve(k, t - prior)
     v_ref = 1.0 - np.einsum("ij,ji->i", kz, np.linalg.solve(k, kz.T))
     np.testing.assert_allclose(np.asarray(mean), m_ref, atol=2e-3 * np.ptp(t))
     np.testing.assert_allclose(np.asarray(var), v_ref, atol=1e-4)
-    far, far_var, _ = surrogate.predict(m, jnp.full((1, 3), 50.0))
+    far, far_var, _ = surrogate.predict(m, jnp.full((1, 3), 50.0), kind)
     assert float(far[0]) == pytest.approx(prior, abs=1e-6) and float(far_var[0]) == 1.0
     e = np.full(3, surrogate.ARD_START)
     for p in (0, 1, 2):
         r = surrogate.refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(e, jnp.float32), p,
-                             prior)
-        e, lml = _np_ard_step(xs[ok], t - prior, e, p)
+                             prior, kind)
+        e, lml = _np_ard_step(xs[ok], t - prior, e, p, kind)
         np.testing.assert_allclose(np.asarray(r.ell), e, rtol=1e-6)
         assert float(r.lml) == pytest.approx(lml, rel=1e-3, abs=1e-2)
+
+
+def test_an_unknown_kernel_is_refused_in_one_line():
+    """``--strategy-param kernel=...`` names the kernels it knows; the GP's own functions too."""
+    with pytest.raises(ValueError, match=r"^kernel must be one of se, matern52 \(got 'rbf'\)$"):
+        search.make("reinforce/default", (5, 5), kernel="rbf")
+    with pytest.raises(ValueError, match="kernel must be one of se, matern52"):
+        surrogate.kernel(jnp.zeros(3), "rbf")
 
 
 def test_ard_refine_keeps_the_scale_without_enough_data():
@@ -684,7 +701,8 @@ def test_ard_refine_keeps_the_scale_without_enough_data():
             np.testing.assert_array_equal(np.asarray(m.ell), np.float32(ell))
 
 
-def test_batch_ucb_matches_sequential_conditioning():
+@pytest.mark.parametrize("kind", surrogate.KERNELS)
+def test_batch_ucb_matches_sequential_conditioning(kind):
     """GP-BUCB against float64, pick by pick: the mean from the data alone, the variance
     conditioned on the data and on the earlier picks (observed with the nugget), the
     candidate of highest mean + kappa * std among the allowed untaken ones; then, with every
@@ -697,21 +715,22 @@ def test_batch_ucb_matches_sequential_conditioning():
     allowed = rng.random(60) < 0.8
     kappa, b = 1.5, 10
     m = surrogate.fit(surrogate.unit(jnp.asarray(hist), shape), jnp.asarray(y, jnp.float32),
-                      jnp.asarray(ell, jnp.float32))
-    got = np.asarray(jax.jit(surrogate.batch_ucb, static_argnames="b")(
-        m, surrogate.unit(jnp.asarray(cand), shape), jnp.asarray(allowed), kappa, b=b))
+                      jnp.asarray(ell, jnp.float32), kind=kind)
+    got = np.asarray(jax.jit(surrogate.batch_ucb, static_argnames=("b", "kind"))(
+        m, surrogate.unit(jnp.asarray(cand), shape), jnp.asarray(allowed), kappa, b=b,
+        kind=kind))
     ok = np.isfinite(y)
     x, t = xs[ok], (y[ok] - y[ok].mean()) / y[ok].std()
-    np.testing.assert_array_equal(got, _np_bucb(x, t, zs, allowed, ell, kappa, b))
+    np.testing.assert_array_equal(got, _np_bucb(x, t, zs, allowed, ell, kappa, b, kind))
     # more picks than allowed candidates: the allowed ones first, then the rest in row order
     few = np.zeros(60, bool)
     few[[5, 40]] = True
     got = np.asarray(surrogate.batch_ucb(m, surrogate.unit(jnp.asarray(cand), shape),
-                                         jnp.asarray(few), kappa, 5))
+                                         jnp.asarray(few), kappa, 5, kind))
     assert set(got[:2]) == {5, 40} and list(got[2:]) == [0, 1, 2]
 
 
-def _np_screen(st, cand, allowed, shape, kappa, b, prior=0.0):
+def _np_screen(st, cand, allowed, shape, kappa, b, prior=0.0, kind="se"):
     """reinforce/default's screening in float64: the GP's data are the history ring and the
     queue of best scenarios (a history row that is also a filled queue row or an earlier
     history row dropped), scaled to [0, 1]; while ``told`` < the number of movable parameters
@@ -733,8 +752,8 @@ def _np_screen(st, cand, allowed, shape, kappa, b, prior=0.0):
     ell = np.asarray(st.ell, np.float64)
     for p in (movable if int(st.told) < len(movable)
               else [movable[int(st.told) % len(movable)]]):
-        ell, _ = _np_ard_step(x, t, ell, p)
-    return _np_bucb(x, t, cand / span, allowed, ell, kappa, b), ell
+        ell, _ = _np_ard_step(x, t, ell, p, kind)
+    return _np_bucb(x, t, cand / span, allowed, ell, kappa, b, kind), ell
 
 
 @pytest.mark.slow
@@ -771,7 +790,7 @@ def test_surrogate_screening_asks_the_gp_bucb_picks():
     for told in (3, 5):
         st_t = dataclasses.replace(st, told=jnp.int32(told))
         picks, ell = _np_screen(st_t, cand, allowed, shape, float(p.kappa), on.batch,
-                                float(p.prior_mean))
+                                float(p.prior_mean), on.kernel)
         idx, st2 = ask(key, st_t, p)
         np.testing.assert_array_equal(np.asarray(idx), cand[picks])
         np.testing.assert_allclose(np.asarray(st2.ell), ell, rtol=1e-6)

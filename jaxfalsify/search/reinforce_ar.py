@@ -193,7 +193,8 @@ class AutoregressiveReinforce(Strategy):
     (uniformly random candidates per asked scenario beside them, with ``resample`` >= 2: the
     fallbacks when too few policy draws are new, and the GP's to pick from), ``memory``
     (evaluated scenarios remembered), ``surrogate`` (evaluations the GP screening is fitted
-    to; 0: off; needs ``resample`` >= 2)."""
+    to; 0: off; needs ``resample`` >= 2), ``kernel`` (the GP's correlation: ``se`` or
+    ``matern52``)."""
 
     hidden: int = 32
     learners: int = 4
@@ -205,6 +206,7 @@ class AutoregressiveReinforce(Strategy):
     explore: int = 1
     memory: int = 4096
     surrogate: int = 0
+    kernel: str = "se"
 
     Params = ARParams
     # sizes a CPU can hold and a campaign can compile (refused before any folder is written)
@@ -217,6 +219,9 @@ class AutoregressiveReinforce(Strategy):
             raise ValueError(f"advantage must be one of {', '.join(ADVANTAGES)} "
                              f"(got {self.advantage!r})")
         check_signal(self.signal)
+        if self.kernel not in gp.KERNELS:
+            raise ValueError(f"kernel must be one of {', '.join(gp.KERNELS)} "
+                             f"(got {self.kernel!r})")
         if self.hidden < 1:
             raise ValueError(f"hidden must be >= 1 (got {self.hidden})")
         if self.learners < 1 or self.batch % self.learners:
@@ -398,21 +403,21 @@ class AutoregressiveReinforce(Strategy):
         def sweep():  # every movable parameter's scale in turn (a coordinate sweep)
             ell = state.ell
             for p in movable:
-                model = gp.refine(x, y, ell, p, params.prior_mean)
+                model = gp.refine(x, y, ell, p, params.prior_mean, self.kernel)
                 ell = model.ell
             return model
 
         def one():  # round robin: one parameter per update
             p = jnp.asarray(movable)[state.told % len(movable)]
-            return gp.refine(x, y, state.ell, p, params.prior_mean)
+            return gp.refine(x, y, state.ell, p, params.prior_mean, self.kernel)
 
         # the first len(movable) updates sweep every scale, so all are fitted from the first
         # data on (a round robin alone leaves the last parameter at its starting scale for
         # len(movable) updates, while the rare spaces' first collisions come after 3-5)
         model = jax.lax.cond(state.told < len(movable), sweep, one)
         z = gp.unit(idx, self.shape)
-        order = jax.vmap(lambda zl, al: gp.batch_ucb(model, zl, al, params.kappa,
-                                                     self.per_learner))(z, allowed)
+        order = jax.vmap(lambda zl, al: gp.batch_ucb(
+            model, zl, al, params.kappa, self.per_learner, self.kernel))(z, allowed)
         return order, dataclasses.replace(state, ell=model.ell)
 
     def _evaluated(self, h, state):

@@ -13,10 +13,10 @@ Model: a GP on the standardised signal with a constant prior mean ``prior`` (in 
 deviations from the data's mean: 0 by default; ``reinforce/default`` uses -0.5, so a region
 without data is expected somewhat worse than the average evaluation, and an uncertain candidate
 far from everything wins a pick only where the model sees little that is good nearby),
-squared-exponential kernel on the value ranks scaled to ``[0, 1]`` per parameter, a nugget of
-``NOISE``. Length scales are chosen by the log
-marginal likelihood (Rasmussen & Williams, *Gaussian Processes for Machine Learning*, 2006,
-Alg. 2.1, Eq. 2.30): one for all parameters among ``LENGTH_SCALES`` (:func:`posterior`), or
+a stationary kernel on the value ranks scaled to ``[0, 1]`` per parameter (squared exponential
+or Matern 5/2, :func:`kernel`; ``reinforce/default`` uses the Matern), a nugget of ``NOISE``.
+Length scales are chosen by the log marginal likelihood (Rasmussen & Williams, *Gaussian
+Processes for Machine Learning*, 2006, Alg. 2.1, Eq. 2.30): one for all parameters among ``LENGTH_SCALES`` (:func:`posterior`), or
 one per parameter (automatic relevance determination), refined one parameter at a time among
 ``ARD_SCALES`` (:func:`refine`; ``reinforce/default`` refines every parameter in turn at each
 of its first updates, then one per update): a parameter that does not matter (CARLA's weather
@@ -109,10 +109,26 @@ def _sq_dist(a: jax.Array, b: jax.Array, ell: jax.Array) -> jax.Array:
     return jnp.sum(jnp.square((a[:, None, :] - b[None, :, :]) / ell), -1)
 
 
-def fit(x: jax.Array, y: jax.Array, ell, prior=0.0) -> Model:
+KERNELS = ("se", "matern52")
+
+
+def kernel(sq: jax.Array, kind: str = "se") -> jax.Array:
+    """Correlation ``(...)`` from squared distances in length-scale units ``sq (...)``:
+    ``se`` the squared exponential ``exp(-sq / 2)``, ``matern52`` the Matern 5/2
+    ``(1 + r + r^2 / 3) exp(-r)`` with ``r = sqrt(5 sq)`` (Rasmussen & Williams Eq. 4.17;
+    rougher: twice differentiable, where the squared exponential is infinitely smooth)."""
+    if kind == "matern52":
+        r = jnp.sqrt(5.0 * sq)
+        return (1.0 + r + r * r / 3.0) * jnp.exp(-r)
+    if kind != "se":
+        raise ValueError(f"kernel must be one of {', '.join(KERNELS)} (got {kind!r})")
+    return jnp.exp(-0.5 * sq)
+
+
+def fit(x: jax.Array, y: jax.Array, ell, prior=0.0, kind: str = "se") -> Model:
     """The GP of signals ``y (H,)`` at ``x (H, P)`` (a non-finite ``y`` marks an empty slot)
-    with length scales ``ell`` (a scalar or ``(P,)``) and prior mean ``prior`` (standard
-    deviations from the signals' mean)."""
+    with length scales ``ell`` (a scalar or ``(P,)``), prior mean ``prior`` (standard
+    deviations from the signals' mean) and correlation ``kind`` (:func:`kernel`)."""
     ell = jnp.broadcast_to(jnp.asarray(ell, jnp.float32), x.shape[-1:])
     ok = jnp.isfinite(y)
     n = jnp.maximum(jnp.sum(ok), 1)
@@ -123,7 +139,7 @@ def fit(x: jax.Array, y: jax.Array, ell, prior=0.0) -> Model:
     prior = jnp.asarray(prior, jnp.float32)
     t = jnp.where(ok, (y0 - mu) / sd - prior, 0.0)  # standardised, less the prior; 0 if empty
     # an empty slot is an independent unit-variance point with target 0: no influence
-    k = jnp.where(ok[:, None] & ok[None, :], jnp.exp(-0.5 * _sq_dist(x, x, ell)), 0.0) \
+    k = jnp.where(ok[:, None] & ok[None, :], kernel(_sq_dist(x, x, ell), kind), 0.0) \
         + jnp.diag(jnp.where(ok, NOISE, 1.0))
     chol = cholesky(k)
     alpha = solve_upper(chol, solve_lower(chol, t[:, None]))[:, 0]
@@ -133,31 +149,32 @@ def fit(x: jax.Array, y: jax.Array, ell, prior=0.0) -> Model:
     return Model(x, ok, ell, chol, alpha, prior, mu, sd, lml, jnp.sum(ok) >= MIN_POINTS)
 
 
-def best_fit(x: jax.Array, y: jax.Array, ells: jax.Array) -> Model:
+def best_fit(x: jax.Array, y: jax.Array, ells: jax.Array, kind: str = "se") -> Model:
     """The fit with the highest log marginal likelihood among the length scales ``ells (C,
     P)`` (each candidate fitted once)."""
-    models = jax.vmap(lambda e: fit(x, y, e))(ells)
+    models = jax.vmap(lambda e: fit(x, y, e, kind=kind))(ells)
     return jax.tree.map(lambda a: a[jnp.argmax(models.lml)], models)
 
 
-def refine(x: jax.Array, y: jax.Array, ell: jax.Array, p, prior=0.0) -> Model:
+def refine(x: jax.Array, y: jax.Array, ell: jax.Array, p, prior=0.0,
+           kind: str = "se") -> Model:
     """ARD, one coordinate at a time: the best fit (prior mean ``prior``, see :func:`fit`)
     over ``ARD_SCALES`` for parameter ``p``'s length scale, the others kept at ``ell (P,)``.
     Without enough data for a model every candidate's likelihood is the same, and ``ell`` is
     kept as it is."""
     cands = jnp.asarray(ARD_SCALES, jnp.float32)
     ells = jnp.broadcast_to(ell, (len(ARD_SCALES),) + ell.shape).at[:, p].set(cands)
-    models = jax.vmap(lambda e: fit(x, y, e, prior))(ells)
+    models = jax.vmap(lambda e: fit(x, y, e, prior, kind))(ells)
     lml = jnp.where(models.enough, models.lml,  # no model: the current scale's candidate
                     jnp.where(cands == ell[p], 0.0, -jnp.inf))
     return jax.tree.map(lambda a: a[jnp.argmax(lml)], models)
 
 
-def predict(m: Model, z: jax.Array):
+def predict(m: Model, z: jax.Array, kind: str = "se"):
     """``(mean (N,), var (N,), v (H, N))`` at ``z (N, P)``, standardised (the signal's units:
     ``mu + sd * mean``, ``sd^2 * var``); ``v = L^-1 k(X, z)``. Without a model: mean 0, var
     1; far from the data the mean tends to the prior mean."""
-    ks = jnp.where(m.ok[None, :], jnp.exp(-0.5 * _sq_dist(z, m.x, m.ell)), 0.0)  # (N, H)
+    ks = jnp.where(m.ok[None, :], kernel(_sq_dist(z, m.x, m.ell), kind), 0.0)  # (N, H)
     v = solve_lower(m.chol, ks.T)  # (H, N)
     v = jnp.where(m.enough, v, 0.0)
     mean = jnp.where(m.enough, m.prior + mm(ks, m.alpha), 0.0)
@@ -185,13 +202,14 @@ def ucb(x: jax.Array, y: jax.Array, z: jax.Array, kappa) -> jax.Array:
     return mean + kappa * std
 
 
-def batch_ucb(m: Model, z: jax.Array, allowed: jax.Array, kappa, b: int) -> jax.Array:
+def batch_ucb(m: Model, z: jax.Array, allowed: jax.Array, kappa, b: int,
+              kind: str = "se") -> jax.Array:
     """GP-BUCB: ``b`` distinct rows of ``z (N, P)`` (``(b,)`` int32, in the order picked),
     each the allowed, untaken candidate of highest ``mean + kappa * std`` (standardised), the
     std conditioned on the data and on the earlier picks as if observed (their outcomes do not
     change the mean; their variance does, by the rank-one updates of sequential conditioning).
     When no allowed candidate is left, the untaken ones in row order."""
-    mean, var, v = predict(m, z)
+    mean, var, v = predict(m, z, kind)
     n = z.shape[0]
 
     def pick(carry, j):
@@ -199,7 +217,7 @@ def batch_ucb(m: Model, z: jax.Array, allowed: jax.Array, kappa, b: int) -> jax.
         s = jnp.where(allowed & ~taken, mean + kappa * jnp.sqrt(var), -jnp.inf)
         i = jnp.where(jnp.any(allowed & ~taken), jnp.argmax(s), jnp.argmin(taken))
         # posterior covariance with the pick, given the data and the earlier picks
-        kzi = jnp.exp(-0.5 * _sq_dist(z, z[i][None], m.ell)[:, 0]) - mm(v.T, v[:, i]) \
+        kzi = kernel(_sq_dist(z, z[i][None], m.ell)[:, 0], kind) - mm(v.T, v[:, i]) \
             - mm(u.T, u[:, i])
         c = kzi / jnp.sqrt(var[i] + NOISE)
         return (jnp.maximum(var - c * c, 0.0), u.at[j].set(c), taken.at[i].set(True)), i
