@@ -16,8 +16,9 @@ far from everything wins a pick only where the model sees little that is good ne
 a stationary kernel on the value ranks scaled to ``[0, 1]`` per parameter (squared exponential
 or Matern 5/2, :func:`kernel`; ``reinforce/default`` uses the Matern), a nugget of ``NOISE``.
 Length scales are chosen by the log marginal likelihood (Rasmussen & Williams, *Gaussian
-Processes for Machine Learning*, 2006, Alg. 2.1, Eq. 2.30): one for all parameters among ``LENGTH_SCALES`` (:func:`posterior`), or
-one per parameter (automatic relevance determination), refined one parameter at a time among
+Processes for Machine Learning*, 2006, Alg. 2.1, Eq. 2.30): one for all parameters among
+``LENGTH_SCALES`` (:func:`posterior`), or one per parameter (automatic relevance
+determination), refined one parameter at a time among
 ``ARD_SCALES`` (:func:`refine`; ``reinforce/default`` refines every parameter in turn at each
 of its first updates, then one per update): a parameter that does not matter (CARLA's weather
 for the Traffic Manager) gets a long scale and stops spreading the candidates.
