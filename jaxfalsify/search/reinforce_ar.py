@@ -219,9 +219,7 @@ class AutoregressiveReinforce(Strategy):
             raise ValueError(f"advantage must be one of {', '.join(ADVANTAGES)} "
                              f"(got {self.advantage!r})")
         check_signal(self.signal)
-        if self.kernel not in gp.KERNELS:
-            raise ValueError(f"kernel must be one of {', '.join(gp.KERNELS)} "
-                             f"(got {self.kernel!r})")
+        gp.check_kernel(self.kernel)
         if self.hidden < 1:
             raise ValueError(f"hidden must be >= 1 (got {self.hidden})")
         if self.learners < 1 or self.batch % self.learners:

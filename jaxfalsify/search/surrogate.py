@@ -113,16 +113,21 @@ def _sq_dist(a: jax.Array, b: jax.Array, ell: jax.Array) -> jax.Array:
 KERNELS = ("se", "matern52")
 
 
+def check_kernel(kind: str) -> None:
+    """One line naming the kernels known, for a ``kind`` not among them."""
+    if kind not in KERNELS:
+        raise ValueError(f"kernel must be one of {', '.join(KERNELS)} (got {kind!r})")
+
+
 def kernel(sq: jax.Array, kind: str = "se") -> jax.Array:
     """Correlation ``(...)`` from squared distances in length-scale units ``sq (...)``:
     ``se`` the squared exponential ``exp(-sq / 2)``, ``matern52`` the Matern 5/2
     ``(1 + r + r^2 / 3) exp(-r)`` with ``r = sqrt(5 sq)`` (Rasmussen & Williams Eq. 4.17;
     rougher: twice differentiable, where the squared exponential is infinitely smooth)."""
+    check_kernel(kind)
     if kind == "matern52":
         r = jnp.sqrt(5.0 * sq)
         return (1.0 + r + r * r / 3.0) * jnp.exp(-r)
-    if kind != "se":
-        raise ValueError(f"kernel must be one of {', '.join(KERNELS)} (got {kind!r})")
     return jnp.exp(-0.5 * sq)
 
 
