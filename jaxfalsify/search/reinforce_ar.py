@@ -398,16 +398,19 @@ class AutoregressiveReinforce(Strategy):
                              state.queue_signal.reshape(-1)])
         movable = [p for p, n in enumerate(self.shape) if n > 1] or [0]
 
-        def sweep():  # every movable parameter's scale in turn (a coordinate sweep)
-            ell = state.ell
-            for p in movable:
-                model = gp.refine(x, y, ell, p, params.prior_mean, self.kernel)
-                ell = model.ell
-            return model
+        def refine(p, ell):
+            return gp.refine(x, y, ell, p, params.prior_mean, self.kernel)
+
+        def sweep():  # every movable parameter's scale in turn (a coordinate sweep), in a
+            # loop: one GP refinement compiled, not one per parameter
+            ps = jnp.asarray(movable)
+            blank = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype),
+                                 jax.eval_shape(refine, ps[0], state.ell))
+            return jax.lax.fori_loop(0, len(movable), lambda i, m: refine(
+                ps[i], jnp.where(i == 0, state.ell, m.ell)), blank)
 
         def one():  # round robin: one parameter per update
-            p = jnp.asarray(movable)[state.told % len(movable)]
-            return gp.refine(x, y, state.ell, p, params.prior_mean, self.kernel)
+            return refine(jnp.asarray(movable)[state.told % len(movable)], state.ell)
 
         # the first len(movable) updates sweep every scale, so all are fitted from the first
         # data on (a round robin alone leaves the last parameter at its starting scale for
