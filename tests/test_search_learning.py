@@ -588,15 +588,18 @@ def _np_lml(x, t, ell, kind="se"):
 
 def _np_ard_step(x, t, ell, p, kind="se"):
     """``ell`` with parameter ``p``'s scale the one of ARD_SCALES of highest exact marginal
-    likelihood, and that likelihood."""
+    likelihood, that likelihood and the kernel it was fitted with (``auto``: every scale with
+    the squared exponential, then with the Matern; the first of equal likelihoods wins)."""
+    kinds = ("se", "matern52") if kind == "auto" else (kind,)
+    cands = [(k, sc) for k in kinds for sc in surrogate.ARD_SCALES]
     lmls = []
-    for sc in surrogate.ARD_SCALES:
+    for k, sc in cands:
         e = np.array(ell, np.float64)
         e[p] = sc
-        lmls.append(_np_lml(x, t, e, kind))
+        lmls.append(_np_lml(x, t, e, k))
     out = np.array(ell, np.float64)
-    out[p] = surrogate.ARD_SCALES[int(np.argmax(lmls))]
-    return out, max(lmls)
+    chosen, out[p] = cands[int(np.argmax(lmls))]
+    return out, max(lmls), chosen
 
 
 def _np_bucb(x, t, zs, allowed, ell, kappa, b, kind="se"):
@@ -642,10 +645,38 @@ def test_ard_refine_picks_the_scale_of_highest_marginal_likelihood(kind):
     for p in (0, 1, 2, 0, 1, 2):
         m = refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), p,
                    kind=kind)
-        ell, lml = _np_ard_step(xs[ok], t, ell, p, kind)
+        ell, lml, chosen = _np_ard_step(xs[ok], t, ell, p, kind)
         np.testing.assert_allclose(np.asarray(m.ell), ell, rtol=1e-6)
         assert float(m.lml) == pytest.approx(lml, rel=1e-3, abs=1e-2)
+        assert bool(m.m52) == (chosen == "matern52")
     assert ell[2] >= 1.0 and ell[0] < ell[2]
+
+
+@pytest.mark.parametrize("rough", [False, True])
+def test_auto_kernel_is_the_one_of_higher_marginal_likelihood(rough):
+    """``kernel="auto"``: each ARD step fits every scale with both correlations and keeps the
+    (scale, kernel) of highest exact float64 marginal likelihood; a smooth signal (a sine) and
+    a rough one (a staircase of the same sine, a minimum-distance-like kink per step) make the
+    float64 reference choose differently, so both of the model's branches are checked."""
+    rng = np.random.default_rng(4)
+    shape = (60, 60)
+    hist = np.stack([rng.integers(0, k, 70) for k in shape], -1)
+    xs = hist / (np.array(shape) - 1.0)
+    y = np.sin(4.0 * xs[:, 0]) + 0.3 * np.cos(3.0 * xs[:, 1])
+    if rough:
+        y = np.abs(np.round(3.0 * y) / 3.0 - 0.2 * xs[:, 0])
+    t = (y - y.mean()) / y.std()
+    x = surrogate.unit(jnp.asarray(hist), shape)
+    ell, choices = np.full(2, surrogate.ARD_START), []
+    for p in (0, 1, 0, 1):
+        m = surrogate.refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), p,
+                             kind="auto")
+        ell, lml, chosen = _np_ard_step(xs, t, ell, p, "auto")
+        np.testing.assert_allclose(np.asarray(m.ell), ell, rtol=1e-6)
+        assert float(m.lml) == pytest.approx(lml, rel=1e-3, abs=1e-2)
+        assert bool(m.m52) == (chosen == "matern52")
+        choices.append(chosen)
+    assert choices[-1] == ("matern52" if rough else "se")
 
 
 @pytest.mark.parametrize("prior, kind", [(-0.5, "se"), (1.0, "se"), (-0.5, "matern52")])
@@ -677,16 +708,17 @@ def test_gp_prior_mean_matches_constant_mean_regression(prior, kind):
     for p in (0, 1, 2):
         r = surrogate.refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(e, jnp.float32), p,
                              prior, kind)
-        e, lml = _np_ard_step(xs[ok], t - prior, e, p, kind)
+        e, lml, _ = _np_ard_step(xs[ok], t - prior, e, p, kind)
         np.testing.assert_allclose(np.asarray(r.ell), e, rtol=1e-6)
         assert float(r.lml) == pytest.approx(lml, rel=1e-3, abs=1e-2)
 
 
 def test_an_unknown_kernel_is_refused_in_one_line():
     """``--strategy-param kernel=...`` names the kernels it knows; the GP's own functions too."""
-    with pytest.raises(ValueError, match=r"^kernel must be one of se, matern52 \(got 'rbf'\)$"):
+    with pytest.raises(ValueError,
+                       match=r"^kernel must be one of se, matern52, auto \(got 'rbf'\)$"):
         search.make("reinforce/default", (5, 5), kernel="rbf")
-    with pytest.raises(ValueError, match="kernel must be one of se, matern52"):
+    with pytest.raises(ValueError, match="kernel must be one of se, matern52, auto"):
         surrogate.kernel(jnp.zeros(3), "rbf")
 
 
@@ -714,14 +746,16 @@ def test_batch_ucb_matches_sequential_conditioning(kind):
     zs = cand / (np.array(shape) - 1.0)
     allowed = rng.random(60) < 0.8
     kappa, b = 1.5, 10
+    # auto: the model's flag picks the correlation (the Matern here); the reference uses it
     m = surrogate.fit(surrogate.unit(jnp.asarray(hist), shape), jnp.asarray(y, jnp.float32),
-                      jnp.asarray(ell, jnp.float32), kind=kind)
+                      jnp.asarray(ell, jnp.float32), kind=kind, m52=jnp.bool_(kind == "auto"))
+    ref = "matern52" if kind == "auto" else kind
     got = np.asarray(jax.jit(surrogate.batch_ucb, static_argnames=("b", "kind"))(
         m, surrogate.unit(jnp.asarray(cand), shape), jnp.asarray(allowed), kappa, b=b,
         kind=kind))
     ok = np.isfinite(y)
     x, t = xs[ok], (y[ok] - y[ok].mean()) / y[ok].std()
-    np.testing.assert_array_equal(got, _np_bucb(x, t, zs, allowed, ell, kappa, b, kind))
+    np.testing.assert_array_equal(got, _np_bucb(x, t, zs, allowed, ell, kappa, b, ref))
     # more picks than allowed candidates: the allowed ones first, then the rest in row order
     few = np.zeros(60, bool)
     few[[5, 40]] = True
@@ -752,8 +786,8 @@ def _np_screen(st, cand, allowed, shape, kappa, b, prior=0.0, kind="se"):
     ell = np.asarray(st.ell, np.float64)
     for p in (movable if int(st.told) < len(movable)
               else [movable[int(st.told) % len(movable)]]):
-        ell, _ = _np_ard_step(x, t, ell, p, kind)
-    return _np_bucb(x, t, cand / span, allowed, ell, kappa, b, kind), ell
+        ell, _, chosen = _np_ard_step(x, t, ell, p, kind)
+    return _np_bucb(x, t, cand / span, allowed, ell, kappa, b, chosen), ell
 
 
 @pytest.mark.slow

@@ -53,8 +53,10 @@ a reward that is flat until the first collision, failures that are rare.
   somewhat worse than the average evaluation, so far-away uncertain candidates stop crowding
   out those beside a promising plateau. One length scale per parameter, refined by marginal
   likelihood: every parameter's in turn at each of the first updates (as many as the
-  parameters that vary), then one parameter per update. The policy still proposes every
-  candidate and learns from what is asked.
+  parameters that vary), then one parameter per update; with ``kernel="auto"`` (in
+  ``reinforce/default``) each refinement also chooses between the squared exponential and the
+  Matern 5/2 correlation. The policy still proposes every candidate and learns from what is
+  asked.
 * **Baseline**: centred ranks of the learning signal within the batch (``advantage="rank"``:
   scale-free, robust to the jump a collision makes) or the signal standardised
   (``"normalised"``).
@@ -193,8 +195,8 @@ class AutoregressiveReinforce(Strategy):
     (uniformly random candidates per asked scenario beside them, with ``resample`` >= 2: the
     fallbacks when too few policy draws are new, and the GP's to pick from), ``memory``
     (evaluated scenarios remembered), ``surrogate`` (evaluations the GP screening is fitted
-    to; 0: off; needs ``resample`` >= 2), ``kernel`` (the GP's correlation: ``se`` or
-    ``matern52``)."""
+    to; 0: off; needs ``resample`` >= 2), ``kernel`` (the GP's correlation: ``se``,
+    ``matern52`` or ``auto``, either chosen by marginal likelihood with each length scale)."""
 
     hidden: int = 32
     learners: int = 4

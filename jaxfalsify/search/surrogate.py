@@ -14,7 +14,8 @@ deviations from the data's mean: 0 by default; ``reinforce/default`` uses -0.5, 
 without data is expected somewhat worse than the average evaluation, and an uncertain candidate
 far from everything wins a pick only where the model sees little that is good nearby),
 a stationary kernel on the value ranks scaled to ``[0, 1]`` per parameter (squared exponential
-or Matern 5/2, :func:`kernel`; ``reinforce/default`` uses the Matern), a nugget of ``NOISE``.
+or Matern 5/2, :func:`kernel`, or ``auto``: whichever of the two the marginal likelihood prefers,
+chosen with the length scales; ``reinforce/default`` uses ``auto``), a nugget of ``NOISE``.
 Length scales are chosen by the log marginal likelihood (Rasmussen & Williams, *Gaussian
 Processes for Machine Learning*, 2006, Alg. 2.1, Eq. 2.30): one for all parameters among
 ``LENGTH_SCALES`` (:func:`posterior`), or one per parameter (automatic relevance
@@ -61,6 +62,7 @@ class Model(NamedTuple):
     sd: jax.Array  # () its standard deviation (1 if 0)
     lml: jax.Array  # () log marginal likelihood, up to a constant
     enough: jax.Array  # () bool, at least MIN_POINTS filled slots
+    m52: jax.Array  # () bool, the Matern 5/2 correlation (else the squared exponential)
 
 
 def cholesky(a: jax.Array) -> jax.Array:
@@ -110,7 +112,7 @@ def _sq_dist(a: jax.Array, b: jax.Array, ell: jax.Array) -> jax.Array:
     return jnp.sum(jnp.square((a[:, None, :] - b[None, :, :]) / ell), -1)
 
 
-KERNELS = ("se", "matern52")
+KERNELS = ("se", "matern52", "auto")
 
 
 def check_kernel(kind: str) -> None:
@@ -119,22 +121,27 @@ def check_kernel(kind: str) -> None:
         raise ValueError(f"kernel must be one of {', '.join(KERNELS)} (got {kind!r})")
 
 
-def kernel(sq: jax.Array, kind: str = "se") -> jax.Array:
+def kernel(sq: jax.Array, kind: str = "se", m52=False) -> jax.Array:
     """Correlation ``(...)`` from squared distances in length-scale units ``sq (...)``:
     ``se`` the squared exponential ``exp(-sq / 2)``, ``matern52`` the Matern 5/2
     ``(1 + r + r^2 / 3) exp(-r)`` with ``r = sqrt(5 sq)`` (Rasmussen & Williams Eq. 4.17;
-    rougher: twice differentiable, where the squared exponential is infinitely smooth)."""
+    rougher: twice differentiable, where the squared exponential is infinitely smooth);
+    ``auto`` either of the two, the Matern where ``m52`` (a bool array broadcasting with
+    ``sq``; :func:`refine` chooses it by marginal likelihood)."""
     check_kernel(kind)
+    if kind == "auto":
+        return jnp.where(m52, kernel(sq, "matern52"), kernel(sq, "se"))
     if kind == "matern52":
         r = jnp.sqrt(5.0 * sq)
         return (1.0 + r + r * r / 3.0) * jnp.exp(-r)
     return jnp.exp(-0.5 * sq)
 
 
-def fit(x: jax.Array, y: jax.Array, ell, prior=0.0, kind: str = "se") -> Model:
+def fit(x: jax.Array, y: jax.Array, ell, prior=0.0, kind: str = "se", m52=False) -> Model:
     """The GP of signals ``y (H,)`` at ``x (H, P)`` (a non-finite ``y`` marks an empty slot)
     with length scales ``ell`` (a scalar or ``(P,)``), prior mean ``prior`` (standard
-    deviations from the signals' mean) and correlation ``kind`` (:func:`kernel`)."""
+    deviations from the signals' mean) and correlation ``kind`` (:func:`kernel`; with
+    ``auto``, the Matern where ``m52``, a traced () bool)."""
     ell = jnp.broadcast_to(jnp.asarray(ell, jnp.float32), x.shape[-1:])
     ok = jnp.isfinite(y)
     n = jnp.maximum(jnp.sum(ok), 1)
@@ -145,14 +152,15 @@ def fit(x: jax.Array, y: jax.Array, ell, prior=0.0, kind: str = "se") -> Model:
     prior = jnp.asarray(prior, jnp.float32)
     t = jnp.where(ok, (y0 - mu) / sd - prior, 0.0)  # standardised, less the prior; 0 if empty
     # an empty slot is an independent unit-variance point with target 0: no influence
-    k = jnp.where(ok[:, None] & ok[None, :], kernel(_sq_dist(x, x, ell), kind), 0.0) \
+    k = jnp.where(ok[:, None] & ok[None, :], kernel(_sq_dist(x, x, ell), kind, m52), 0.0) \
         + jnp.diag(jnp.where(ok, NOISE, 1.0))
     chol = cholesky(k)
     alpha = solve_upper(chol, solve_lower(chol, t[:, None]))[:, 0]
     # log marginal likelihood up to a constant (empty slots add log 1 = 0)
     lml = -0.5 * mm(t, alpha) - jnp.sum(jnp.log(jnp.diag(chol)))
     lml = jnp.where(jnp.isfinite(lml), lml, -jnp.inf)
-    return Model(x, ok, ell, chol, alpha, prior, mu, sd, lml, jnp.sum(ok) >= MIN_POINTS)
+    m52 = jnp.asarray(m52 if kind == "auto" else kind == "matern52", bool)
+    return Model(x, ok, ell, chol, alpha, prior, mu, sd, lml, jnp.sum(ok) >= MIN_POINTS, m52)
 
 
 def best_fit(x: jax.Array, y: jax.Array, ells: jax.Array, kind: str = "se") -> Model:
@@ -165,12 +173,16 @@ def best_fit(x: jax.Array, y: jax.Array, ells: jax.Array, kind: str = "se") -> M
 def refine(x: jax.Array, y: jax.Array, ell: jax.Array, p, prior=0.0,
            kind: str = "se") -> Model:
     """ARD, one coordinate at a time: the best fit (prior mean ``prior``, see :func:`fit`)
-    over ``ARD_SCALES`` for parameter ``p``'s length scale, the others kept at ``ell (P,)``.
-    Without enough data for a model every candidate's likelihood is the same, and ``ell`` is
-    kept as it is."""
+    over ``ARD_SCALES`` for parameter ``p``'s length scale, the others kept at ``ell (P,)``;
+    with ``kind="auto"`` over each scale with either correlation (14 fits instead of 7; the
+    model's ``m52`` says which won). Without enough data for a model every candidate's
+    likelihood is the same, and ``ell`` is kept as it is (with the squared exponential)."""
     cands = jnp.asarray(ARD_SCALES, jnp.float32)
-    ells = jnp.broadcast_to(ell, (len(ARD_SCALES),) + ell.shape).at[:, p].set(cands)
-    models = jax.vmap(lambda e: fit(x, y, e, prior, kind))(ells)
+    m52s = jnp.zeros(len(ARD_SCALES), bool)
+    if kind == "auto":  # each scale with either correlation
+        cands, m52s = jnp.concatenate([cands, cands]), jnp.concatenate([m52s, ~m52s])
+    ells = jnp.broadcast_to(ell, cands.shape + ell.shape).at[:, p].set(cands)
+    models = jax.vmap(lambda e, k: fit(x, y, e, prior, kind, k))(ells, m52s)
     lml = jnp.where(models.enough, models.lml,  # no model: the current scale's candidate
                     jnp.where(cands == ell[p], 0.0, -jnp.inf))
     return jax.tree.map(lambda a: a[jnp.argmax(lml)], models)
@@ -180,7 +192,7 @@ def predict(m: Model, z: jax.Array, kind: str = "se"):
     """``(mean (N,), var (N,), v (H, N))`` at ``z (N, P)``, standardised (the signal's units:
     ``mu + sd * mean``, ``sd^2 * var``); ``v = L^-1 k(X, z)``. Without a model: mean 0, var
     1; far from the data the mean tends to the prior mean."""
-    ks = jnp.where(m.ok[None, :], kernel(_sq_dist(z, m.x, m.ell), kind), 0.0)  # (N, H)
+    ks = jnp.where(m.ok[None, :], kernel(_sq_dist(z, m.x, m.ell), kind, m.m52), 0.0)  # (N, H)
     v = solve_lower(m.chol, ks.T)  # (H, N)
     v = jnp.where(m.enough, v, 0.0)
     mean = jnp.where(m.enough, m.prior + mm(ks, m.alpha), 0.0)
@@ -223,7 +235,7 @@ def batch_ucb(m: Model, z: jax.Array, allowed: jax.Array, kappa, b: int,
         s = jnp.where(allowed & ~taken, mean + kappa * jnp.sqrt(var), -jnp.inf)
         i = jnp.where(jnp.any(allowed & ~taken), jnp.argmax(s), jnp.argmin(taken))
         # posterior covariance with the pick, given the data and the earlier picks
-        kzi = kernel(_sq_dist(z, z[i][None], m.ell)[:, 0], kind) - mm(v.T, v[:, i]) \
+        kzi = kernel(_sq_dist(z, z[i][None], m.ell)[:, 0], kind, m.m52) - mm(v.T, v[:, i]) \
             - mm(u.T, u[:, i])
         c = kzi / jnp.sqrt(var[i] + NOISE)
         return (jnp.maximum(var - c * c, 0.0), u.at[j].set(c), taken.at[i].set(True)), i
