@@ -123,7 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "about 1/20 of the run)")
     r.add_argument("--out", type=_folder, help="run folder (default runs/<timestamp>-<strategy>)")
     r.add_argument("--force", action="store_true", help="overwrite an existing run folder")
-    r.add_argument("--resume", type=Path, metavar="RUN_DIR",
+    r.add_argument("--resume", type=_folder, metavar="RUN_DIR",
                    help="continue an interrupted run (its config.toml is used)")
     r.add_argument("--quiet", action="store_true", help="no progress or report")
     r.add_argument("--no-figures", action="store_true", dest="no_figures",
@@ -145,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=_folder, help="output folder (default "
                    "sweeps/<space>-<sut>-s<space-seed>)")
     s.add_argument("--force", action="store_true", help="overwrite an existing sweep in --out")
-    s.add_argument("--resume", type=Path, metavar="OUT",
+    s.add_argument("--resume", type=_folder, metavar="OUT",
                    help="continue an interrupted sweep (its config.toml is used)")
     s.add_argument("--quiet", action="store_true", help="no progress")
     _distributed_flags(s)
@@ -200,7 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--campaign", action="store_true",
                     help="record the whole search instead (default RUN_DIR/campaign.rrd): every "
                     "evaluation's outcome and values, the sampling distribution per update")
-    pl.add_argument("--window", type=_int("--window", 1), default=200,
+    pl.add_argument("--window", type=_int("--window", 1), default=None,
                     help="with --campaign: evaluations behind each sampling-distribution chart "
                     "(default 200)")
     pl.add_argument("--force", action="store_true", help="overwrite an existing --save FILE")
@@ -541,8 +541,11 @@ def cmd_replay(args, stop, startup) -> int:
         if args.scenario != "best" or args.scenarios:
             raise UsageError("--campaign records every evaluation: no --scenario/--scenarios")
         path = record_campaign(args.run_dir, save=args.save, spawn=args.spawn,
-                               window=args.window, guard=guard)
+                               window=200 if args.window is None else args.window, guard=guard)
     else:
+        if args.window is not None:
+            raise UsageError("--window sets the sampling-distribution charts of --campaign; "
+                             "without --campaign there are none")
         path = record(args.run_dir, args.scenario, save=args.save, spawn=args.spawn,
                       overlay=args.scenarios, guard=guard)
     print(f"wrote {path}" if path else "sent to the rerun viewer")
@@ -568,9 +571,16 @@ def cmd_export(args, stop, startup) -> int:
 
 
 def cmd_figures(args, stop, startup) -> int:
-    from jaxfalsify.figures import make_figures
+    from jaxfalsify.figures import load_run, make_figures
     from jaxfalsify.report import write_report
 
+    # a damaged, edited or blocked folder is refused before anything is written (its lock too)
+    load_run(args.run_dir)
+    for name, folder in (("figures", True), ("report.md", False)):
+        where = Path(args.run_dir) / name
+        if where.exists() and where.is_dir() != folder:
+            raise UsageError(f"{where} is {'not ' if folder else ''}a folder; move it away to "
+                             "redraw the figures")
     with _run_folder_lock(args.run_dir, "figures"):
         files = make_figures(args.run_dir)
         report = write_report(args.run_dir)

@@ -162,7 +162,30 @@ def load_run(run_dir: Path):
         i = ep[f"{n}_idx"]
         if not np.issubdtype(i.dtype, np.integer) or i.min() < 0 or i.max() >= size:
             raise ValueError(f"{where} is damaged: column '{n}_idx' outside 0..{size - 1}")
+    check_config_matches(run_dir, sp, rc, summary, ep)
     return sp, rc, summary, ep
+
+
+def check_config_matches(run_dir: Path, sp, rc, summary: dict, ep: dict) -> None:
+    """ValueError (one line) where the folder's ``config.toml`` no longer describes its
+    results (edited after the run): the seeds, strategy and SUT that ``summary.json`` records,
+    and every evaluated scenario's values in ``episodes.parquet`` against the space the config
+    builds at their recorded indices."""
+    for key in ("space_seed", "seed", "strategy", "sut"):
+        if summary[key] != getattr(rc, key):
+            raise ValueError(f"{run_dir}/config.toml does not match the run's results: {key} "
+                             f"= {getattr(rc, key)!r} there, {summary[key]!r} in summary.json "
+                             "(edited after the run?)")
+    for p, n in enumerate(sp.names):
+        want = np.asarray(sp.values[p], np.float64)[ep[f"{n}_idx"]]
+        got = np.asarray(ep[n], np.float64)
+        bad = ~np.isclose(got, want, rtol=1e-5, atol=1e-6)
+        if bad.any():
+            j = int(np.argmax(bad))
+            raise ValueError(f"{run_dir}/config.toml does not match the run's results: {n} of "
+                             f"evaluation {int(ep['evaluation'][j])} is {got[j]:g} in "
+                             f"episodes.parquet but {want[j]:g} in the space config.toml "
+                             "builds (edited after the run?)")
 
 
 def pick(ep: dict) -> dict[str, int | None]:

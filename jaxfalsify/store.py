@@ -402,6 +402,27 @@ def unfinished(out: Path) -> bool:
     return (out / "status.json").exists() or bool(_checkpoints(out))
 
 
+STATES = ("running", "interrupted", "failed", "complete")
+
+
+def status_damage(out: Path) -> str | None:
+    """What is wrong with ``out``'s ``status.json`` (None when it is absent or a JSON object
+    whose ``state`` is one of :data:`STATES`)."""
+    path = Path(out) / "status.json"
+    if not path.exists():
+        return None
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError) as e:
+        return f"unreadable: {getattr(e, 'strerror', None) or type(e).__name__}"
+    except ValueError:
+        return "not JSON"
+    state = doc.get("state") if isinstance(doc, dict) else None
+    if state not in STATES:
+        return f"state {state!r} is not one of {', '.join(STATES)}"
+    return None
+
+
 def complete(out: Path, kind: str) -> bool:
     """``out`` holds finished results of ``kind``: its final file, and a status (if any) that
     says complete. A run that failed while writing its outputs (summary.json written, figures
@@ -434,6 +455,11 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
             raise FolderError(f"--resume {out}: no config.toml there (not a {kind} folder)")
         if have != kind:
             raise FolderError(f"--resume {out}: that folder holds a {have}, not a {kind}")
+        damaged = status_damage(out)
+        if damaged:
+            raise FolderError(f"--resume {out}: status.json is damaged ({damaged}), so whether "
+                              f"the {kind} finished is unknown; start it over with --out "
+                              f"{shell_path(out)} --force")
         if complete(out, kind):
             raise FolderError(f"--resume {out}: the {kind} is already complete "
                               f"({FINISHED[kind]})")

@@ -432,7 +432,8 @@ def _load_attr(spec: str):
             module = importlib.import_module(mod_name)
     except ValueError:
         raise
-    except Exception as e:  # noqa: BLE001 - a user module can raise anything on import
+    except (Exception, SystemExit) as e:  # noqa: BLE001 - a user module can raise anything
+        # on import (sys.exit too)
         raise ValueError(f"SUT '{spec}': cannot import {mod_name} "
                          f"({type(e).__name__}: {e})".splitlines()[0]) from None
     try:
@@ -531,7 +532,12 @@ def resolve(spec: str | SUT | Callable) -> SUT:
         if isinstance(obj, type) or (callable(obj) and not isinstance(obj, SUT)
                                      and getattr(obj, "__code__", None) is not None
                                      and obj.__code__.co_argcount == 0):
-            obj = obj()  # a factory returning a SUT
+            try:
+                obj = obj()  # a factory returning a SUT
+            except Exception as e:  # noqa: BLE001 - a user's code can raise anything
+                first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+                raise ValueError(f"SUT '{spec}' could not be built (called with no "
+                                 f"arguments): {type(e).__name__}: {first}") from None
         if isinstance(obj, SUT):
             return dataclasses.replace(obj, name=spec) if obj.name != spec else obj
         if callable(obj):

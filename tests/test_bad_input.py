@@ -75,7 +75,10 @@ def world(tmp_path_factory):
         (w / name).write_text(text)
     (w / "badsut.py").write_text(
         "import jax.numpy as jnp\n\n\ndef two_args(obs, state):\n    return 0.0, state\n\n\n"
-        "def vector(obs, state, params, key):\n    return jnp.zeros(3), state\n")
+        "def vector(obs, state, params, key):\n    return jnp.zeros(3), state\n\n\n"
+        "class NeedsArgs:\n    def __init__(self, gain):\n        pass\n\n\n"
+        "def factory_keyerror():\n    return {}['cfg']\n")
+    (w / "exits.py").write_text("import sys\n\nsys.exit(3)\n")
     (w / "clash.py").write_text(  # a SUT parameter named like a sweep.parquet column
         "from jaxfalsify import pytree\nfrom jaxfalsify.sut import SUT\n\n\n"
         "@pytree.dataclass\nclass P:\n    steps: float = 1.0\n\n\n"
@@ -110,6 +113,23 @@ def world(tmp_path_factory):
                  "--no-figures"]) == 0
     assert main(["sweep", "--space", str(w / "tiny.toml"), "--out", str(w / "sweep_done"),
                  "--quiet"]) == 0
+    # finished results whose status.json was damaged afterwards: never rerun over them
+    for name, text in {"done_status_garbage": "not json\n", "done_status_int": '{"state": 5}',
+                       "sweep_status_list": "[1, 2]"}.items():
+        shutil.copytree(w / ("sweep_done" if name.startswith("sweep") else "done"), w / name)
+        (w / name / "status.json").write_text(text)
+    # a finished run whose config.toml was edited afterwards (its space's values, its seed)
+    for name, (old, new) in {"done_edited_values": ("1.237", "1.3"),
+                             "done_edited_seed": ("\nseed = 0\n", "\nseed = 1\n")}.items():
+        shutil.copytree(w / "done", w / name)
+        text = (w / name / "config.toml").read_text()
+        assert old in text
+        (w / name / "config.toml").write_text(text.replace(old, new))
+    # a finished run whose figures or report cannot be written where they go
+    shutil.copytree(w / "done", w / "done_report_is_folder")
+    (w / "done_report_is_folder" / "report.md").mkdir()
+    shutil.copytree(w / "done", w / "done_figures_is_file")
+    (w / "done_figures_is_file" / "figures").write_text("a file where the figures go\n")
     # an unfinished run, interrupted after 2 of 5 checkpointed chunks (what the CLI leaves)
     rc = runs.RunConfig(space=str(w / "tiny.toml"), strategy="random", evaluations=40,
                         batch=8, checkpoint_every=1)
@@ -215,6 +235,22 @@ CASES = [
     # resume: wrong folder, finished run, extra flags, corrupt checkpoints
     (["run", "--resume", "nowhere"], "no config.toml"),
     (["run", "--resume", "done"], "already complete"),
+    (["run", "--resume", ""], "an empty path"),
+    (["sweep", "--resume", " "], "an empty path"),
+    (["replay", "done", "--window", "5", "--save", "x.rrd"], "without --campaign there are none"),
+    # results read back under an edited config.toml: refused, not shown with other values
+    (["replay", "done_edited_values", "--save", "x.rrd"],
+     "done_edited_values/config.toml does not match the run's results: ped_speed of evaluation"),
+    (["export", "done_edited_values", "--out", "x"], "but 1.3 in the space config.toml builds"),
+    (["figures", "done_edited_values"], "does not match the run's results"),
+    (["figures", "done_report_is_folder"], "report.md is a folder; move it away"),
+    (["figures", "done_figures_is_file"], "figures is not a folder; move it away"),
+    (["export", "done_edited_seed", "--out", "x"],
+     "does not match the run's results: seed = 1 there, 0 in summary.json"),
+    (["run", "--resume", "done_status_garbage"], "status.json is damaged (not JSON)"),
+    (["run", "--resume", "done_status_int"], "status.json is damaged (state 5 is not one of"),
+    (["sweep", "--resume", "sweep_status_list"], "status.json is damaged (state None"),
+    (["run", "--out", "done_status_garbage"], "pass --resume"),
     (["run", "--resume", "unfinished", "--seed", "3"], "--seed cannot be combined"),
     (["run", "--out", "sweep_done"], "holds a sweep"),
     (["run", "--resume", "unfinished", "--force"], "--force cannot be combined"),
@@ -305,6 +341,13 @@ CASES = [
     # a user's SUT that cannot step: traced before it runs, before anything is written
     (["run", "--sut", "badsut.py:two_args"], "takes 2 positional arguments but 4"),
     (["sweep", "--sut", "badsut.py:vector"], "expected a scalar"),
+    # a SUT class or factory that cannot be built without arguments, a module that exits
+    (["run", "--sut", "badsut.py:NeedsArgs"],
+     "SUT 'badsut.py:NeedsArgs' could not be built (called with no arguments): TypeError"),
+    (["sweep", "--sut", "badsut.py:factory_keyerror"], "could not be built (called with no "
+     "arguments): KeyError: 'cfg'"),
+    (["simulate", "--sut", "datetime:datetime"], "could not be built"),
+    (["run", "--sut", "exits.py:AEB"], "cannot import exits.py (SystemExit: 3)"),
     # empty lists and paths
     (["compare", "--strategies", ""], "no strategy named"),
     (["compare", "--strategies", " , "], "no strategy named"),
