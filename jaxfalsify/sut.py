@@ -402,6 +402,12 @@ register(SUT("sensor-aeb", sensor_aeb_act, _sensor_init, SensorAEBParams(), stoc
 register(SUT("none", none_act, _pid_init, AutopilotParams(), stochastic=False))
 
 
+def _error_line(e: BaseException) -> str:
+    """``TypeName: first line of the message`` of a user's exception, for one-line errors."""
+    text = str(e).strip()
+    return f"{type(e).__name__}: {text.splitlines()[0] if text else ''}"
+
+
 def _load_attr(spec: str):
     """``module:attr`` or ``path/file.py:attr`` -> the attribute (one-line ValueError)."""
     mod_name, _, attr = spec.rpartition(":")
@@ -508,9 +514,7 @@ def check_traceable(sut: SUT, params: Any) -> None:
     except Exception as e:  # noqa: BLE001 - a user's code can raise anything when traced
         hint = (" (a bare act function gets params=None; give the SUT default_params)"
                 if params is None and "NoneType" in str(e) else "")
-        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        raise ValueError(f"SUT '{sut.name}' fails on a step: {type(e).__name__}: {first}"
-                         f"{hint}") from None
+        raise ValueError(f"SUT '{sut.name}' fails on a step: {_error_line(e)}{hint}") from None
     try:
         _TRACEABLE.add(sut)
     except TypeError:
@@ -535,9 +539,8 @@ def resolve(spec: str | SUT | Callable) -> SUT:
             try:
                 obj = obj()  # a factory returning a SUT
             except Exception as e:  # noqa: BLE001 - a user's code can raise anything
-                first = str(e).strip().splitlines()[0] if str(e).strip() else ""
                 raise ValueError(f"SUT '{spec}' could not be built (called with no "
-                                 f"arguments): {type(e).__name__}: {first}") from None
+                                 f"arguments): {_error_line(e)}") from None
         if isinstance(obj, SUT):
             return dataclasses.replace(obj, name=spec) if obj.name != spec else obj
         if callable(obj):
