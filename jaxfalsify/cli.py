@@ -395,9 +395,12 @@ def _names(flag: str, value: str | None, what: str, example: str) -> tuple[str, 
     one that names nothing is refused."""
     if value is None:
         return None
-    names = tuple(n.strip() for n in value.split(",") if n.strip())
-    if not names:
+    names = tuple(n.strip() for n in value.split(","))
+    if not any(names):
         raise UsageError(f"{flag} {value!r}: no {what} named (e.g. {flag} {example})")
+    if not all(names):  # 'random,' or 'random,,cem': a name left out by mistake?
+        raise UsageError(f"{flag} {value!r}: an empty {what} name between commas "
+                         f"(e.g. {flag} {example})")
     return names
 
 

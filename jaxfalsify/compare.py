@@ -757,6 +757,17 @@ class SuiteConfig:
             raise ValueError("suite: no [[entry]] given")
         for b in self.budgets:
             check_int("suite budgets", b, 1, 10**9)
+        seen: dict[tuple, int] = {}
+        for k, e in enumerate(self.entries):
+            try:  # the same search twice would only cost time (exclusions aside)
+                key = (e.space, e.sut, e.space_seed,
+                       tuple(sorted((n, float(v)) for n, v in e.sut_params.items())))
+            except (TypeError, ValueError):
+                key = (k,)  # a malformed value: named by the entry's own check below
+            if key in seen:
+                raise ValueError(f"suite: entry[{k}] repeats entry[{seen[key]}] (space "
+                                 f"{e.space}, SUT {e.sut}); give each search once")
+            seen[key] = k
         for e in self.entries:
             self.compare_config(e).check()
 

@@ -81,6 +81,8 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
 
     sp, rc, summary, ep = load_run(run_dir)
     row = resolve_scenario(scenario, ep, sp)
+    if overlay > len(ep["reward"]):
+        raise ValueError(f"--scenarios {overlay}: the run has {len(ep['reward'])} evaluations")
     rec = rr.RecordingStream("jaxfalsify", recording_id=f"{Path(run_dir).name}-{scenario}")
     if spawn:
         _spawn(rec)
@@ -175,7 +177,7 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
 
     if overlay:
         rng = np.random.default_rng(0)
-        rows = rng.choice(len(ep["reward"]), min(overlay, len(ep["reward"])), replace=False)
+        rows = rng.choice(len(ep["reward"]), overlay, replace=False)
         ov = resimulate(sp, rc, ep, rows)
         rec.reset_time()  # and no evaluation number on the overlaid distances
         for j, r in enumerate(rows):

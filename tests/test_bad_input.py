@@ -105,6 +105,8 @@ def world(tmp_path_factory):
                                          'space = "tiny.toml"\n'),
         "suite_strategies_str.toml": 'strategies = "random"\n[[entry]]\nspace = "tiny.toml"\n',
         "suite_name_table.toml": 'name = {a = 1}\n[[entry]]\nspace = "tiny.toml"\n',
+        "suite_twice.toml": ('[[entry]]\nspace = "tiny.toml"\nsut_params = {full_brake = 6}\n'
+                             '[[entry]]\nspace = "tiny.toml"\nsut_params = {full_brake = 6.0}\n'),
     }.items():
         (w / name).write_text(text)
     # a finished run and sweep
@@ -377,6 +379,11 @@ CASES = [
     (["compare", "--suite", "suite_strategies_nested.toml"], "strategies must be a list"),
     (["compare", "--suite", "suite_strategies_str.toml"], "strategies must be a list"),
     (["compare", "--suite", "suite_name_table.toml"], "name must be a string"),
+    (["compare", "--suite", "suite_twice.toml"], "entry[1] repeats entry[0]"),
+    (["compare", "--strategies", "random,"], "--strategies 'random,': an empty strategy name"),
+    (["compare", "--strategies", "random,,cem"], "an empty strategy name between commas"),
+    (["replay", "done", "--scenarios", "99999", "--save", "x.rrd"],
+     "--scenarios 99999: the run has"),
     # the lock file: never a folder, never followed through a link
     (["run", "--space", "tiny.toml", "--out", "lock_is_folder"], "lock file"),
     (["run", "--space", "tiny.toml", "--out", "lock_is_link"], "lock file"),
