@@ -27,7 +27,8 @@ def load_table(space, sut, sut_params, path):
     if path and os.path.exists(path):
         return dict(np.load(path))
     from jaxfalsify.sweep import sweep_arrays
-    g = sweep_arrays(space, sut, sut_params, fields=("collision", "reward", "robustness"))
+    g = sweep_arrays(space, sut, sut_params,
+                     fields=("collision", "reward", "robustness", "min_ttc"))
     if path:
         np.savez(path, **g)
     return g
@@ -39,6 +40,8 @@ def run(strat, params, table, shape, budget, seeds):
     coll = jnp.asarray(table["collision"])
     rew = jnp.asarray(np.where(np.isnan(table["reward"]), -np.inf, table["reward"]), jnp.float32)
     rob = jnp.asarray(table["robustness"], jnp.float32)
+    # an older table without min_ttc: every TTC unknown (counts as the cap: no tie-break)
+    ttc = jnp.asarray(table.get("min_ttc", np.full(rob.shape, np.inf)), jnp.float32)
     radix = np.cumprod((1,) + tuple(shape[::-1]))[:-1][::-1].astype(np.int64)
 
     def one(key):
@@ -52,7 +55,7 @@ def run(strat, params, table, shape, budget, seeds):
             r = jnp.where(ok, rew[flat], -jnp.inf)
             c = coll[flat] & ok
             state = strat.tell_outcome(k2, state, idx, r, jnp.where(ok, rob[flat], jnp.inf), c,
-                                       params)
+                                       params, ttc=jnp.where(ok, ttc[flat], jnp.inf))
             return (state, u + 1), (idx, r, c)
         k0, k1 = jax.random.split(key)
         _, (idx, r, c) = jax.lax.scan(upd, (strat.init(k0, params), 0),

@@ -30,7 +30,7 @@ import numpy as np
 
 from jaxfalsify import cache, sim
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.search.base import Strategy
+from jaxfalsify.search.base import Strategy, accepts_ttc
 from jaxfalsify.space import Layout, Space
 
 RECORD_FIELDS = ("reward", "reward_rss", "reward_distance", "reward_collision", "collision",
@@ -128,6 +128,7 @@ def make_campaign(c: Campaign):
                 "eval_key": k_eval, "update": jnp.int32(0)}
 
     sharding = sim.local_batch_sharding() if B % jax.local_device_count() == 0 else None
+    takes_ttc = accepts_ttc(strategy)
 
     def one_update(carry, args: Args):
         key, k_ask, k_tell = jax.random.split(carry["key"], 3)
@@ -141,8 +142,9 @@ def make_campaign(c: Campaign):
         r = jnp.where(jnp.isnan(out.reward) | ~in_budget, -jnp.inf, out.reward)
         counted = in_budget & ~out.nonfinite
         rob = jnp.where(counted & jnp.isfinite(out.robustness), out.robustness, jnp.inf)
+        extra = {"ttc": jnp.where(counted, out.min_ttc, jnp.inf)} if takes_ttc else {}
         state = strategy.tell_outcome(k_tell, state, idx, r, rob, out.collision & counted,
-                                      args.strategy_params)
+                                      args.strategy_params, **extra)
         rec = {"indices": idx, **{f: getattr(out, f) for f in RECORD_FIELDS}}
         new = {**carry, "state": state, "key": key, "update": carry["update"] + 1}
         # an update past the budget (the last chunk's tail when the chunk length does not

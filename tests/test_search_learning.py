@@ -480,6 +480,52 @@ def test_shaped_signal_and_centred_ranks_by_hand():
     np.testing.assert_allclose(r, [0.5, -0.5, 0.0, 0.0, 0.0], atol=1e-7)
 
 
+def test_near_miss_ttc_by_hand():
+    """Only near misses (robustness below ``below``) gain ``weight x min(TTC, 20 s)``; an
+    infinite or unknown TTC counts as 20 s; weight 0 leaves every value as it was."""
+    rob = jnp.array([-0.9, -0.9, -0.6, -0.4, 2.0, -0.95, jnp.inf])
+    ttc = jnp.array([0.5, 30.0, jnp.inf, 0.1, 0.2, jnp.nan, 1.0])
+    got = np.asarray(base.near_miss_ttc(rob, ttc, 0.05, -0.5))
+    want = [-0.9 + 0.025, -0.9 + 1.0, -0.6 + 1.0, -0.4, 2.0, -0.95 + 1.0, np.inf]
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(base.near_miss_ttc(rob, ttc, 0.0, -0.5)),
+                                  np.asarray(rob))
+
+
+def test_default_learns_from_the_near_miss_ttc_signal():
+    """reinforce/default told the TTCs with ``ttc_weight`` > 0 ends in the state it reaches
+    told the robustness combined by hand (NumPy); with ``ttc_weight`` 0 (its default) the TTCs
+    change nothing; and the campaign hands them only to strategies that take them."""
+    shape = (6, 5, 4)
+    strat, p = search.make("reinforce/default", shape, 16, ttc_weight=0.05)
+    st = strat.init(jax.random.key(0), p)
+    idx, st = strat.ask(jax.random.key(1), st, p)
+    g = np.random.default_rng(0)
+    rob = g.uniform(-1.0, 1.0, 16).astype(np.float32)
+    ttc = np.where(g.uniform(size=16) < 0.3, np.inf, g.uniform(0, 30, 16)).astype(np.float32)
+    r = (-0.01 * rob).astype(np.float32)
+    hit = np.zeros(16, bool)
+    mixed = np.where(rob < -0.5, rob + np.float32(0.05) * np.minimum(ttc, 20.0), rob)
+    tell = jax.jit(strat.tell_outcome)
+    a = tell(jax.random.key(2), st, idx, r, rob, hit, p, ttc=ttc)
+    b = tell(jax.random.key(2), st, idx, r, mixed.astype(np.float32), hit, p)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):  # up to float32 fused-op rounding
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-7)
+    p0 = pytree.replace(p, ttc_weight=0.0)
+    c = tell(jax.random.key(2), st, idx, r, rob, hit, p0, ttc=ttc)
+    d = tell(jax.random.key(2), st, idx, r, rob, hit, p0)
+    for x, y in zip(jax.tree.leaves(c), jax.tree.leaves(d)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert any(not np.array_equal(np.asarray(x), np.asarray(y))
+               for x, y in zip(jax.tree.leaves(a.weights), jax.tree.leaves(c.weights)))
+
+    class Old(search.base.Strategy):  # a user's strategy written before the ttc keyword
+        def tell_outcome(self, key, state, indices, rewards, robustness, collision, params):
+            return state
+
+    assert base.accepts_ttc(strat) and not base.accepts_ttc(Old((2,), 4))
+
+
 def _np_gp(x, y, z):
     """Textbook GP regression (Rasmussen & Williams Alg. 2.1) in float64 on the filled points
     only, the length scale by the exact log marginal likelihood (Eq. 2.30)."""

@@ -8,9 +8,11 @@ over integer index vectors whose hyperparameters come in as a traced ``params`` 
 * ``init(key, params) -> state``
 * ``ask(key, state, params) -> (indices (B, P) int32, state)``: a batch of scenarios to run;
 * ``tell(key, state, indices (B, P), rewards (B,), params) -> state``: learn from the rewards;
-* ``tell_outcome(key, state, indices, rewards, robustness (B,), collision (B,), params)``: what
+* ``tell_outcome(key, state, indices, rewards, robustness (B,), collision (B,), params,
+  ttc=None)``: what
   the campaign calls: ``tell`` with the batch's STL robustness (min distance - epsilon [m],
-  ``+inf`` where unknown) and collision flags beside the rewards. The default ignores them and
+  ``+inf`` where unknown), collision flags and minimum times-to-collision beside the rewards
+  (a strategy whose ``tell_outcome`` has no ``ttc`` keyword gets none). The default ignores them and
   calls ``tell``; a strategy with ``signal = "shaped"`` learns from :func:`shaped_signal`.
 
 Rewards given to ``tell`` are finite or ``-inf``: the campaign replaces NaN (a non-finite
@@ -57,9 +59,11 @@ class Strategy:
         raise NotImplementedError
 
     def tell_outcome(self, key: jax.Array, state, indices: jax.Array, rewards: jax.Array,
-                     robustness: jax.Array, collision: jax.Array, params):
+                     robustness: jax.Array, collision: jax.Array, params, ttc=None):
         """``tell`` given the outcomes too; learns from :func:`shaped_signal` when the strategy's
-        static ``signal`` option is ``"shaped"``, from the rewards otherwise."""
+        static ``signal`` option is ``"shaped"``, from the rewards otherwise. ``ttc (B,)``: each
+        scenario's minimum time-to-collision [s] (``inf``: never on a collision course), which
+        this default ignores (``reinforce/default``'s ``ttc_weight`` uses it)."""
         if getattr(self, "signal", "reward") == "shaped":
             rewards = shaped_signal(rewards, robustness, collision)
         return self.tell(key, state, indices, rewards, params)
@@ -76,6 +80,29 @@ class Strategy:
 # Weight of the STL robustness [reward units per metre] in the shaped signal.
 ROBUSTNESS_WEIGHT = 0.05
 SIGNALS = ("reward", "shaped")
+TTC_CAP = 20.0  # s: a longer (or infinite, or unknown) minimum time-to-collision counts as this
+
+
+def accepts_ttc(strategy) -> bool:
+    """Whether ``strategy.tell_outcome`` takes the ``ttc`` keyword (a user's strategy written
+    before it existed does not: the campaign then leaves it out)."""
+    import inspect
+
+    try:
+        return "ttc" in inspect.signature(strategy.tell_outcome).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+def near_miss_ttc(robustness: jax.Array, ttc: jax.Array, weight, below) -> jax.Array:
+    """The robustness [m] with near misses told apart by their minimum time-to-collision:
+    where ``robustness < below`` (the two road users came within ``below + 1`` m), add
+    ``weight * min(ttc, TTC_CAP)`` [m per s], so among near misses of about the same distance
+    the one where the car was still closing fast (low TTC: a collision nearby) ranks as the
+    more critical, and one where the car had stopped short (high or infinite TTC) as the less.
+    Elsewhere, and with ``weight`` 0, the robustness is returned unchanged."""
+    t = jnp.where(jnp.isfinite(ttc), jnp.minimum(ttc, TTC_CAP), TTC_CAP)
+    return jnp.where(robustness < below, robustness + weight * t, robustness)
 
 
 def check_signal(signal: str) -> None:

@@ -85,7 +85,8 @@ from jaxfalsify import pytree
 from jaxfalsify.search import autoregressive as ar
 from jaxfalsify.search import surrogate as gp
 from jaxfalsify.search.base import (Strategy, categorical_from_uniform, centred_ranks,
-                                    check_signal, shaped_signal, uniform, uniform_indices)
+                                    check_signal, near_miss_ttc, shaped_signal, uniform,
+                                    uniform_indices)
 
 ADVANTAGES = ("rank", "normalised")
 
@@ -120,6 +121,10 @@ class ARParams:
     zoom: float = 0.0  # anchored: multi-scale moves, the widest as a fraction of a
     # parameter's range (each draw's width is log-uniform between the learnt width and that
     # many times wider; 0: off)
+    ttc_weight: float = 0.0  # near misses told apart by their minimum time-to-collision:
+    # where the robustness is below ttc_below, the signal's robustness gains ttc_weight x
+    # min(TTC, 20 s) [m per s] (base.near_miss_ttc; 0: off)
+    ttc_below: float = -0.5  # m of robustness (-0.5: the road users came within 0.5 m)
 
     # a negative *_found value means "as before the first collision"
     RANGES = {"lr": "[0, inf)", "entropy": "[0, inf)", "entropy_found": "[0, inf)",
@@ -129,7 +134,7 @@ class ARParams:
               "anchor_decay": "[0, 1]", "anchor_decay_found": "(-inf, 1]",
               "repeat_found": "[0, 1]", "uniform_mix": "[0, 1]", "edge_mass": "[0, 1]",
               "edge_explore": "[0, 1]", "kappa": "[0, inf)", "zoom": "[0, inf)",
-              "prior_mean": "[-5, 5]"}
+              "prior_mean": "[-5, 5]", "ttc_weight": "[0, 1]", "ttc_below": "[-1, 100]"}
 
 
 @pytree.dataclass
@@ -438,7 +443,10 @@ class AutoregressiveReinforce(Strategy):
         return self._update(state, indices, rewards, state.seen, params,
                             jnp.zeros(rewards.shape, bool))
 
-    def tell_outcome(self, key, state, indices, rewards, robustness, collision, params):
+    def tell_outcome(self, key, state, indices, rewards, robustness, collision, params,
+                     ttc=None):
+        if ttc is not None:
+            robustness = near_miss_ttc(robustness, ttc, params.ttc_weight, params.ttc_below)
         signal = (shaped_signal(rewards, robustness, collision) if self.signal == "shaped"
                   else rewards)
         hit = jnp.any(collision.reshape(self.learners, -1), axis=-1)
