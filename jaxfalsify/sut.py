@@ -440,8 +440,7 @@ def _load_attr(spec: str):
         raise
     except (Exception, SystemExit) as e:  # noqa: BLE001 - a user module can raise anything
         # on import (sys.exit too)
-        raise ValueError(f"SUT '{spec}': cannot import {mod_name} "
-                         f"({type(e).__name__}: {e})".splitlines()[0]) from None
+        raise ValueError(f"SUT '{spec}': cannot import {mod_name} ({_error_line(e)})") from None
     try:
         return getattr(module, attr)
     except AttributeError:

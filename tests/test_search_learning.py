@@ -519,7 +519,7 @@ def test_default_learns_from_the_near_miss_ttc_signal():
     assert any(not np.array_equal(np.asarray(x), np.asarray(y))
                for x, y in zip(jax.tree.leaves(a.weights), jax.tree.leaves(c.weights)))
 
-    class Old(search.base.Strategy):  # a user's strategy written before the ttc keyword
+    class Old(base.Strategy):  # a user's strategy written before the ttc keyword
         def tell_outcome(self, key, state, indices, rewards, robustness, collision, params):
             return state
 
