@@ -466,7 +466,6 @@ def _compare_suite(args, names, stop, startup) -> int:
     for flag, given in (("--space", args.space), ("--space-seed", args.space_seed is not None),
                         ("--sut", args.sut),
                         ("--sut-param", args.sut_param), ("--budgets", args.budgets),
-                        ("--strategy-param", args.strategy_param),
                         ("--distributed", args.distributed),
                         ("--evaluations", args.evaluations is not None)):
         if given:
@@ -474,7 +473,8 @@ def _compare_suite(args, names, stop, startup) -> int:
                              f"drop {flag}")
     entries = _names("--entries", args.entries, "space", "aeb-9e6,island-dash")
     suite = compare.load_suite(args.suite, seeds=args.seeds, strategies=names,
-                               jobs=args.jobs or 0, entries=entries)
+                               jobs=args.jobs or 0, entries=entries,
+                               strategy_params=_per_strategy(args.strategy_param))
     result = compare.execute_suite(suite, args.out, force=args.force,
                                    progress=_progress(args.quiet), stop=stop,
                                    startup_seconds=startup)

@@ -740,6 +740,8 @@ class SuiteConfig:
     seeds: int = 10
     strategies: tuple[str, ...] = DEFAULT_STRATEGIES
     jobs: int = 0  # strategies searched side by side (0: one per CPU core, at most 4)
+    # options per strategy on every entry, e.g. {"reinforce/default": {"ttc_weight": 0.05}}
+    strategy_params: Mapping[str, Mapping[str, Any]] = dataclasses.field(default_factory=dict)
 
     def compare_config(self, entry: SuiteEntry) -> CompareConfig:
         names = tuple(n for n in self.strategies
@@ -748,6 +750,8 @@ class SuiteConfig:
                              evaluations=max(self.budgets), space=entry.space,
                              space_seed=entry.space_seed, sut=entry.sut,
                              sut_params=dict(entry.sut_params), budgets=tuple(self.budgets),
+                             strategy_params={s: dict(o) for s, o in self.strategy_params.items()
+                                              if s in names},
                              jobs=self.jobs)
 
     def check(self) -> None:
@@ -755,6 +759,10 @@ class SuiteConfig:
 
         if not self.entries:
             raise ValueError("suite: no [[entry]] given")
+        for s in self.strategy_params:  # an entry excluding it drops its options there
+            if s not in self.strategies:
+                raise ValueError(f"strategy_params: {s!r} is not among the strategies "
+                                 f"({', '.join(self.strategies)})")
         for b in self.budgets:
             check_int("suite budgets", b, 1, 10**9)
         seen: dict[tuple, int] = {}
@@ -772,7 +780,7 @@ class SuiteConfig:
             self.compare_config(e).check()
 
 
-_SUITE_KEYS = {"name", "budgets", "seeds", "strategies", "entry"}
+_SUITE_KEYS = {"name", "budgets", "seeds", "strategies", "strategy_params", "entry"}
 _ENTRY_KEYS = {"space", "sut", "sut_params", "space_seed", "exclude"}
 
 
@@ -786,11 +794,13 @@ def entry_name(entry: SuiteEntry) -> str:
 
 def load_suite(path: Path | str, seeds: int | None = None,
                strategies: tuple[str, ...] | None = None, jobs: int = 0,
-               entries: tuple[str, ...] | None = None) -> SuiteConfig:
+               entries: tuple[str, ...] | None = None,
+               strategy_params: Mapping[str, Mapping[str, Any]] | None = None) -> SuiteConfig:
     """A suite from its TOML file (one-line ValueError naming the bad key); ``seeds`` and
     ``strategies`` override the file's; ``jobs`` as in :class:`CompareConfig`; ``entries``
     keeps only the entries of these spaces (by :func:`entry_name`, in the file's order; a
-    name matching no entry is refused)."""
+    name matching no entry is refused); ``strategy_params`` (per strategy, on every entry)
+    are merged over the file's ``[strategy_params."NAME"]`` tables, option by option."""
     path = Path(path)
     doc = cfg.read_toml(path, "--suite")
     where = str(path)
@@ -841,13 +851,20 @@ def load_suite(path: Path | str, seeds: int | None = None,
         raise ValueError(f"{where}: strategies must be a list of strategy names "
                          f"(got {names!r:.60})")
     names = strategies or tuple(names)
+    options = doc.get("strategy_params", {})
+    if not isinstance(options, dict) or not all(isinstance(v, dict) for v in options.values()):
+        raise ValueError(f'{where}: strategy_params must hold a table per strategy, e.g. '
+                         f'[strategy_params."cem"] elite_frac = 0.2')
+    options = {s: dict(o) for s, o in options.items()}
+    for s, o in (strategy_params or {}).items():
+        options[s] = {**options.get(s, {}), **o}
     try:
         name = check_name(doc.get("name", path.stem))
     except ValueError as e:
         raise ValueError(f"{where}: {e}") from None
     suite = SuiteConfig(name, tuple(out),
                         tuple(sorted(set(budgets))), seeds or doc.get("seeds", 10), names,
-                        jobs)
+                        jobs, options)
     suite.check()
     return suite
 
@@ -879,6 +896,7 @@ def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = 
         store.write_atomic(out / "config.toml", cfg.dumps_toml({
             "kind": "suite", "name": config.name, "budgets": list(config.budgets),
             "seeds": config.seeds, "strategies": list(config.strategies),
+            "strategy_params": {k: dict(v) for k, v in config.strategy_params.items()} or None,
             "entry": None}) + "".join(
             "\n[[entry]]\n" + cfg.dumps_toml({"space": e.space, "sut": e.sut,
                                              "space_seed": e.space_seed,
@@ -893,6 +911,7 @@ def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = 
             results.append(res)
         summary = {"suite": config.name, "budgets": list(config.budgets),
                    "seeds": config.seeds, "strategies": list(config.strategies),
+                   "strategy_params": {k: dict(v) for k, v in config.strategy_params.items()},
                    "entries": results, "versions": cfg.versions()}
         with clock("writing"):
             store.write_json(out / "suite.json", summary, indent=2)
@@ -907,6 +926,11 @@ def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = 
 def suite_markdown(summary: dict) -> str:
     """A section per space: what it is, its ground truth, and the per-budget table."""
     parts = [f"# Search benchmark: {summary['suite']} ({summary['seeds']} seeds per strategy)"]
+    options = summary.get("strategy_params") or {}
+    if options:
+        parts.append("Strategy options (every space): " + "; ".join(
+            f"`{s}` " + ", ".join(f"{k}={v}" for k, v in o.items())
+            for s, o in options.items()))
     for r in summary["entries"]:
         share = r.get("collision_share")
         if r.get("n_collisions") is not None:

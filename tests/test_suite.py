@@ -182,8 +182,15 @@ def test_compare_suite_end_to_end(tmp_path, capsys):
                      '"cem"]\n[[entry]]\nspace = "tiny.toml"\n[[entry]]\nspace = "tiny.toml"\n'
                      'sut = "sensor-aeb"\nsut_params = { ttc_full = 1.5 }\nexclude = ["cem"]\n')
     assert main(["compare", "--suite", str(suite), "--out", str(tmp_path / "o"),
-                 "--quiet"]) == 0
+                 "--strategy-param", "cem:elite_frac=0.5", "--quiet"]) == 0
     doc = json.loads((tmp_path / "o" / "suite.json").read_text())
+    import tomllib  # the option, recorded in the suite's and the entry's config.toml
+
+    assert tomllib.loads((tmp_path / "o" / "config.toml").read_text())[
+        "strategy_params"] == {"cem": {"elite_frac": 0.5}} == doc["strategy_params"]
+    first_dir = next(p for p in (tmp_path / "o").iterdir() if p.name.startswith("01-"))
+    assert tomllib.loads((first_dir / "config.toml").read_text())[
+        "strategy_params"] == {"cem": {"elite_frac": 0.5}}
     assert [e["sut"] for e in doc["entries"]] == ["carla-tm", "sensor-aeb"]
     assert [r["strategy"] for r in doc["entries"][1]["rows"]] == ["random"]  # cem excluded
     first = doc["entries"][0]
@@ -214,3 +221,35 @@ def test_compare_suite_end_to_end(tmp_path, capsys):
                  str(tmp_path / "o")]) == 2
     assert "already holds compare.json" in capsys.readouterr().err
     assert (tmp_path / "o" / "config.toml").read_bytes() == config
+
+
+def test_suite_strategy_options_from_the_file_and_the_command_line(tmp_path, capsys):
+    """A suite's ``[strategy_params."NAME"]`` tables and ``--strategy-param`` (merged over
+    them, option by option) reach every entry's comparison, except an entry excluding that
+    strategy; options of a strategy the suite does not run, or not tables, are refused in
+    one line before anything is written."""
+    (tmp_path / "tiny.toml").write_text(TINY_SPACE)
+    suite = tmp_path / "suite.toml"
+    suite.write_text('strategies = ["random", "cem"]\n[strategy_params."cem"]\n'
+                     'elite_frac = 0.2\nsmoothing = 0.5\n[[entry]]\nspace = "tiny.toml"\n'
+                     '[[entry]]\nspace = "tiny.toml"\nsut = "none"\nexclude = ["cem"]\n')
+    s = compare.load_suite(suite, strategy_params={"cem": {"elite_frac": 0.4}})
+    assert s.strategy_params == {"cem": {"elite_frac": 0.4, "smoothing": 0.5}}
+    first, second = (s.compare_config(e) for e in s.entries)
+    assert first.strategy_params == {"cem": {"elite_frac": 0.4, "smoothing": 0.5}}
+    assert second.strategies == ("random",) and second.strategy_params == {}
+    built = first.run_config("cem").build()
+    assert np.isclose(float(built.strategy_params.elite_frac), 0.4)
+    assert np.isclose(float(built.strategy_params.smoothing), 0.5)
+    with pytest.raises(ValueError, match="strategy_params: 'anneal' is not among"):
+        compare.load_suite(suite, strategy_params={"anneal": {"decay": 0.9}})
+    bad = tmp_path / "bad.toml"
+    bad.write_text('strategy_params = { cem = 3 }\n[[entry]]\nspace = "tiny.toml"\n')
+    with pytest.raises(ValueError, match="strategy_params must hold a table per strategy"):
+        compare.load_suite(bad)
+    capsys.readouterr()
+    out = tmp_path / "o"
+    assert main(["compare", "--suite", str(suite), "--strategy-param", "cem:elite_frac=2",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "elite_frac" in err[0] and not out.exists()
