@@ -493,9 +493,10 @@ def test_near_miss_ttc_by_hand():
 
 
 def test_default_learns_from_the_near_miss_ttc_signal():
-    """reinforce/default told the TTCs with ``ttc_weight`` > 0 ends in the state it reaches
-    told the robustness combined by hand (NumPy); with ``ttc_weight`` 0 (its default) the TTCs
-    change nothing; and the campaign hands them only to strategies that take them."""
+    """reinforce/default told the TTCs with ``ttc_weight`` > 0 (its default 0.05) ends in the
+    state it reaches told the robustness combined by hand (NumPy); with ``ttc_weight`` 0, or
+    once the learner has seen a collision, the TTCs change nothing; and the campaign hands
+    them only to strategies that take them."""
     shape = (6, 5, 4)
     strat, p = search.make("reinforce/default", shape, 16, ttc_weight=0.05)
     st = strat.init(jax.random.key(0), p)
@@ -518,6 +519,12 @@ def test_default_learns_from_the_near_miss_ttc_signal():
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert any(not np.array_equal(np.asarray(x), np.asarray(y))
                for x, y in zip(jax.tree.leaves(a.weights), jax.tree.leaves(c.weights)))
+    assert float(search.make("reinforce/default", shape, 16)[1].ttc_weight) == np.float32(0.05)
+    seen = dataclasses.replace(st, seen=jnp.ones_like(st.seen))  # after a first collision
+    e = tell(jax.random.key(2), seen, idx, r, rob, hit, p, ttc=ttc)
+    f = tell(jax.random.key(2), seen, idx, r, rob, hit, p)
+    for x, y in zip(jax.tree.leaves(e), jax.tree.leaves(f)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
     class Old(base.Strategy):  # a user's strategy written before the ttc keyword
         def tell_outcome(self, key, state, indices, rewards, robustness, collision, params):

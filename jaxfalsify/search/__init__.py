@@ -116,11 +116,13 @@ register("reinforce/default", AutoregressiveReinforce, batch=32, learners=1, que
          lr_found=0.03, sigma_min=0.001, repeat_found=0.8, anchor_decay=0.9,
          anchor_decay_found=0.9, global_share_found=0.0, zoom=0.3, kappa=1.0, edge_mass=0.2,
          prior_mean=-0.5, entropy_found=0.1, entropy_until=2000.0, kernel="auto",
+         ttc_weight=0.05,
          doc="the autoregressive LSTM controller + REINFORCE (ours): draws around the best "
          "scenarios found so far (a learnt local move, multi-scale, partly stopping at the "
          "bounds) and afresh, a GP (its kernel and length scales by marginal likelihood) picking "
          "which draws are asked until the first collision, no repeats until a collision, rank "
-         "baseline of the STL-robustness-shaped signal, 32 per update; after the first "
+         "baseline of the STL-robustness-shaped signal (near misses told apart by their minimum "
+         "time-to-collision until the first collision), 32 per update; after the first "
          "collision it explores among the failures (an entropy bonus fading out over 2000 "
          "evaluations), then converges")
 register("reinforce/factorised", Reinforce, batch=50, chains=0, advantage="normalised",

@@ -123,7 +123,8 @@ class ARParams:
     # many times wider; 0: off)
     ttc_weight: float = 0.0  # near misses told apart by their minimum time-to-collision:
     # where the robustness is below ttc_below, the signal's robustness gains ttc_weight x
-    # min(TTC, 20 s) [m per s] (base.near_miss_ttc; 0: off)
+    # min(TTC, 20 s) [m per s] (base.near_miss_ttc; 0: off), for each learner until its
+    # first collision (the paper's reward ranks what comes after)
     ttc_below: float = -0.5  # m of robustness (-0.5: the road users came within 0.5 m)
 
     # a negative *_found value means "as before the first collision"
@@ -445,8 +446,10 @@ class AutoregressiveReinforce(Strategy):
 
     def tell_outcome(self, key, state, indices, rewards, robustness, collision, params,
                      ttc=None):
-        if ttc is not None:
-            robustness = near_miss_ttc(robustness, ttc, params.ttc_weight, params.ttc_below)
+        if ttc is not None:  # a learner's aid until its first collision (the reward's after)
+            before = jnp.repeat(~state.seen, self.per_learner)
+            robustness = jnp.where(before, near_miss_ttc(robustness, ttc, params.ttc_weight,
+                                                         params.ttc_below), robustness)
         signal = (shaped_signal(rewards, robustness, collision) if self.signal == "shaped"
                   else rewards)
         hit = jnp.any(collision.reshape(self.learners, -1), axis=-1)
