@@ -800,7 +800,8 @@ def load_suite(path: Path | str, seeds: int | None = None,
     ``strategies`` override the file's; ``jobs`` as in :class:`CompareConfig`; ``entries``
     keeps only the entries of these spaces (by :func:`entry_name`, in the file's order; a
     name matching no entry is refused); ``strategy_params`` (per strategy, on every entry)
-    are merged over the file's ``[strategy_params."NAME"]`` tables, option by option."""
+    are merged over the file's ``[strategy_params."NAME"]`` tables, option by option (the
+    file's tables of strategies that ``strategies`` leaves out are dropped)."""
     path = Path(path)
     doc = cfg.read_toml(path, "--suite")
     where = str(path)
@@ -855,7 +856,9 @@ def load_suite(path: Path | str, seeds: int | None = None,
     if not isinstance(options, dict) or not all(isinstance(v, dict) for v in options.values()):
         raise ValueError(f'{where}: strategy_params must hold a table per strategy, e.g. '
                          f'[strategy_params."cem"] elite_frac = 0.2')
-    options = {s: dict(o) for s, o in options.items()}
+    # the file's options for its strategies (a narrower ``strategies`` drops the others'),
+    # then the caller's, which must name strategies that run (SuiteConfig.check)
+    options = {s: dict(o) for s, o in options.items() if s in names}
     for s, o in (strategy_params or {}).items():
         options[s] = {**options.get(s, {}), **o}
     try:

@@ -243,6 +243,8 @@ def test_suite_strategy_options_from_the_file_and_the_command_line(tmp_path, cap
     assert np.isclose(float(built.strategy_params.smoothing), 0.5)
     with pytest.raises(ValueError, match="strategy_params: 'anneal' is not among"):
         compare.load_suite(suite, strategy_params={"anneal": {"decay": 0.9}})
+    # the file's options of a strategy left out by --strategies go with it
+    assert compare.load_suite(suite, strategies=("random",)).strategy_params == {}
     bad = tmp_path / "bad.toml"
     bad.write_text('strategy_params = { cem = 3 }\n[[entry]]\nspace = "tiny.toml"\n')
     with pytest.raises(ValueError, match="strategy_params must hold a table per strategy"):
