@@ -62,7 +62,10 @@ a reward that is flat until the first collision, failures that are rare.
   (``"normalised"``).
 * **Dense signal**: with ``signal="shaped"`` (default) the learner ranks scenarios by
   :func:`jaxfalsify.search.base.shaped_signal`: STL robustness (min distance - epsilon) until
-  a collision, the paper's reward among collisions (collisions always rank first).
+  a collision, the paper's reward among collisions (collisions always rank first); with
+  ``ttc_weight`` > 0 (0.05 in ``reinforce/default``) a near miss's robustness gains
+  ``ttc_weight x min(TTC, 20 s)`` until the learner's first collision
+  (:func:`jaxfalsify.search.base.near_miss_ttc`).
 * **Entropy** bonus ``entropy`` on the per-step entropies while the learner has seen no
   collision, ``entropy_found`` after (faded linearly to 0 at ``entropy_until`` evaluations
   of the search when that is > 0: explore among the failures, then converge; 0.1 faded out
