@@ -784,6 +784,14 @@ _SUITE_KEYS = {"name", "budgets", "seeds", "strategies", "strategy_params", "ent
 _ENTRY_KEYS = {"space", "sut", "sut_params", "space_seed", "exclude"}
 
 
+def _same_strategy(a: str, b: str) -> bool:
+    """Whether two names are the same strategy (an alias and its registry name)."""
+    try:
+        return search.canonical(a) == search.canonical(b)
+    except ValueError:  # an unknown name: itself only (named by the check that follows)
+        return a == b
+
+
 def entry_name(entry: SuiteEntry) -> str:
     """The name of a suite entry's space, as the suite's report heads its section (a TOML
     file's ``name``, e.g. ``aeb-9e6``, or a built-in space's name)."""
@@ -856,11 +864,27 @@ def load_suite(path: Path | str, seeds: int | None = None,
     if not isinstance(options, dict) or not all(isinstance(v, dict) for v in options.values()):
         raise ValueError(f'{where}: strategy_params must hold a table per strategy, e.g. '
                          f'[strategy_params."cem"] elite_frac = 0.2')
-    # the file's options for its strategies (a narrower ``strategies`` drops the others'),
-    # then the caller's, which must name strategies that run (SuiteConfig.check)
-    options = {s: dict(o) for s, o in options.items() if s in names}
+    # the file's tables must name the file's strategies (an alias counts: `reinforce` for
+    # `reinforce/default`); those of strategies a narrower ``strategies`` leaves out are
+    # dropped; the caller's options must name strategies that run. Keys become the names
+    # the comparison runs under.
+    def spelt(name, among, what):
+        for n in among:
+            if _same_strategy(name, n):
+                return n
+        raise ValueError(f"{what}: {name!r} is not among the strategies ({', '.join(among)})")
+
+    file_names = tuple(doc.get("strategies", list(DEFAULT_STRATEGIES)))
+    merged: dict[str, dict] = {}
+    for s, o in options.items():
+        spelt(s, file_names, f"{where}: strategy_params")
+        if any(_same_strategy(s, n) for n in names):
+            merged.setdefault(spelt(s, names, "strategy_params"), {}).update(o)
     for s, o in (strategy_params or {}).items():
-        options[s] = {**options.get(s, {}), **o}
+        if not isinstance(o, Mapping):
+            raise ValueError(f"strategy_params[{s!r}] must map option names to values")
+        merged.setdefault(spelt(s, names, "strategy_params"), {}).update(o)
+    options = merged
     try:
         name = check_name(doc.get("name", path.stem))
     except ValueError as e:

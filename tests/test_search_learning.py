@@ -525,6 +525,18 @@ def test_default_learns_from_the_near_miss_ttc_signal():
     f = tell(jax.random.key(2), seen, idx, r, rob, hit, p)
     for x, y in zip(jax.tree.leaves(e), jax.tree.leaves(f)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    # two learners sharing the batch (learner-major: the first 8 slots are learner 0's),
+    # only the second without a collision yet: the term reaches its slots alone
+    two, p2 = search.make("reinforce/default", shape, 16, learners=2)
+    s2 = two.init(jax.random.key(0), p2)
+    idx2, s2 = two.ask(jax.random.key(1), s2, p2)
+    s2 = dataclasses.replace(s2, seen=jnp.array([True, False]))
+    tell2 = jax.jit(two.tell_outcome)
+    g2 = tell2(jax.random.key(2), s2, idx2, r, rob, hit, p2, ttc=ttc)
+    h2 = tell2(jax.random.key(2), s2, idx2, r,
+               np.where(np.arange(16) >= 8, mixed, rob).astype(np.float32), hit, p2)
+    for x, y in zip(jax.tree.leaves(g2), jax.tree.leaves(h2)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-7)
 
     class Old(base.Strategy):  # a user's strategy written before the ttc keyword
         def tell_outcome(self, key, state, indices, rewards, robustness, collision, params):

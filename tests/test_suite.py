@@ -245,6 +245,20 @@ def test_suite_strategy_options_from_the_file_and_the_command_line(tmp_path, cap
         compare.load_suite(suite, strategy_params={"anneal": {"decay": 0.9}})
     # the file's options of a strategy left out by --strategies go with it
     assert compare.load_suite(suite, strategies=("random",)).strategy_params == {}
+    # a table naming no strategy of the file is refused, not dropped; an alias is the same
+    # strategy (the options are keyed by the name the comparison runs under)
+    typo = tmp_path / "typo.toml"
+    typo.write_text('strategies = ["random", "cem"]\n[strategy_params."cme"]\nelite_frac = 0.2\n'
+                    '[[entry]]\nspace = "tiny.toml"\n')
+    with pytest.raises(ValueError, match=r"typo.toml: strategy_params: 'cme' is not among"):
+        compare.load_suite(typo)
+    alias = tmp_path / "alias.toml"
+    alias.write_text('strategies = ["reinforce"]\n[strategy_params."reinforce/default"]\n'
+                     'kappa = 0.5\n[[entry]]\nspace = "tiny.toml"\n')
+    got = compare.load_suite(alias, strategy_params={"reinforce/default": {"lr": 0.01}})
+    assert got.strategy_params == {"reinforce": {"kappa": 0.5, "lr": 0.01}}
+    built = got.compare_config(got.entries[0]).run_config("reinforce").build()
+    assert np.isclose(float(built.strategy_params.kappa), 0.5)
     bad = tmp_path / "bad.toml"
     bad.write_text('strategy_params = { cem = 3 }\n[[entry]]\nspace = "tiny.toml"\n')
     with pytest.raises(ValueError, match="strategy_params must hold a table per strategy"):
