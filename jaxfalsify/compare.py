@@ -868,22 +868,23 @@ def load_suite(path: Path | str, seeds: int | None = None,
     # `reinforce/default`); those of strategies a narrower ``strategies`` leaves out are
     # dropped; the caller's options must name strategies that run. Keys become the names
     # the comparison runs under.
-    def spelt(name, among, what):
-        for n in among:
-            if _same_strategy(name, n):
-                return n
-        raise ValueError(f"{what}: {name!r} is not among the strategies ({', '.join(among)})")
+    def run_name(name, among, what=None):  # ``among``'s spelling of ``name``
+        found = next((n for n in among if _same_strategy(name, n)), None)
+        if found is None and what:
+            raise ValueError(f"{what}: {name!r} is not among the strategies "
+                             f"({', '.join(among)})")
+        return found
 
     file_names = tuple(doc.get("strategies", list(DEFAULT_STRATEGIES)))
     merged: dict[str, dict] = {}
     for s, o in options.items():
-        spelt(s, file_names, f"{where}: strategy_params")
-        if any(_same_strategy(s, n) for n in names):
-            merged.setdefault(spelt(s, names, "strategy_params"), {}).update(o)
+        run_name(s, file_names, f"{where}: strategy_params")
+        if (n := run_name(s, names)) is not None:
+            merged.setdefault(n, {}).update(o)
     for s, o in (strategy_params or {}).items():
         if not isinstance(o, Mapping):
             raise ValueError(f"strategy_params[{s!r}] must map option names to values")
-        merged.setdefault(spelt(s, names, "strategy_params"), {}).update(o)
+        merged.setdefault(run_name(s, names, "strategy_params"), {}).update(o)
     options = merged
     try:
         name = check_name(doc.get("name", path.stem))
@@ -920,10 +921,11 @@ def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = 
             entries.append((c, name, folder))
         lk.claim("suite")
         out.mkdir(parents=True, exist_ok=True)
+        options = {k: dict(v) for k, v in config.strategy_params.items()}
         store.write_atomic(out / "config.toml", cfg.dumps_toml({
             "kind": "suite", "name": config.name, "budgets": list(config.budgets),
             "seeds": config.seeds, "strategies": list(config.strategies),
-            "strategy_params": {k: dict(v) for k, v in config.strategy_params.items()} or None,
+            "strategy_params": options or None,
             "entry": None}) + "".join(
             "\n[[entry]]\n" + cfg.dumps_toml({"space": e.space, "sut": e.sut,
                                              "space_seed": e.space_seed,
@@ -938,8 +940,7 @@ def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = 
             results.append(res)
         summary = {"suite": config.name, "budgets": list(config.budgets),
                    "seeds": config.seeds, "strategies": list(config.strategies),
-                   "strategy_params": {k: dict(v) for k, v in config.strategy_params.items()},
-                   "entries": results, "versions": cfg.versions()}
+                   "strategy_params": options, "entries": results, "versions": cfg.versions()}
         with clock("writing"):
             store.write_json(out / "suite.json", summary, indent=2)
             store.write_atomic(out / "suite.md", suite_markdown(summary) + "\n")
