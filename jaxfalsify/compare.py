@@ -879,6 +879,7 @@ def load_suite(path: Path | str, seeds: int | None = None,
     merged: dict[str, dict] = {}
     for s, o in options.items():
         run_name(s, file_names, f"{where}: strategy_params")
+        search.check_options(s, o, f'{where}: strategy_params."{s}"')  # named by file
         if (n := run_name(s, names)) is not None:
             merged.setdefault(n, {}).update(o)
     for s, o in (strategy_params or {}).items():

@@ -202,6 +202,14 @@ class RunConfig:
                             ("checkpoint_every", 1, None)):
             if key in doc:  # the file named (build() checks the same, for flags too)
                 check_int(f"{where}: {key}", doc[key], lo, hi)
+        if doc.get("strategy_params"):  # the file's options named by the file
+            try:
+                name = search.canonical(doc.get("strategy", cls.strategy))
+            except ValueError:
+                name = None  # an unknown strategy: named by build() unless a flag replaces it
+            if name is not None:
+                search.check_options(name, doc["strategy_params"],
+                                     f"{where}: [strategy_params] of '{name}'")
         return cls(**doc)
 
 

@@ -269,3 +269,13 @@ def test_suite_strategy_options_from_the_file_and_the_command_line(tmp_path, cap
                  "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "elite_frac" in err[0] and not out.exists()
+    # a bad option or value in the file's table is named by the file and the table
+    for line, what in (("elite_frac = 7.0", "elite_frac=7.0 is outside"),
+                       ("elit = 0.2", "no option 'elit'")):
+        wrong = tmp_path / "wrong.toml"
+        wrong.write_text(f'strategies = ["random", "cem"]\n[strategy_params."cem"]\n{line}\n'
+                         '[[entry]]\nspace = "tiny.toml"\n')
+        assert main(["compare", "--suite", str(wrong), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and 'wrong.toml: strategy_params."cem": ' + what in err[0], err
+        assert not out.exists()

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -151,6 +151,15 @@ def options(name: str) -> dict[str, Any]:
     return out
 
 
+def check_options(name: str, options: Mapping[str, Any], where: str | None = None) -> None:
+    """One-line ValueError (prefixed by ``where``, else the strategy's name) when ``options``
+    name an unknown option or a value of the wrong type or outside its range, without a
+    space (:func:`make` checks the same and builds)."""
+    e = REGISTRY[canonical(name)]
+    _split(e.cls, {**dict(e.options), **dict(options)},
+           where=where or f"strategy '{canonical(name)}'")
+
+
 def default_batch(name: str) -> int:
     return REGISTRY[canonical(name)].batch
 
@@ -181,5 +190,5 @@ def make(name: str, shape: tuple[int, ...], batch: int | None = None, /,
     return strat, pytree.replace(strat.default_params(), **params)
 
 
-__all__ = ["Strategy", "REGISTRY", "register", "make", "canonical", "options", "default_batch",
-           "names"]
+__all__ = ["Strategy", "REGISTRY", "register", "make", "canonical", "options", "check_options",
+           "default_batch", "names"]
