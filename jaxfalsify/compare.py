@@ -835,6 +835,12 @@ def load_suite(path: Path | str, seeds: int | None = None,
         sut_params = e.get("sut_params", {})
         if not isinstance(sut_params, dict):
             raise ValueError(f"{key}.sut_params must be a table of NAME = VALUE")
+        try:
+            resolved = sut_lib.resolve(sut)
+        except ValueError:
+            resolved = None  # an unknown SUT: named by the entry's check
+        if resolved is not None and sut_params:
+            sut_lib.with_params(resolved, sut_params, f"{key}.sut_params")
         exclude = e.get("exclude", [])
         if not isinstance(exclude, list) or not all(isinstance(x, str) for x in exclude):
             raise ValueError(f"{key}.exclude must be a list of strategy names")

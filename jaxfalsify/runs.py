@@ -202,6 +202,13 @@ class RunConfig:
                             ("checkpoint_every", 1, None)):
             if key in doc:  # the file named (build() checks the same, for flags too)
                 check_int(f"{where}: {key}", doc[key], lo, hi)
+        if doc.get("sut_params"):  # the file's SUT parameters named by the file
+            try:
+                sut = sut_lib.resolve(doc.get("sut", cls.sut))
+            except ValueError:
+                sut = None  # an unknown SUT: named by build() unless a flag replaces it
+            if sut is not None:
+                sut_lib.with_params(sut, doc["sut_params"], f"{where}: [sut_params]")
         if doc.get("strategy_params"):  # the file's options named by the file
             try:
                 name = search.canonical(doc.get("strategy", cls.strategy))
