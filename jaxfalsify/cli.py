@@ -24,8 +24,25 @@ class UsageError(Exception):
 
 
 class _Parser(argparse.ArgumentParser):
+    def __init__(self, *args, **kwargs):
+        # no prefixes of long flags: ``compare --seed 3`` must not mean ``--seeds 3``
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
     def error(self, message):  # one line, exit 2
         raise UsageError(message)
+
+
+def parse(argv=None) -> argparse.Namespace:
+    """The command line parsed; ``simulate``'s NAME=VALUE may also follow its options."""
+    args, extra = build_parser().parse_known_args(argv)
+    if args.command == "simulate":
+        values = [a for a in extra if "=" in a and not a.startswith("-")]
+        args.params = list(args.params) + values
+        extra = [a for a in extra if a not in values]
+    if extra:
+        raise UsageError(f"unrecognized arguments: {' '.join(extra)}")
+    return args
 
 
 def _int(name, minimum=0):
@@ -233,6 +250,18 @@ def _assignments(items, flag, many=False):
     return parse_assignments(items, flag, many)
 
 
+def _sut_values(items, flag="--sut-param") -> dict:
+    """``--sut-param NAME=VALUE`` for one calibration (``run``, ``compare``, ``simulate``):
+    numbers only, a list of values refused with a pointer to ``sweep``."""
+    out = _assignments(items, flag)
+    for k, v in out.items():
+        if isinstance(v, str):
+            hint = (" (a list of values is for sweep: jaxfalsify sweep --sut-param "
+                    f"{k}={v})" if "," in v else "")
+            raise UsageError(f"{flag + ' ' if flag else ''}{k}={v!r} is not a number{hint}")
+    return out
+
+
 def _per_strategy(items) -> dict:
     """``["cem:elite_frac=0.2", ...]`` -> ``{"cem": {"elite_frac": 0.2}}``."""
     out: dict = {}
@@ -307,8 +336,8 @@ def cmd_run(args, stop, startup) -> int:
             rc = _config_overridden(rc, flags)
         rc = dataclasses.replace(rc, **flags)
         if args.sut_param:
-            rc = dataclasses.replace(rc, sut_params={**rc.sut_params, **_assignments(
-                args.sut_param, "--sut-param")})
+            rc = dataclasses.replace(rc, sut_params={**rc.sut_params, **_sut_values(
+                args.sut_param)})
         if args.strategy_param:
             rc = dataclasses.replace(rc, strategy_params={**rc.strategy_params, **_assignments(
                 args.strategy_param, "--strategy-param")})
@@ -426,7 +455,7 @@ def cmd_compare(args, stop, startup) -> int:
                                    evaluations=args.evaluations or 4000,
                                    space=args.space or "paper",
                                    space_seed=args.space_seed or 0, sut=args.sut or "carla-tm",
-                                   sut_params=_assignments(args.sut_param, "--sut-param"),
+                                   sut_params=_sut_values(args.sut_param),
                                    strategy_params=_per_strategy(args.strategy_param),
                                    budgets=budgets, jobs=args.jobs or 0)
     config.check()
@@ -491,11 +520,16 @@ def cmd_simulate(args, stop, startup) -> int:
     from jaxfalsify.config import jsonable
     from jaxfalsify.space import KNOWN_PARAMETERS, check_scenario_values
 
-    scenario = {}
+    scenario, sut_values = {}, {}
     for item in args.params:
         name, eq, value = item.partition("=")
         if not eq:
             raise UsageError(f"expected NAME=VALUE, got {item!r}")
+        if name.startswith("sut.") and len(name) > 4:  # a SUT parameter, as in a space
+            if name[4:] in sut_values:
+                raise UsageError(f"{name} given twice")
+            sut_values[name[4:]] = value
+            continue
         if name not in KNOWN_PARAMETERS:
             raise UsageError(f"unknown parameter '{name}' (known: {', '.join(KNOWN_PARAMETERS)})")
         if name in scenario:
@@ -508,8 +542,13 @@ def cmd_simulate(args, stop, startup) -> int:
     from jaxfalsify import sut as sut_lib
     from jaxfalsify.config import plain
 
-    s, params = sut_lib.make(args.sut or "carla-tm",
-                             **_assignments(args.sut_param, "--sut-param"))
+    flagged = _sut_values(args.sut_param)
+    for name in sut_values:
+        if name in flagged:
+            raise UsageError(f"sut.{name} given twice (also by --sut-param)")
+    given = {**flagged, **{k[4:]: v for k, v in _sut_values(
+        [f"sut.{k}={v}" for k, v in sut_values.items()], "").items()}}
+    s, params = sut_lib.make(args.sut or "carla-tm", **given)
     out = jf.evaluate(full, sut=s, sut_params=params, key=args.seed)
     # the resolved scenario (defaults filled in, with units) and SUT beside the outcome
     print(json.dumps(jsonable({
@@ -603,7 +642,7 @@ def main(argv=None, startup: float = 0.0) -> int:
 
     stop = StopFlag().install()
     try:
-        args = build_parser().parse_args(argv)
+        args = parse(argv)
         if args.no_cache:
             os.environ["JAXFALSIFY_NO_CACHE"] = "1"
             from jaxfalsify.cache import enable_compilation_cache

@@ -202,21 +202,18 @@ class RunConfig:
                             ("checkpoint_every", 1, None)):
             if key in doc:  # the file named (build() checks the same, for flags too)
                 check_int(f"{where}: {key}", doc[key], lo, hi)
-        if doc.get("sut_params"):  # the file's SUT parameters named by the file
-            try:
-                sut = sut_lib.resolve(doc.get("sut", cls.sut))
-            except ValueError:
-                sut = None  # an unknown SUT: named by build() unless a flag replaces it
-            if sut is not None:
-                sut_lib.with_params(sut, doc["sut_params"], f"{where}: [sut_params]")
-        if doc.get("strategy_params"):  # the file's options named by the file
-            try:
-                name = search.canonical(doc.get("strategy", cls.strategy))
-            except ValueError:
-                name = None  # an unknown strategy: named by build() unless a flag replaces it
-            if name is not None:
-                search.check_options(name, doc["strategy_params"],
-                                     f"{where}: [strategy_params] of '{name}'")
+        # the file's SUT, strategy and their options named by the file (a flag may replace
+        # them later, but the file itself is wrong)
+        try:
+            sut = sut_lib.resolve(doc.get("sut", cls.sut))
+            name = search.canonical(doc.get("strategy", cls.strategy))
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
+        if doc.get("sut_params"):
+            sut_lib.with_params(sut, doc["sut_params"], f"{where}: [sut_params]")
+        if doc.get("strategy_params"):
+            search.check_options(name, doc["strategy_params"],
+                                 f"{where}: [strategy_params] of '{name}'")
         return cls(**doc)
 
 

@@ -101,6 +101,21 @@ def test_cli_simulate_prints_outcome(capsys):
     assert out["scenario"]["ego_offset"] == 9 and out["scenario"]["ped_change_step"] == 0.0
 
 
+def test_cli_simulate_takes_values_after_options_and_sut_values(capsys):
+    """NAME=VALUE after the options, and ``sut.NAME=VALUE``, give what ``jf.evaluate``
+    gives with that SUT parameter (the scenario's own outcome, not the default calibration's)."""
+    assert main(["simulate", "ego_offset=30", "--sut", "sensor-aeb", "ped_speed=1.5",
+                 "sut.ttc_full=0.4"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["scenario"]["ego_offset"] == 30 and out["scenario"]["ped_speed"] == 1.5
+    assert np.isclose(out["sut_params"]["ttc_full"], 0.4)
+    sut, params = jf.sut.make("sensor-aeb", ttc_full=0.4)
+    want = jf.evaluate({"ego_offset": 30.0, "ped_speed": 1.5}, sut=sut, sut_params=params)
+    assert np.isclose(out["outcome"]["min_distance"], float(want.min_distance))
+    default = jf.evaluate({"ego_offset": 30.0, "ped_speed": 1.5}, sut="sensor-aeb")
+    assert out["outcome"]["min_distance"] != float(default.min_distance)
+
+
 def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path):
     """``--sut-param NAME=V1,V2`` evaluates calibrations x scenarios in one compiled call;
     each calibration's rows equal a separate sweep with that value."""
