@@ -43,11 +43,14 @@ def simulate_command(sp, rc, ep: dict, row: int) -> list[str]:
             f"{int(ep['evaluation'][row])}'s; replay shows the run's own draw", cmd]
 
 
-def write_report(run_dir: Path) -> Path:
+def write_report(run_dir: Path, timing: dict | None = None) -> Path:
+    """Write ``run_dir/report.md``; ``timing``: the run's wall-time split (else read from its
+    ``timing.json``; the run itself passes it, so report.md's writing counts in timing.json)."""
     run_dir = Path(run_dir)
     sp, rc, s, ep = load_run(run_dir)
-    timing = (json.loads((run_dir / "timing.json").read_text())
-              if (run_dir / "timing.json").exists() else {})
+    if timing is None:
+        timing = (json.loads((run_dir / "timing.json").read_text())
+                  if (run_dir / "timing.json").exists() else {})
     wall = (timing_line(timing) + (f", resumed at evaluation {timing['resumed_from_evaluation']}"
                                    if timing.get("resumed_from_evaluation") else "")
             if "total_seconds" in timing else "not recorded yet")

@@ -4,6 +4,7 @@ schema, --config round trip, the closing report (bad input: test_bad_input.py)."
 import csv
 import dataclasses
 import json
+import re
 import tomllib
 
 import numpy as np
@@ -62,6 +63,11 @@ def test_run_directory_schema(random_run):
     timing = json.loads((out / "timing.json").read_text())
     parts = sum(v for k, v in timing.items() if k.endswith("_seconds") and k != "total_seconds")
     assert timing["total_seconds"] == pytest.approx(parts) and timing["compile_seconds"] > 0
+    # timing.json covers writing report.md: written after it, with a total at least the
+    # report's own (which shows the wall time up to the report)
+    assert (out / "report.md").stat().st_mtime_ns <= (out / "timing.json").stat().st_mtime_ns
+    shown = float(re.search(r"\| wall time \| ([0-9.]+) s", (out / "report.md").read_text())[1])
+    assert shown <= round(timing["total_seconds"], 1) and timing["figures_seconds"] > 0
     status = json.loads((out / "status.json").read_text())
     assert status["state"] == "complete" and status["evaluations_done"] == 70
     assert not (out / "checkpoint").exists()
