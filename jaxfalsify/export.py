@@ -65,14 +65,13 @@ import ast
 import datetime
 import math
 import operator
-import os
 import re
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from jaxfalsify import analysis
+from jaxfalsify import analysis, store
 from jaxfalsify import weather as weather_lib
 from jaxfalsify.figures import indices_of, load_run, resimulate
 from jaxfalsify.sim import STILL, WINDOW
@@ -750,7 +749,7 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
     try:
         with tempfile.TemporaryDirectory(dir=final, prefix=".export-") as tmp:
             files = _write_export(Path(tmp), sp, rc, ep, rows, which, ego, date)
-            _move_in(Path(tmp), files, final)
+            store.replace_files(files, final, is_export_file)
     except BaseException:
         for a in created:
             try:
@@ -759,28 +758,6 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
                 break
         raise
     return [final / f.name for f in files]
-
-
-def _move_in(tmp: Path, files: list[Path], final: Path) -> None:
-    """Move ``files`` (in ``tmp``, a folder inside ``final``) into ``final`` in place of an
-    earlier export's files; on a failure, put the earlier files back."""
-    backup = tmp / ".replaced"
-    backup.mkdir()
-    old, new = [], []
-    try:
-        for f in sorted(final.iterdir()):
-            if is_export_file(f.name):
-                os.replace(f, backup / f.name)
-                old.append(f.name)
-        for f in files:
-            os.replace(f, final / f.name)
-            new.append(f.name)
-    except BaseException:
-        for n in new:
-            (final / n).unlink(missing_ok=True)
-        for n in old:
-            os.replace(backup / n, final / n)
-        raise
 
 
 def _write_export(out: Path, sp, rc, ep, rows, which: str, ego: str,

@@ -109,6 +109,35 @@ def write_all_atomic(files: dict[Path, bytes]) -> None:
                 tmp.unlink()
 
 
+def replace_files(staged: list[Path], folder: Path, is_old) -> list[Path]:
+    """Publish a set of finished files ``staged`` (in a temporary folder *inside* ``folder``,
+    so every move is a rename) into ``folder`` in place of an earlier set (the files whose
+    names ``is_old(name)`` accepts): the earlier files are moved aside first, then the new
+    ones in; on a failure the new ones are removed and the earlier ones put back. Returns the
+    published paths."""
+    folder = Path(folder)
+    aside = Path(tempfile.mkdtemp(dir=staged[0].parent if staged else folder,
+                                  prefix=".replaced-"))
+    old, new = [], []
+    try:
+        for f in sorted(folder.iterdir()):
+            if f.is_file() and is_old(f.name):
+                os.replace(f, aside / f.name)
+                old.append(f.name)
+        for f in staged:
+            os.replace(f, folder / f.name)
+            new.append(f.name)
+    except BaseException:
+        for n in new:
+            (folder / n).unlink(missing_ok=True)
+        for n in old:
+            os.replace(aside / n, folder / n)
+        aside.rmdir()
+        raise
+    shutil.rmtree(aside, ignore_errors=True)  # the earlier set, replaced
+    return [folder / f.name for f in staged]
+
+
 @contextlib.contextmanager
 def _naming(path: Path):
     """An OSError without a file name (a write to an open file on a full disk) gets

@@ -619,3 +619,30 @@ def test_a_cached_program_is_not_reused_under_another_prng(tmp_path):
                             "--out", f"s{k}", "--quiet"], cwd=tmp_path, capture_output=True,
                            text=True, env={**env, "JAX_DEFAULT_PRNG_IMPL": impl})
         assert r.returncode == 0, r.stderr
+
+
+def test_replace_files_publishes_a_set_or_puts_the_earlier_one_back(tmp_path):
+    """store.replace_files (the export's swap): the earlier set goes, other files stay, the
+    new set appears; when a move fails half-way the earlier set is back byte for byte and
+    none of the new files is left."""
+    folder = tmp_path / "out"
+    folder.mkdir()
+    (folder / "a.xosc").write_text("old a")
+    (folder / "b.xosc").write_text("old b")
+    (folder / "notes.txt").write_text("mine")
+    is_old = lambda name: name.endswith(".xosc")  # noqa: E731
+    stage = Path(tempfile.mkdtemp(dir=folder, prefix=".stage-"))
+    (stage / "a.xosc").write_text("new a")
+    (stage / "c.xosc").write_text("new c")
+    got = store.replace_files([stage / "a.xosc", stage / "c.xosc"], folder, is_old)
+    assert got == [folder / "a.xosc", folder / "c.xosc"]
+    assert {p.name: p.read_text() for p in folder.iterdir() if p.is_file()} == {
+        "a.xosc": "new a", "c.xosc": "new c", "notes.txt": "mine"}
+    assert [p.name for p in stage.iterdir()] == []  # nothing left aside
+    # a staged file that is gone makes the second move fail: everything as before
+    (stage / "d.xosc").write_text("new d")
+    with pytest.raises(FileNotFoundError):
+        store.replace_files([stage / "d.xosc", stage / "missing.xosc"], folder, is_old)
+    assert {p.name: p.read_text() for p in folder.iterdir() if p.is_file()} == {
+        "a.xosc": "new a", "c.xosc": "new c", "notes.txt": "mine"}
+    assert [p.name for p in stage.iterdir()] == []
