@@ -9,7 +9,6 @@ SIGINT / SIGTERM (work committed, resumable), 1 for a failed write (disk full, p
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import signal
 import sys
@@ -285,62 +284,18 @@ def _no_flags_with_resume(args, names):
                          "(the folder's own config.toml is used)")
 
 
-def _config_overridden(rc, flags: dict):
-    """``--config`` with flags: what the config resolved for the strategy, SUT or space that
-    a flag replaces is dropped (compared by what they name: ``reinforce`` is
-    ``reinforce/default``, a SUT file by its absolute path), so the new one starts from its own
-    defaults: another strategy's options and batch, another SUT's parameters, and parameters
-    the new space varies itself (its ``sut.NAME`` dimensions)."""
-    from jaxfalsify import runs, search
-    from jaxfalsify import sut as sut_lib
-
-    def same(a, b, canon):
-        try:
-            return canon(a) == canon(b)
-        except ValueError:  # an unknown name: named when the run is built
-            return a == b
-
-    if "strategy" in flags and not same(flags["strategy"], rc.strategy, search.canonical):
-        rc = dataclasses.replace(rc, strategy_params={}, batch=None)  # --batch re-applied
-    if "sut" in flags and not same(flags["sut"], rc.sut, sut_lib.recorded_spec):
-        rc = dataclasses.replace(rc, sut_params={})
-    if "space" in flags or "space_seed" in flags:
-        if rc.sut_params:
-            sp = runs.build_space(flags.get("space", rc.space), flags.get("space_seed",
-                                                                           rc.space_seed))
-            rc = dataclasses.replace(rc, sut_params=runs.fixed_sut_params(rc.sut_params, sp))
-        try:  # a strategy whose default batch fits the space (grid) resolves it anew
-            cls = search.REGISTRY[search.canonical(rc.strategy)].cls
-        except (ValueError, KeyError, AttributeError):
-            cls = None
-        if getattr(cls, "BATCH_AT_MOST_SIZE", False):
-            rc = dataclasses.replace(rc, batch=None)  # --batch re-applied
-    return rc
-
-
-RUN_FLAGS = ("space", "space_seed", "sut", "strategy", "evaluations", "batch", "seed",
-             "checkpoint_every")
-
-
 def cmd_run(args, stop, startup) -> int:
     from jaxfalsify import runs
 
     if args.resume is not None:
-        _no_flags_with_resume(args, RUN_FLAGS + ("config", "out", "force", "sut_param",
+        _no_flags_with_resume(args, runs.SETTINGS + ("config", "out", "force", "sut_param",
                                                  "strategy_param"))
         rc, out = runs.resume_config(args.resume), args.resume
     else:
-        rc = runs.RunConfig.from_toml(args.config) if args.config else runs.RunConfig()
-        flags = {k: getattr(args, k) for k in RUN_FLAGS if getattr(args, k) is not None}
-        if args.config:
-            rc = _config_overridden(rc, flags)
-        rc = dataclasses.replace(rc, **flags)
-        if args.sut_param:
-            rc = dataclasses.replace(rc, sut_params={**rc.sut_params, **_sut_values(
-                args.sut_param)})
-        if args.strategy_param:
-            rc = dataclasses.replace(rc, strategy_params={**rc.strategy_params, **_assignments(
-                args.strategy_param, "--strategy-param")})
+        rc = runs.configure(args.config, sut_params=_sut_values(args.sut_param),
+                            strategy_params=_assignments(args.strategy_param,
+                                                         "--strategy-param"),
+                            **{k: getattr(args, k) for k in runs.SETTINGS})
         out = args.out  # None: a new folder runs/<time>-<strategy>
     o = runs.execute(rc, out, resume=args.resume is not None, force=args.force,
                      progress=_progress(args.quiet), stop=stop, figures=not args.no_figures,

@@ -218,6 +218,67 @@ class RunConfig:
 
 
 CONFIG_KEYS = {f.name for f in dataclasses.fields(RunConfig)}
+SETTINGS = ("space", "space_seed", "sut", "strategy", "evaluations", "batch", "seed",
+            "checkpoint_every")  # what configure's keywords (jaxfalsify run's flags) set
+
+
+def configure(config: RunConfig | Path | str | None = None, /, *,
+              sut_params: Mapping[str, float] | None = None,
+              strategy_params: Mapping[str, Any] | None = None, **settings) -> RunConfig:
+    """The configuration ``jaxfalsify run [--config FILE] [flags]`` runs: ``config`` (a
+    ``config.toml`` path, a :class:`RunConfig`, or None for the defaults) with ``settings``
+    (any of :data:`SETTINGS`; None values ignored) in place of its own and ``sut_params`` /
+    ``strategy_params`` merged over its own, name by name. What the config resolved for a
+    strategy, SUT or space that a setting replaces is dropped (compared by what they name:
+    ``reinforce`` is ``reinforce/default``, a SUT file by its absolute path), so the new one
+    starts from its own defaults: another strategy's options and batch, another SUT's
+    parameters, and parameters the new space varies itself (its ``sut.NAME`` dimensions).
+    One-line ValueError for a setting that is not one."""
+    unknown = sorted(set(settings) - set(SETTINGS))
+    if unknown:
+        raise ValueError(f"no run setting '{unknown[0]}' (one of {', '.join(SETTINGS)}, "
+                         "sut_params, strategy_params)")
+    settings = {k: v for k, v in settings.items() if v is not None}
+    if config is None:
+        rc = RunConfig()
+    else:
+        rc = config if isinstance(config, RunConfig) else RunConfig.from_toml(Path(config))
+        rc = _overridden(rc, settings)
+    rc = dataclasses.replace(rc, **settings)
+    if sut_params:
+        rc = dataclasses.replace(rc, sut_params={**rc.sut_params, **sut_params})
+    if strategy_params:
+        rc = dataclasses.replace(rc, strategy_params={**rc.strategy_params, **strategy_params})
+    return rc
+
+
+def _overridden(rc: RunConfig, settings: dict) -> RunConfig:
+    """``rc`` less what it resolved for the strategy, SUT or space that ``settings`` replace
+    (see :func:`configure`)."""
+    def same(a, b, canon):
+        try:
+            return canon(a) == canon(b)
+        except ValueError:  # an unknown name: named when the run is built
+            return a == b
+
+    if "strategy" in settings and not same(settings["strategy"], rc.strategy,
+                                           search.canonical):
+        rc = dataclasses.replace(rc, strategy_params={}, batch=None)  # a batch setting
+        # is applied after this
+    if "sut" in settings and not same(settings["sut"], rc.sut, sut_lib.recorded_spec):
+        rc = dataclasses.replace(rc, sut_params={})
+    if "space" in settings or "space_seed" in settings:
+        if rc.sut_params:
+            sp = build_space(settings.get("space", rc.space),
+                             settings.get("space_seed", rc.space_seed))
+            rc = dataclasses.replace(rc, sut_params=fixed_sut_params(rc.sut_params, sp))
+        try:  # a strategy whose default batch fits the space (grid) resolves it anew
+            cls = search.REGISTRY[search.canonical(rc.strategy)].cls
+        except (ValueError, KeyError, AttributeError):
+            cls = None
+        if getattr(cls, "BATCH_AT_MOST_SIZE", False):
+            rc = dataclasses.replace(rc, batch=None)  # a batch setting is applied after this
+    return rc
 
 
 def _strategy_options(b: Built) -> dict:

@@ -2,7 +2,6 @@
 schema, --config round trip, the closing report (bad input: test_bad_input.py)."""
 
 import csv
-import dataclasses
 import json
 import re
 import tomllib
@@ -147,35 +146,43 @@ def test_closing_report_and_report_md_agree(tmp_path, capsys):
 
 
 def test_config_with_flags_drops_what_the_flag_replaces(tmp_path, monkeypatch):
-    """``run --config C`` with a flag naming the same strategy or SUT another way keeps C's
-    options; another strategy starts from its own options and batch; a space that varies a
-    SUT parameter drops C's value for it (no clash with a flag that was never given)."""
+    """``runs.configure`` (``run --config C`` with flags): a setting naming the same strategy
+    or SUT another way keeps C's options; another strategy starts from its own options and
+    batch; a space that varies a SUT parameter drops C's value for it (no clash with a flag
+    that was never given); parameters merge name by name over C's; a setting that is not
+    one is refused in one line."""
     from pathlib import Path
 
     from jaxfalsify import runs
-    from jaxfalsify.cli import _config_overridden
     from jaxfalsify.sut import recorded_spec
 
     rc = runs.RunConfig(strategy="reinforce/default", strategy_params={"hidden": 8}, batch=16)
-    assert _config_overridden(rc, {"strategy": "reinforce"}) == rc  # an alias: the same
-    other = _config_overridden(rc, {"strategy": "random"})
-    assert other.strategy_params == {} and other.batch is None
+    same = runs.configure(rc, strategy="reinforce")  # an alias: the same strategy
+    assert (same.strategy, same.strategy_params, same.batch) == ("reinforce", {"hidden": 8}, 16)
+    other = runs.configure(rc, strategy="random", seed=None)  # None: not given
+    assert other == runs.RunConfig(strategy="random", batch=None)
+    assert runs.configure(rc, strategy="random", batch=50).batch == 50  # the flag still wins
+    merged = runs.configure(rc, strategy_params={"lr": 0.1})
+    assert merged.strategy_params == {"hidden": 8, "lr": 0.1} and merged.batch == 16
     monkeypatch.chdir(tmp_path)
     (tmp_path / "my_aeb.py").write_text("")
     mine = runs.RunConfig(sut=recorded_spec("my_aeb.py:AEB"), sut_params={"ttc_brake": 1.2})
-    assert _config_overridden(mine, {"sut": "my_aeb.py:AEB"}) == mine  # relative = absolute
-    assert _config_overridden(mine, {"sut": "sensor-aeb"}).sut_params == {}
+    assert runs.configure(mine, sut="my_aeb.py:AEB").sut_params == {"ttc_brake": 1.2}
+    assert runs.configure(mine, sut="sensor-aeb").sut_params == {}
     huge = Path(__file__).parents[1] / "experiments" / "suite" / "huge-aeb.toml"
     aeb = runs.RunConfig(sut="sensor-aeb", sut_params={"ttc_full": 2.0, "ttc_partial": 3.0,
                                                        "latency": 0.1})
-    moved = _config_overridden(aeb, {"space": str(huge)})
+    (tmp_path / "aeb.toml").write_text(aeb.to_toml())  # from a file, as --config reads it
+    moved = runs.configure(tmp_path / "aeb.toml", space=str(huge))
     assert moved.sut_params == {"latency": 0.1}  # the space varies ttc_full and ttc_partial
     moved.build()  # and the run builds (it was refused: "--sut-param ttc_full: the space ...")
+    # without a config every setting is applied to the defaults, nothing dropped
+    assert runs.configure(None, sut="sensor-aeb", sut_params={"latency": 0.1}) == \
+        runs.RunConfig(sut="sensor-aeb", sut_params={"latency": 0.1})
     # grid's default batch shrinks to a small space's size: another space resolves it anew
     (tmp_path / "tiny.toml").write_text(TINY_SPACE)
     grid = runs.RunConfig(strategy="grid").resolved()
     assert grid.batch == 200
-    flags = {"space": str(tmp_path / "tiny.toml")}
-    small = _config_overridden(grid, flags)
-    assert small.batch is None  # then the flags are applied, as cmd_run does
-    assert dataclasses.replace(small, **flags).build().strategy.batch == 32
+    assert runs.configure(grid, space=str(tmp_path / "tiny.toml")).build().strategy.batch == 32
+    with pytest.raises(ValueError, match="no run setting 'budget'"):
+        runs.configure(None, budget=10)
