@@ -515,36 +515,22 @@ def cmd_simulate(args, stop, startup) -> int:
     return 0
 
 
-def _run_folder_lock(run_dir: Path, what: str):
-    """The run folder's lock, held while a command writes into it (figures, report, a
-    recording): never while the run itself, or another writer, holds it."""
-    from jaxfalsify import store
-
-    if not (Path(run_dir) / "config.toml").is_file():
-        raise UsageError(f"{run_dir} is not a finished run folder (no config.toml)")
-    lk = store.lock(Path(run_dir), "run")
-    lk.claim(what)
-    return lk
-
-
 def cmd_replay(args, stop, startup) -> int:
     from jaxfalsify.replay import record, record_campaign
 
-    inside = args.save is None and not args.spawn  # the default recording is in the run folder
     if args.save is not None and Path(args.save).is_file() and not args.force:
         raise UsageError(f"--save {args.save} exists; pass --force to overwrite it")
-    guard = (lambda: _run_folder_lock(args.run_dir, "replay")) if inside else None
     if args.campaign:
         if args.scenario != "best" or args.scenarios:
             raise UsageError("--campaign records every evaluation: no --scenario/--scenarios")
         path = record_campaign(args.run_dir, save=args.save, spawn=args.spawn,
-                               window=200 if args.window is None else args.window, guard=guard)
+                               window=200 if args.window is None else args.window)
     else:
         if args.window is not None:
             raise UsageError("--window sets the sampling-distribution charts of --campaign; "
                              "without --campaign there are none")
         path = record(args.run_dir, args.scenario, save=args.save, spawn=args.spawn,
-                      overlay=args.scenarios, guard=guard)
+                      overlay=args.scenarios)
     print(f"wrote {path}" if path else "sent to the rerun viewer")
     return 0
 
@@ -568,19 +554,9 @@ def cmd_export(args, stop, startup) -> int:
 
 
 def cmd_figures(args, stop, startup) -> int:
-    from jaxfalsify.figures import load_run, make_figures
-    from jaxfalsify.report import write_report
+    from jaxfalsify import runs
 
-    # a damaged, edited or blocked folder is refused before anything is written (its lock too)
-    load_run(args.run_dir)
-    for name, folder in (("figures", True), ("report.md", False)):
-        where = Path(args.run_dir) / name
-        if where.exists() and where.is_dir() != folder:
-            raise UsageError(f"{where} is {'not ' if folder else ''}a folder; move it away to "
-                             "redraw the figures")
-    with _run_folder_lock(args.run_dir, "figures"):
-        files = make_figures(args.run_dir)
-        report = write_report(args.run_dir)
+    files, report = runs.redraw(args.run_dir)
     print(f"wrote {len(files)} figures to {args.run_dir}/figures/ and {report}")
     return 0
 

@@ -69,14 +69,21 @@ def resolve_scenario(spec: str, ep: dict, space) -> int:
     raise ValueError(f"--scenario {spec!r}: expected best, critical:K or eval:N")
 
 
-def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
-           spawn: bool = False, overlay: int = 0, guard=None):
-    """Write (or spawn a viewer with) a recording of one scenario of a run; returns the path.
-
-    ``guard``: optional callable returning a context manager held while the file is written
-    (the CLI passes the run folder's lock), entered only once every input was checked."""
+def _writing(run_dir: Path, save: Path | None, what: str):
+    """The run folder's lock (:func:`jaxfalsify.store.run_folder_lock`) while a recording is
+    written into it by default (no ``save``), taken once every input was checked; nothing
+    for a file saved elsewhere."""
     import contextlib
 
+    from jaxfalsify import store
+
+    return store.run_folder_lock(run_dir, what) if save is None else contextlib.nullcontext()
+
+
+def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
+           spawn: bool = False, overlay: int = 0):
+    """Write (or spawn a viewer with) a recording of one scenario of a run; returns the path
+    (``RUN_DIR/replay-SCENARIO.rrd`` unless ``save``: written under the run folder's lock)."""
     import rerun as rr
 
     sp, rc, summary, ep = load_run(run_dir)
@@ -92,7 +99,7 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
     check_save_path(path)
     from jaxfalsify import store
 
-    with (guard() if guard else contextlib.nullcontext()), \
+    with _writing(run_dir, save, "replay"), \
             store.atomic_path(path) as tmp:  # complete under its final name, or not at all
         rec.save(tmp)
         _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row)
@@ -208,13 +215,12 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
 
 
 def record_campaign(run_dir: Path, save: Path | None = None, spawn: bool = False,
-                    window: int = 200, guard=None):
+                    window: int = 200):
     """Write (or spawn a viewer with) a recording of a run's whole search, every evaluation on
-    the ``evaluation`` timeline (entities: see the module docstring); returns the path.
+    the ``evaluation`` timeline (entities: see the module docstring); returns the path
+    (``RUN_DIR/campaign.rrd`` unless ``save``: written under the run folder's lock).
 
     ``window``: evaluations behind each bar chart of the sampling distribution."""
-    import contextlib
-
     import rerun as rr
 
     if isinstance(window, bool) or not isinstance(window, int) or window < 1:
@@ -229,7 +235,7 @@ def record_campaign(run_dir: Path, save: Path | None = None, spawn: bool = False
     check_save_path(path)
     from jaxfalsify import store
 
-    with (guard() if guard else contextlib.nullcontext()), store.atomic_path(path) as tmp:
+    with _writing(run_dir, save, "replay"), store.atomic_path(path) as tmp:
         rec.save(tmp)
         _log_campaign(rec, sp, ep, window)
         rec.disconnect()

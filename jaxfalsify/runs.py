@@ -600,6 +600,25 @@ def _finish(b: Built, rc: RunConfig, out: Path, res: campaign.Result, ckpt, star
     return RunOutcome(out, rc, res, summary, timing)
 
 
+def redraw(run_dir: Path | str) -> tuple[list[Path], Path]:
+    """``jaxfalsify figures RUN``: draw a finished run's ``figures/`` and ``report.md`` again,
+    under the run folder's lock; a damaged, edited or blocked folder (a file where the
+    ``figures`` folder goes, a folder named ``report.md``) is refused in one line before
+    anything, the lock included, is written. Returns ``(figure paths, report path)``."""
+    from jaxfalsify.figures import load_run, make_figures
+    from jaxfalsify.report import write_report
+
+    run_dir = Path(run_dir)
+    load_run(run_dir)
+    for name, folder in (("figures", True), ("report.md", False)):
+        where = run_dir / name
+        if where.exists() and where.is_dir() != folder:
+            raise ValueError(f"{where} is {'not ' if folder else ''}a folder; move it away to "
+                             "redraw the figures")
+    with store.run_folder_lock(run_dir, "figures"):
+        return make_figures(run_dir), write_report(run_dir)
+
+
 def resume_config(out: Path | str) -> RunConfig:
     """The configuration of the run in ``out`` (for ``execute(..., resume=True)``)."""
     out = Path(out)

@@ -687,6 +687,17 @@ def write_status(out: Path, kind: str, state: str, **extra) -> None:
     write_json(Path(out) / "status.json", doc, indent=2)
 
 
+def run_folder_lock(run_dir: Path, what: str) -> FolderLock:
+    """The lock of a finished run's folder, claimed for ``what`` (``figures``, ``replay``):
+    held while a command writes into the folder, never while the run itself or another
+    writer holds it (one-line ValueError then, and for a folder that is no run)."""
+    if not (Path(run_dir) / "config.toml").is_file():
+        raise ValueError(f"{run_dir} is not a finished run folder (no config.toml)")
+    lk = lock(Path(run_dir), "run")
+    lk.claim(what)
+    return lk
+
+
 def check_out_plain(out: Path, patterns: tuple[str, ...], force: bool) -> None:
     """An output folder for files that are not a run, sweep or compare (exports): refuse a
     file in the way, a result folder, a file matching one of the glob ``patterns`` (what the

@@ -414,7 +414,7 @@ def test_a_failed_export_leaves_the_folder_as_it_was(sut_run, tmp_path, monkeypa
     import os
     from pathlib import Path
 
-    from jaxfalsify import export as ex
+    from jaxfalsify import export as ex, store
 
     def broken(*a, **k):
         raise OSError(28, "No space left on device")
@@ -446,7 +446,7 @@ def test_a_failed_export_leaves_the_folder_as_it_was(sut_run, tmp_path, monkeypa
         return real(src, dst)
 
     with monkeypatch.context() as m:
-        m.setattr(ex.os, "replace", fails_late)
+        m.setattr(store.os, "replace", fails_late)  # (the os module: store publishes)
         with pytest.raises(OSError, match="Input/output"):
             ex.export(sut_run, out, which="best", ego="replay", force=True)
     assert len(calls) == 3
