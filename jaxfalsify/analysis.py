@@ -3,7 +3,7 @@
 
 Everything works on a campaign's records: ``indices (N, P)`` int and ``fields`` ``{name: (N,)}``
 in evaluation order (row ``i`` is evaluation ``i + 1``), as a :class:`campaign.Result` holds them
-and ``episodes.parquet`` stores them (:func:`from_episodes`).
+and ``evaluations.parquet`` stores them (:func:`from_evaluations`).
 """
 
 from __future__ import annotations
@@ -101,8 +101,8 @@ def distinct_critical(indices: np.ndarray, fields: dict) -> list[dict]:
             for j in order]
 
 
-def from_episodes(ep: dict, space) -> tuple[np.ndarray, dict]:
-    """``(indices (N, P), fields)`` from ``episodes.parquet`` columns."""
+def from_evaluations(ep: dict, space) -> tuple[np.ndarray, dict]:
+    """``(indices (N, P), fields)`` from ``evaluations.parquet`` columns."""
     idx = np.stack([np.asarray(ep[f"{n}_idx"]) for n in space.names], -1).astype(np.int32)
     return idx, ep
 

@@ -42,7 +42,7 @@ class Plan(NamedTuple):
     batch: int  # scenarios per update
     n_updates: int  # updates to spend the budget
     updates_per_chunk: int  # updates per compiled call (progress, checkpoints, stop checks)
-    budget: int  # evaluations
+    evaluations: int  # the budget, in evaluated scenarios
 
     @property
     def n_chunks(self) -> int:
@@ -52,21 +52,22 @@ class Plan(NamedTuple):
 
     def done_after(self, chunks: int) -> int:
         """Evaluations committed after ``chunks`` chunks."""
-        return min(chunks * self.updates_per_chunk * self.batch, self.budget)
+        return min(chunks * self.updates_per_chunk * self.batch, self.evaluations)
 
 
-def plan(budget: int, batch: int, chunks_target: int = 20, every: int | None = None) -> Plan:
+def plan(evaluations: int, batch: int, chunks_target: int = 20,
+         every: int | None = None) -> Plan:
     """Updates needed for the budget, and a chunking of them for progress and checkpoints:
     about ``chunks_target`` chunks, or at most ``every`` updates per chunk. A divisor of the
     updates when one is at least half that length; else chunks of equal length whose last
     one runs past the budget (at most one update per chunk wasted; a prime number of updates
     still gives about ``chunks_target`` chunks). Results do not depend on the chunking (the
     same update function is scanned, and updates past the budget change nothing)."""
-    if isinstance(budget, bool) or not isinstance(budget, int) or budget <= 0:
-        raise ValueError(f"evaluations must be a positive integer (got {budget!r})")
+    if isinstance(evaluations, bool) or not isinstance(evaluations, int) or evaluations <= 0:
+        raise ValueError(f"evaluations must be a positive integer (got {evaluations!r})")
     if isinstance(batch, bool) or not isinstance(batch, int) or batch <= 0:
         raise ValueError(f"batch must be a positive integer (got {batch!r})")
-    n_updates = -(-budget // batch)
+    n_updates = -(-evaluations // batch)
     want = min(every, n_updates) if every else max(1, n_updates // chunks_target)
     per = want
     while n_updates % per:
@@ -74,7 +75,7 @@ def plan(budget: int, batch: int, chunks_target: int = 20, every: int | None = N
     if 2 * per < want:  # no divisor near the length wanted: equal chunks, the last partial
         n_chunks = -(-n_updates // want)
         per = -(-n_updates // n_chunks)  # (<= want; n_chunks * per - n_updates < n_chunks)
-    return Plan(batch, n_updates, per, budget)
+    return Plan(batch, n_updates, per, evaluations)
 
 
 class Args(NamedTuple):
@@ -84,15 +85,16 @@ class Args(NamedTuple):
     sut_params: Any  # the SUT's parameter pytree
     strategy_params: Any  # the strategy's hyperparameter pytree
     world: sim.World
-    budget: jax.Array  # () int32, evaluations
+    evaluations: jax.Array  # () int32, the budget
 
 
-def args_for(space: Space, sut_params, strategy_params, world: sim.World, budget: int) -> Args:
+def args_for(space: Space, sut_params, strategy_params, world: sim.World,
+             evaluations: int) -> Args:
     """The traced inputs, as host arrays (float32 parameters, int32 budget)."""
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     return Args(space.table_array, jax.tree.map(f32, sut_params),
                 jax.tree.map(f32, strategy_params), jax.tree.map(f32, world),
-                np.int32(budget))
+                np.int32(evaluations))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -138,7 +140,7 @@ def make_campaign(c: Campaign):
         evaluation = carry["update"] * B + jnp.arange(B, dtype=jnp.int32)
         out, _ = sim.batch_rollout(c.layout.scenario(idx, args.table), evaluation,
                                    carry["eval_key"], c.sut, args.sut_params, args.world)
-        in_budget = evaluation < args.budget
+        in_budget = evaluation < args.evaluations
         r = jnp.where(jnp.isnan(out.reward) | ~in_budget, -jnp.inf, out.reward)
         counted = in_budget & ~out.nonfinite
         rob = jnp.where(counted & jnp.isfinite(out.robustness), out.robustness, jnp.inf)
@@ -149,7 +151,7 @@ def make_campaign(c: Campaign):
         new = {**carry, "state": state, "key": key, "update": carry["update"] + 1}
         # an update past the budget (the last chunk's tail when the chunk length does not
         # divide the updates) leaves the carry as it was; its records are dropped (collect)
-        active = carry["update"] * B < args.budget
+        active = carry["update"] * B < args.evaluations
         return jax.tree.map(lambda n, o: jnp.where(active, n, o), new, carry), rec
 
     def run_chunk(carry, args: Args):
@@ -268,8 +270,8 @@ def collect(records: list[dict], space: Space, p: Plan, compile_s: float = 0.0,
     cat = {k: np.concatenate([h[k] for h in host], axis=1) for k in host[0]}
 
     def one(c):
-        idx = c["indices"].reshape(-1, len(space.shape))[: p.budget]
-        fields = {f: c[f].reshape(-1)[: p.budget] for f in RECORD_FIELDS}
+        idx = c["indices"].reshape(-1, len(space.shape))[: p.evaluations]
+        fields = {f: c[f].reshape(-1)[: p.evaluations] for f in RECORD_FIELDS}
         return Result(space, p.batch, idx.astype(np.int32), fields, compile_s, search_s)
 
     return [one({k: v[s] for k, v in cat.items()}) for s in range(cat["reward"].shape[0])]
@@ -336,7 +338,7 @@ def run_seeds(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy,
     chunk on the host (see :func:`drive` for the keywords). A resumed campaign gives
     bit-identical results to an uninterrupted one: the carry (strategy and optimiser state,
     PRNG keys, update count) is restored exactly and the same compiled chunk continues."""
-    args = args_for(space, sut_params, strategy_params, world, p.budget)
+    args = args_for(space, sut_params, strategy_params, world, p.evaluations)
     prog = program(Campaign(space.layout, sut, strategy, p.updates_per_chunk), args,
                    len(seeds))
     records, compile_s, search_s = drive(prog, list(seeds), args, p, **drive_kw)
@@ -353,7 +355,7 @@ def run(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy, strategy
 def carry_avals(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy,
                 strategy_params, p: Plan, world: sim.World = sim.WORLD, n_seeds: int = 1):
     """Shapes and dtypes of a campaign's carry leaves (what a checkpoint must hold)."""
-    args = args_for(space, sut_params, strategy_params, world, p.budget)
+    args = args_for(space, sut_params, strategy_params, world, p.evaluations)
     return program(Campaign(space.layout, sut, strategy, p.updates_per_chunk), args,
                    n_seeds).in_avals[0]
 

@@ -302,7 +302,7 @@ def cmd_run(args, stop, startup) -> int:
                      rerun=args.rerun, startup_seconds=startup)
     if not args.quiet:
         print(runs.closing_report(o))
-    print(f"wrote {o.out}/ (config.toml, episodes.parquet, summary.json, critical.csv, "
+    print(f"wrote {o.out}/ (config.toml, evaluations.parquet, summary.json, critical.csv, "
           f"timing.json{'' if args.no_figures else ', figures/, report.md'}"
           f"{', best.rrd' if args.rerun else ''})")
     return _late_signal(stop)
@@ -345,32 +345,16 @@ def cmd_sweep(args, stop, startup) -> int:
             **{k: getattr(args, k) for k in ("space", "space_seed", "sut", "seed", "chunk",
                                              "rows") if getattr(args, k) is not None},
             sut_params=_assignments(args.sut_param, "--sut-param", many=True))
-        space, _ = config.build()
-        out = args.out or sweep.default_out(space, config.sut, config.space_seed)
+        out = args.out  # None: sweeps/<space>-<sut>-s<space seed>
     pid, n_proc = _start_distributed(args)
     s = sweep.execute(config, out, resume=args.resume is not None, force=args.force,
                       progress=_progress(args.quiet), stop=stop, process_id=pid,
                       num_processes=n_proc, startup_seconds=startup)
     if pid != 0:
-        print(f"process {pid}: done ({out})")
+        print(f"process {pid}: done ({s['out']})")
         return 0
-    rows = s.get("calibrations") or [s]
-    for r in rows:
-        label = ("calibration " + ", ".join(f"{k}={r[k]:g}" for k in r if k in
-                                            dict(config.sut_params)) + ": ") if "calibration" in r else ""
-        head = (f"{label}{r['n_scenarios']:,} scenarios, {r['n_collisions']:,} collisions "
-                f"({r['collision_rate']:.3g}); ")
-        if r["global_max_reward"] is None:
-            print(head + f"no finite reward: all {r['n_nonfinite']:,} rollouts non-finite (the "
-                  "SUT returned NaN or inf)")
-            continue
-        best = r["global_max_scenario"] or {}
-        print(head + f"global maximum reward {r['global_max_reward']:.4f}"
-              f" reached by {r['global_max_ties']} scenario(s), first at "
-              + ", ".join(f"{k}={v:g}" for k, v in best.get("values", {}).items()))
-    from jaxfalsify.progress import timing_line
-    print(f"wall time {timing_line(s)}")
-    print(f"wrote {out}/{', '.join(s['parts'] + ['summary.json', 'timing.json', 'config.toml'])}")
+    for line in sweep.summary_lines(s):
+        print(line)
     return _late_signal(stop)
 
 
@@ -405,14 +389,12 @@ def cmd_compare(args, stop, startup) -> int:
             budgets = tuple(int(b) for b in args.budgets.split(",") if b.strip())
         except ValueError:
             raise UsageError(f"--budgets {args.budgets!r}: comma-separated integers") from None
-    config = compare.CompareConfig(strategies=names or compare.DEFAULT_STRATEGIES,
-                                   seeds=args.seeds or 10,
-                                   evaluations=args.evaluations or 4000,
-                                   space=args.space or "paper",
-                                   space_seed=args.space_seed or 0, sut=args.sut or "carla-tm",
+    given = {k: getattr(args, k) for k in ("seeds", "evaluations", "space", "space_seed", "sut",
+                                           "jobs") if getattr(args, k) is not None}
+    config = compare.CompareConfig(**given, **({"strategies": names} if names else {}),
                                    sut_params=_sut_values(args.sut_param),
                                    strategy_params=_per_strategy(args.strategy_param),
-                                   budgets=budgets, jobs=args.jobs or 0)
+                                   budgets=budgets)
     config.check()
     pid, n_proc = _start_distributed(args)
     result = compare.execute(config, args.out, force=args.force, progress=_progress(args.quiet),

@@ -222,7 +222,6 @@ def strategy_row(name: str, stats: list[dict], truth: dict, wall: float) -> dict
             "first_collision_median": float(q[1]),
             "first_collision_iqr": [float(q[0]), float(q[2])],
             "best_normalised_median": best_norm,
-            "best_over_global_max_median": best_norm,  # the former name: the same figure
             "seeds_reaching_global_max": (None if any(s["reached_global_max"] is None
                                                       for s in stats) else
                                           int(sum(s["reached_global_max"] for s in stats))),
@@ -394,7 +393,7 @@ def _search_side_by_side(builds, seeds: list[int], jobs: int, progress: Progress
     lock = threading.Lock()
     done: dict[str, int] = {}
     finished: list[str] = []
-    total = sum(b.plan.budget for _, b in builds)  # evaluations per seed, all strategies
+    total = sum(b.plan.evaluations for _, b in builds)  # evaluations per seed, all strategies
     bar = {"started": False}
 
     def halted() -> bool:

@@ -736,7 +736,7 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
     if which == "best":
         rows = [analysis.best(ep)]
     else:
-        rows = [c["row"] for c in analysis.distinct_critical(*analysis.from_episodes(ep, sp))]
+        rows = [c["row"] for c in analysis.distinct_critical(*analysis.from_evaluations(ep, sp))]
         if not rows:
             raise ValueError(f"{run_dir}: the run found no critical scenario to export")
     date = run_date(run_dir)

@@ -2,7 +2,7 @@
 
 Host-side only (matplotlib, Agg backend); the jitted core never imports this module.
 
-* ``reward_per_episode.png`` — reward per evaluation and its moving average (paper Fig. 6);
+* ``reward_per_evaluation.png`` — reward per evaluation and its moving average (paper Fig. 6);
 * ``distance_challenging.png`` — distance over time of the best critical scenario and of a
   typical non-critical one, high-risk steps red, low-risk green, the < 1 m collision zone
   shaded (paper Fig. 7);
@@ -121,13 +121,13 @@ def _bottom_legend(fig, handles=None, labels=None, ncol=2):
 
 
 def load_run(run_dir: Path):
-    """(space, resolved config, summary, episodes columns) of a finished run folder."""
+    """(space, resolved config, summary, evaluations columns) of a finished run folder."""
     import pyarrow.parquet as pq
 
     from jaxfalsify.runs import RunConfig
 
     run_dir = Path(run_dir)
-    missing = [f for f in ("config.toml", "summary.json", "episodes.parquet")
+    missing = [f for f in ("config.toml", "summary.json", "evaluations.parquet")
                if not (run_dir / f).exists()]
     if missing:
         raise ValueError(f"{run_dir} is not a finished run folder (missing "
@@ -146,7 +146,7 @@ def load_run(run_dir: Path):
     gone = [k for k in need if not isinstance(summary, dict) or k not in summary]
     if gone:
         raise ValueError(f"{where} is damaged (no '{gone[0]}')")
-    where = run_dir / "episodes.parquet"
+    where = run_dir / "evaluations.parquet"
     try:
         ep = {k: np.asarray(v) for k, v in pq.read_table(where).to_pydict().items()}
     except Exception as e:  # pyarrow raises several kinds for a damaged file
@@ -169,7 +169,7 @@ def load_run(run_dir: Path):
 def check_config_matches(run_dir: Path, sp, rc, summary: dict, ep: dict) -> None:
     """ValueError (one line) where the folder's ``config.toml`` no longer describes its
     results (edited after the run): the seeds, strategy and SUT that ``summary.json`` records,
-    and every evaluated scenario's values in ``episodes.parquet`` against the space the config
+    and every evaluated scenario's values in ``evaluations.parquet`` against the space the config
     builds at their recorded indices."""
     for key in ("space_seed", "seed", "strategy", "sut"):
         if summary[key] != getattr(rc, key):
@@ -184,7 +184,7 @@ def check_config_matches(run_dir: Path, sp, rc, summary: dict, ep: dict) -> None
             j = int(np.argmax(bad))
             raise ValueError(f"{run_dir}/config.toml does not match the run's results: {n} of "
                              f"evaluation {int(ep['evaluation'][j])} is {got[j]:g} in "
-                             f"episodes.parquet but {want[j]:g} in the space config.toml "
+                             f"evaluations.parquet but {want[j]:g} in the space config.toml "
                              "builds (edited after the run?)")
 
 
@@ -336,7 +336,7 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
     ax.set_title(f"{rc.strategy} on {sp.name}, {rc.sut}, seed {rc.seed}")
     _bottom_legend(fig, ncol=2)
     place()
-    save(fig, "reward_per_episode.png")
+    save(fig, "reward_per_evaluation.png")
 
     # every scenario shown below, simulated in one call
     rows = pick(ep)

@@ -61,7 +61,7 @@ def resolve_scenario(spec: str, ep: dict, space) -> int:
             raise ValueError(f"--scenario {spec}: the run has evaluations 1..{len(ep['evaluation'])}")
         return n - 1
     if kind == "critical":
-        crit = analysis.distinct_critical(*analysis.from_episodes(ep, space))
+        crit = analysis.distinct_critical(*analysis.from_evaluations(ep, space))
         if not 1 <= n <= len(crit):
             raise ValueError(f"--scenario {spec}: the run found {len(crit)} distinct "
                              "critical scenarios")

@@ -12,7 +12,7 @@ from jaxfalsify import analysis, store
 from jaxfalsify.figures import load_run
 from jaxfalsify.progress import timing_line
 
-FIGURES = [("reward_per_episode.png", "Reward per evaluation (paper Fig. 6)"),
+FIGURES = [("reward_per_evaluation.png", "Reward per evaluation (paper Fig. 6)"),
            ("distance_challenging.png", "Distance over time, best critical vs typical "
             "non-critical; red = high-risk (paper Fig. 7)"),
            ("high_risk_second_half.png", "High-risk share in the second half (paper Fig. 8)"),
@@ -54,7 +54,7 @@ def write_report(run_dir: Path, timing: dict | None = None) -> Path:
     wall = (timing_line(timing) + (f", resumed at evaluation {timing['resumed_from_evaluation']}"
                                    if timing.get("resumed_from_evaluation") else "")
             if "total_seconds" in timing else "not recorded yet")
-    idx, fields = analysis.from_episodes(ep, sp)
+    idx, fields = analysis.from_evaluations(ep, sp)
     b = analysis.best(fields)
     fc = s["first_collision_evaluation"]
     lines = [f"# Falsification run `{run_dir.name}`", "",
@@ -91,7 +91,7 @@ def write_report(run_dir: Path, timing: dict | None = None) -> Path:
               f"jaxfalsify replay {run_dir} --scenario best --scenarios 14",
               f"jaxfalsify export {run_dir} --scenario best --out {run_dir}/openscenario",
               *simulate_command(sp, rc, ep, b), "```", "",
-              f"Files: `config.toml` (resolved configuration), `episodes.parquet` (every "
+              f"Files: `config.toml` (resolved configuration), `evaluations.parquet` (every "
               f"evaluated scenario), `summary.json`, `critical.csv` "
               f"({int(np.sum(analysis.collided(fields)))} collisions, distinct ones ranked by "
               "reward).", ""]

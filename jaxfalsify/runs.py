@@ -6,7 +6,7 @@ A run folder holds:
   strategy's full parameter sets), so ``jaxfalsify run --config RUN/config.toml`` repeats it;
 * ``status.json`` — ``running``, ``interrupted`` or ``complete``, and how to resume;
 * ``checkpoint/`` — while the run is unfinished (see :class:`jaxfalsify.store.CampaignCheckpoint`);
-* ``episodes.parquet`` — every evaluated concrete scenario;
+* ``evaluations.parquet`` — every evaluated concrete scenario;
 * ``summary.json`` — the run's outcome, bit-identical between runs of the same config and seed;
 * ``critical.csv`` — the distinct collision scenarios found, ranked by reward;
 * ``timing.json`` — wall time from start to exit, split into start-up, compile, search,
@@ -291,7 +291,7 @@ def _strategy_options(b: Built) -> dict:
 
 
 # ----------------------------------------------------------------------------- outputs
-def episodes_table(res: campaign.Result) -> dict[str, np.ndarray]:
+def evaluations_table(res: campaign.Result) -> dict[str, np.ndarray]:
     cols: dict[str, np.ndarray] = {"evaluation": res.evaluation, "update": res.update}
     for p, name in enumerate(res.space.names):
         cols[f"{name}_idx"] = res.indices[:, p]
@@ -372,7 +372,7 @@ def check_memory(b: Built) -> None:
     cfg.check_memory(b.plan.batch * SCENARIO_BYTES + records + state,
                      f"a batch of {b.plan.batch} scenarios", "lower --batch")
     # every evaluation's record is kept on the host, then tabulated (twice the records)
-    cfg.check_memory(b.plan.budget * per_eval * 2, f"{b.plan.budget} evaluations",
+    cfg.check_memory(b.plan.evaluations * per_eval * 2, f"{b.plan.evaluations} evaluations",
                      "lower --evaluations")
 
 
@@ -519,22 +519,22 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
             store.clear(out, "run")
         out.mkdir(parents=True, exist_ok=True)
         store.write_atomic(out / "config.toml", rc.to_toml())
-    store.write_status(out, "run", "running", evaluations=b.plan.budget,
+    store.write_status(out, "run", "running", evaluations=b.plan.evaluations,
                        resumed_from_evaluation=start_from)
     if start_from:
-        progress.message(f"resuming {out} at evaluation {start_from} of {b.plan.budget}")
+        progress.message(f"resuming {out} at evaluation {start_from} of {b.plan.evaluations}")
     try:
         t0 = time.perf_counter()
         progress.phase(f"compiling {rc.strategy} x {rc.sut} on {b.space.name}")
         campaign.program(campaign.Campaign(b.space.layout, b.sut, b.strategy,
                                            b.plan.updates_per_chunk),
                          campaign.args_for(b.space, b.sut_params, b.strategy_params, WORLD,
-                                           b.plan.budget), 1)  # export (or load) the program
+                                           b.plan.evaluations), 1)  # export (or load) the program
         clock.add("compile", time.perf_counter() - t0)
         # then, while XLA compiles it (without the GIL), prepare the figures in the background
         prep = _Preparing(b) if figures else None
         res = campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan,
-                           rc.seed, progress=_stats_progress(progress, b.plan.budget,
+                           rc.seed, progress=_stats_progress(progress, b.plan.evaluations,
                                                              f"{rc.strategy} on {b.space.name}",
                                                              start_from),
                            checkpoint=ckpt, resumed=resumed, stop=stop)
@@ -544,13 +544,13 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
         progress.close()
         done = ckpt.evaluations_done()
         store.write_status(out, "run", "interrupted", evaluations_done=done,
-                           evaluations=b.plan.budget)
-        raise Interrupted("run", out, done, b.plan.budget, "evaluations") from None
+                           evaluations=b.plan.evaluations)
+        raise Interrupted("run", out, done, b.plan.evaluations, "evaluations") from None
     except BaseException as e:
         progress.close()
         try:  # status.json tells the truth: the search failed
             store.write_status(out, "run", "failed", evaluations_done=ckpt.evaluations_done(),
-                               evaluations=b.plan.budget,
+                               evaluations=b.plan.evaluations,
                                error=f"{type(e).__name__}: {e}"[:300])
         except OSError:
             pass
@@ -574,7 +574,7 @@ def _finish(b: Built, rc: RunConfig, out: Path, res: campaign.Result, ckpt, star
     """Write the results, figures, timing, and finally ``status.json`` = complete."""
     with clock("writing"):
         summary = summary_dict(res, rc)
-        store.write_parquet(out / "episodes.parquet", episodes_table(res))
+        store.write_parquet(out / "evaluations.parquet", evaluations_table(res))
         store.write_atomic(out / "critical.csv", critical_csv(res))
         store.write_json(out / "summary.json", summary, indent=2)
     if figures:

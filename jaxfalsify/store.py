@@ -381,7 +381,7 @@ class FolderError(ValueError):
 
 
 RESULT_FILES = {
-    "run": ("episodes.parquet", "summary.json", "critical.csv", "timing.json", "report.md",
+    "run": ("evaluations.parquet", "summary.json", "critical.csv", "timing.json", "report.md",
             "best.rrd"),
     "sweep": ("sweep.parquet", "summary.json", "timing.json"),
     "compare": ("compare.json", "compare.md", "timing.json"),

@@ -429,6 +429,33 @@ class SweepConfig:
             raise ValueError(f"{path}: {e}") from None
 
 
+def summary_lines(s: dict) -> list[str]:
+    """What a finished sweep found, in words (``jaxfalsify sweep``'s closing lines), from
+    :func:`execute`'s result ``s``: per calibration the collisions and the global maximum
+    with its first scenario, the wall time and the files written."""
+    from jaxfalsify.progress import timing_line
+
+    lines = []
+    for r in s.get("calibrations") or [s]:
+        label = ("calibration " + ", ".join(f"{k}={r[k]:g}" for k in r  # the swept ones
+                                            if k in r.get("sut_params", {})) + ": "
+                 if "calibration" in r else "")
+        head = (f"{label}{r['n_scenarios']:,} scenarios, {r['n_collisions']:,} collisions "
+                f"({r['collision_rate']:.3g}); ")
+        if r["global_max_reward"] is None:
+            lines.append(head + f"no finite reward: all {r['n_nonfinite']:,} rollouts "
+                         "non-finite (the SUT returned NaN or inf)")
+            continue
+        best = r["global_max_scenario"] or {}
+        lines.append(head + f"global maximum reward {r['global_max_reward']:.4f} reached by "
+                     f"{r['global_max_ties']} scenario(s), first at "
+                     + ", ".join(f"{k}={v:g}" for k, v in best.get("values", {}).items()))
+    lines.append(f"wall time {timing_line(s)}")
+    lines.append(f"wrote {s['out']}/"
+                 f"{', '.join(s['parts'] + ['summary.json', 'timing.json', 'config.toml'])}")
+    return lines
+
+
 def default_out(space: Space, sut_name: str, space_seed: int) -> Path:
     sut = sut_lib.folder_name(sut_name)
     return Path("sweeps") / f"{space.name}-{sut}-s{space_seed}"  # names hold no / (check_name)

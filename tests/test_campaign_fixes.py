@@ -138,7 +138,7 @@ def test_a_prime_number_of_updates_still_gives_few_chunks(n_updates, every):
     assert p.n_chunks * p.updates_per_chunk >= n_updates  # every update is run
     assert p.n_chunks <= -(-n_updates // want) * 2  # never one update per chunk for a prime
     assert p.n_chunks * p.updates_per_chunk - n_updates < p.n_chunks  # little wasted
-    assert p.done_after(p.n_chunks) == p.budget
+    assert p.done_after(p.n_chunks) == p.evaluations
 
 
 @pytest.mark.parametrize("strategy", ["random", "reinforce/default"])
@@ -159,9 +159,9 @@ def test_a_partial_last_chunk_changes_no_result_and_resumes(tmp_path, strategy):
                  figures=False)
     import pyarrow.parquet as pq
 
-    ref = pq.read_table(tmp_path / "every" / "episodes.parquet")
+    ref = pq.read_table(tmp_path / "every" / "evaluations.parquet")
     for name in ("chunked", "resumed"):
-        assert pq.read_table(tmp_path / name / "episodes.parquet").equals(ref), name
+        assert pq.read_table(tmp_path / name / "evaluations.parquet").equals(ref), name
         for f in ("summary.json", "critical.csv"):
             assert (tmp_path / name / f).read_bytes() == (tmp_path / "every" / f).read_bytes()
 

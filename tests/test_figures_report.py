@@ -9,7 +9,7 @@ import pytest
 from conftest import grid_run
 from jaxfalsify.cli import main
 
-SIZES = {"reward_per_episode.png": (500, 800), "distance_challenging.png": (500, 1200),
+SIZES = {"reward_per_evaluation.png": (500, 800), "distance_challenging.png": (500, 1200),
          "high_risk_second_half.png": (450, 500), "distance_14_scenarios.png": (500, 800)}
 
 
@@ -88,7 +88,7 @@ def test_report_links_resolve_and_table_matches_summary(run_with_figures):
 
 
 def test_figures_command_regenerates_and_rejects_non_runs(run_with_figures, tmp_path, capsys):
-    target = run_with_figures / "figures" / "reward_per_episode.png"
+    target = run_with_figures / "figures" / "reward_per_evaluation.png"
     target.unlink()
     assert main(["figures", str(run_with_figures)]) == 0
     assert target.is_file()
@@ -161,7 +161,7 @@ def test_replay_recording_reads_back_with_simulated_values(run_with_figures, tmp
                 "/overlay/0/distance"):
         assert ent in cols, ent
     # the logged series are the simulation of the run's best scenario
-    ep = pq.read_table(run_with_figures / "episodes.parquet").to_pydict()
+    ep = pq.read_table(run_with_figures / "evaluations.parquet").to_pydict()
     sp = jf.load_space("paper")
     r = np.asarray(ep["reward"])
     best = int(np.argmax(r))
@@ -213,7 +213,7 @@ def test_campaign_recording_holds_every_evaluation_and_the_sampling_distribution
     assert main(["replay", str(run_with_figures), "--campaign", "--window", "50",
                  "--save", str(f)]) == 0
     cols = _read_rrd(f)
-    ep = pq.read_table(run_with_figures / "episodes.parquet").to_pydict()
+    ep = pq.read_table(run_with_figures / "evaluations.parquet").to_pydict()
     sp = jf.load_space("paper")
     rewards = np.concatenate([np.ravel(x) for x in _column(cols["/campaign/reward"],
                                                             "Scalars:scalars")])
@@ -267,7 +267,7 @@ def test_export_validates_against_the_xsd_and_matches_the_trajectory(run_with_fi
     assert main(["export", str(run_with_figures), "--scenario", "critical", "--ego", "replay",
                  "--out", str(out)]) == 0
     xosc_files = sorted(out.glob("critical_*.xosc"))
-    ep = pq.read_table(run_with_figures / "episodes.parquet").to_pydict()
+    ep = pq.read_table(run_with_figures / "evaluations.parquet").to_pydict()
     sp = jf.load_space("paper")
     idx = np.stack([ep[f"{n}_idx"] for n in sp.names], -1)[np.asarray(ep["collision"])]
     assert len(xosc_files) == len({tuple(i) for i in idx}) > 0
@@ -338,9 +338,9 @@ def test_export_controller_parameters_reproduce_the_run(run_with_figures, tmp_pa
                  "--out", str(out)]) == 0
     assert not (out / "template.xosc").exists()
     sp, rc, _, _ = load_run(run_with_figures)
-    ep = pq.read_table(run_with_figures / "episodes.parquet").to_pydict()
+    ep = pq.read_table(run_with_figures / "evaluations.parquet").to_pydict()
     rows = _xosc_rows(out)
-    assert len(rows) == len(analysis.distinct_critical(*analysis.from_episodes(
+    assert len(rows) == len(analysis.distinct_critical(*analysis.from_evaluations(
         {k: np.asarray(v) for k, v in ep.items()}, sp))) > 0
     xsd = schema("xosc")
     w = jf.WORLD
@@ -490,7 +490,7 @@ def test_export_force_replaces_the_earlier_export(run_with_figures, tmp_path):
     from jaxfalsify.figures import load_run
 
     sp, _, _, ep = load_run(run_with_figures)
-    n_crit = len(analysis.distinct_critical(*analysis.from_episodes(ep, sp)))
+    n_crit = len(analysis.distinct_critical(*analysis.from_evaluations(ep, sp)))
     out = tmp_path / "osc"
     assert main(["export", str(run_with_figures), "--scenario", "critical", "--out",
                  str(out)]) == 0
@@ -545,7 +545,7 @@ def test_figures_and_recordings_are_readable_like_other_files(run_with_figures, 
     umask = os.umask(0)
     os.umask(umask)
     want = 0o666 & ~umask
-    assert mode(run_with_figures / "figures" / "reward_per_episode.png") == want
+    assert mode(run_with_figures / "figures" / "reward_per_evaluation.png") == want
     assert mode(run_with_figures / "report.md") == want
     assert main(["replay", str(run_with_figures), "--scenario", "best",
                  "--save", str(tmp_path / "best.rrd")]) == 0
@@ -577,7 +577,7 @@ def test_export_writes_explicit_values_as_written(tmp_path):
                    '[parameters.ped_speed]\nvalues = [1.1335, 1.2375]\n', 4, "--no-figures")
     assert main(["export", str(run), "--scenario", "critical", "--out",
                  str(tmp_path / "x")]) == 0
-    ep = pq.read_table(run / "episodes.parquet").to_pydict()
+    ep = pq.read_table(run / "evaluations.parquet").to_pydict()
     hits = [i for i, c in enumerate(ep["collision"]) if c]
     assert hits
     files = sorted((tmp_path / "x").glob("critical_*.xosc"))
@@ -611,7 +611,7 @@ def test_a_run_where_everything_collided_shows_no_typical_scenario(tmp_path, mon
                    'name = "allcol"\n[parameters.ego_offset]\nvalues = [7]\n'
                    '[parameters.ped_accel]\nvalues = [0.035, 0.081]\n[parameters.ped_speed]\n'
                    'values = [1.133]\n[parameters.ped_offset]\nvalues = [3]\n', 2)
-    assert all(pq.read_table(run / "episodes.parquet").to_pydict()["collision"])
+    assert all(pq.read_table(run / "evaluations.parquet").to_pydict()["collision"])
     titles = [t for ts, _ in seen.values() for t in ts]
     assert "challenging (best)" in titles and "non-challenging (typical)" not in titles
     bars = [ticks for ts, ticks in seen.values() if "challenging" in ticks]
@@ -621,8 +621,8 @@ def test_a_run_where_everything_collided_shows_no_typical_scenario(tmp_path, mon
 @pytest.mark.parametrize("damage, message", [
     ("summary_empty", "summary.json is damaged (no 'first_collision_evaluation')"),
     ("summary_not_json", "summary.json is damaged (Expecting value"),
-    ("no_reward", "episodes.parquet is damaged (no column 'reward')"),
-    ("no_rows", "episodes.parquet holds no evaluation"),
+    ("no_reward", "evaluations.parquet is damaged (no column 'reward')"),
+    ("no_rows", "evaluations.parquet holds no evaluation"),
     ("index_out_of_range", "column 'ped_speed_idx' outside 0..24"),
 ])
 def test_a_damaged_run_folder_gets_one_line_and_nothing_redrawn(run_with_figures, tmp_path,
@@ -636,7 +636,7 @@ def test_a_damaged_run_folder_gets_one_line_and_nothing_redrawn(run_with_figures
 
     run = tmp_path / "run"
     shutil.copytree(run_with_figures, run)
-    eps = run / "episodes.parquet"
+    eps = run / "evaluations.parquet"
     t = pq.read_table(eps)
     if damage == "summary_empty":
         (run / "summary.json").write_text("{}")

@@ -109,9 +109,9 @@ def _same_table(a: Path, b: Path):
 
 def _same_run(a: Path, b: Path):
     assert (a / "summary.json").read_bytes() == (b / "summary.json").read_bytes()
-    tb = pq.read_table(b / "episodes.parquet")
+    tb = pq.read_table(b / "evaluations.parquet")
     assert tb.column("evaluation").to_pylist() == list(range(1, 1201))  # no gaps, no duplicates
-    _same_table(a / "episodes.parquet", b / "episodes.parquet")
+    _same_table(a / "evaluations.parquet", b / "evaluations.parquet")
     assert (a / "critical.csv").read_text() == (b / "critical.csv").read_text()
     assert (a / "config.toml").read_text() == (b / "config.toml").read_text()
 
@@ -122,7 +122,7 @@ def test_sigkilled_run_resumes_to_identical_results(tmp_path, capsys):
     uninterrupted = _cli([*RUN_ARGS, "--out", str(reference)])  # side by side
     rc, _ = _interrupt(RUN_ARGS, out, 3, signal.SIGKILL)
     assert rc == -signal.SIGKILL
-    assert not (out / "summary.json").exists() and not (out / "episodes.parquet").exists()
+    assert not (out / "summary.json").exists() and not (out / "evaluations.parquet").exists()
     # the unfinished folder is neither reused nor silently overwritten
     assert main([*RUN_ARGS, "--out", str(out)]) == 2
     assert f"--resume {out}" in capsys.readouterr().err
@@ -209,7 +209,7 @@ def test_library_run_interrupt_resume_equals_cli(tmp_path):
     assert (cli_out / "summary.json").read_bytes() == (lib / "summary.json").read_bytes()
     for f in ("config.toml", "critical.csv"):
         assert (cli_out / f).read_text() == (lib / f).read_text(), f
-    _same_table(cli_out / "episodes.parquet", lib / "episodes.parquet")
+    _same_table(cli_out / "evaluations.parquet", lib / "evaluations.parquet")
     assert sorted(os.listdir(cli_out / "figures")) == sorted(os.listdir(lib / "figures"))
     strip = lambda t: [ln for ln in t.splitlines()  # noqa: E731  (paths and times differ)
                        if not any(w in ln for w in ("wall time", "jaxfalsify", "run `"))]

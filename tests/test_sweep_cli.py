@@ -116,7 +116,7 @@ def test_cli_simulate_takes_values_after_options_and_sut_values(capsys):
     assert out["outcome"]["min_distance"] != float(default.min_distance)
 
 
-def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path):
+def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path, capsys):
     """``--sut-param NAME=V1,V2`` evaluates calibrations x scenarios in one compiled call;
     each calibration's rows equal a separate sweep with that value."""
     out = tmp_path / "cal"
@@ -147,6 +147,13 @@ def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path):
     assert recorded == {**defaults, "full_brake": [3.1, 8], "walker_time": 1.5}
     # the weaker brake must matter somewhere, or the test proves nothing
     assert summary["calibrations"][0]["n_collisions"] != summary["calibrations"][1]["n_collisions"]
+    # the closing lines (sweep.summary_lines) name each calibration by its swept value
+    printed = capsys.readouterr().out.splitlines()
+    for c, brake in enumerate(("3.1", "8")):
+        n = summary["calibrations"][c]["n_collisions"]
+        assert printed[c].startswith(f"calibration full_brake={brake}: {sp.size:,} scenarios, "
+                                     f"{n:,} collisions")
+    assert printed[-1].startswith(f"wrote {out}/sweep.parquet")
 
 
 def test_summary_only_sweep_reduces_on_device_like_rows(small_space, tmp_path, monkeypatch):

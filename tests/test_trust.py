@@ -293,7 +293,7 @@ def _resume_damaged(checkpoints, what: str, kind: str, seed: int) -> None:
     if code == 0:  # accepted: then it must be exactly the uninterrupted result
         ref = base / f"{what}_ref"
         assert (folder / "summary.json").read_bytes() == (ref / "summary.json").read_bytes(), done
-        table = "episodes.parquet" if what == "run" else "sweep.parquet"
+        table = "evaluations.parquet" if what == "run" else "sweep.parquet"
         assert _same_parquet(folder / table, ref / table), done
     else:
         assert_one_line_error(code, err)
@@ -394,10 +394,10 @@ def test_a_full_disk_gives_one_line_and_a_truthful_status(tmp_path, monkeypatch,
     assert main(["run", "--strategy", "random", "--evaluations", "40", "--batch", "20",
                  "--out", str(out), "--quiet", "--no-figures"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "No space left on device" in err[0] and "episodes.parquet" in err[0]
+    assert len(err) == 1 and "No space left on device" in err[0] and "evaluations.parquet" in err[0]
     status = json.loads((out / "status.json").read_text())
     assert status["state"] == "failed" and "ENOSPC" not in status["state"]
-    assert not (out / "episodes.parquet").exists() and not (out / "summary.json").exists()
+    assert not (out / "evaluations.parquet").exists() and not (out / "summary.json").exists()
 
 
 def test_a_full_disk_during_the_search_marks_the_run_failed(tmp_path, monkeypatch, capsys):

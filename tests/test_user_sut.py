@@ -79,7 +79,7 @@ def test_run_records_the_sut_and_its_parameters(tiny, tmp_path):
     assert cfg["sut_params"]["ttc_brake"] == pytest.approx(1.2) and cfg["sut_params"]["noise"] == 0
     # the recorded outcomes are the simulator's for that SUT and calibration (noise off, so
     # the PRNG keys do not matter)
-    ep = pq.read_table(out / "episodes.parquet").to_pydict()
+    ep = pq.read_table(out / "evaluations.parquet").to_pydict()
     sp = jf.load_space(str(tiny))
     idx = np.stack([ep[f"{n}_idx"] for n in sp.names], -1)
     again = jf.evaluate(sp.scenario(idx), sut=SPEC, sut_params={"noise": 0.0, "ttc_brake": 1.2})
@@ -111,7 +111,7 @@ def test_a_relative_sut_path_resumes_from_another_folder(tiny, tmp_path, monkeyp
     assert again.sut == SPEC
     runs.execute(again, "cut", resume=True, figures=False)
     runs.execute(runs.RunConfig(**{**rc.__dict__, "sut": SPEC}), "whole", figures=False)
-    for f in ("config.toml", "summary.json", "episodes.parquet"):
+    for f in ("config.toml", "summary.json", "evaluations.parquet"):
         assert (tmp_path / "cut" / f).read_bytes() == (tmp_path / "whole" / f).read_bytes(), f
     # a sweep records it the same way
     from jaxfalsify.sweep import SweepConfig
