@@ -115,6 +115,9 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
     import jaxfalsify as jf
 
     w = jf.WORLD
+    # rerun keeps a stream's time per recording id: a second recording of the same run and
+    # scenario in one process would inherit the first one's last evaluation number
+    rec.reset_time()
     # static world
     x0, x1 = -15.0, w.end_x + 10.0
     edges = [[[x0, w.road_right], [x1, w.road_right]], [[x0, w.road_left], [x1, w.road_left]]]
@@ -254,6 +257,7 @@ def _log_campaign(rec, sp, ep, window: int) -> None:
     evals = np.asarray(ep["evaluation"], np.int64)
     reward = np.asarray(ep["reward"], np.float64)
     best = np.maximum.accumulate(np.where(np.isfinite(reward), reward, -np.inf))
+    rec.reset_time()  # (see _log)
     for j, e in enumerate(evals):
         rec.set_time("evaluation", sequence=int(e))
         rec.log("campaign/reward", rr.Scalars(float(reward[j])))

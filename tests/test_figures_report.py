@@ -661,3 +661,19 @@ def test_a_damaged_run_folder_gets_one_line_and_nothing_redrawn(run_with_figures
         assert len(err) == 1 and message in err[0], (cmd, err)
     assert {f.name: f.read_bytes() for f in (run / "figures").iterdir()} == before
     assert not (tmp_path / "x").exists() or not any((tmp_path / "x").iterdir())
+
+
+def test_a_second_recording_of_the_same_scenario_keeps_its_timelines(run_with_figures,
+                                                                      tmp_path):
+    """Two recordings of one run's best scenario in one process (a notebook, or a test after
+    another): rerun keeps a stream's time per recording id, so the second one's simulated
+    metrics once carried the first one's last evaluation number as a second timeline."""
+    from jaxfalsify.replay import record
+
+    record(run_with_figures, "best", save=tmp_path / "first.rrd")  # ends on the evaluations
+    cols = _read_rrd(record(run_with_figures, "best", save=tmp_path / "second.rrd"))
+    for ent, own, other in (("/metrics/distance", "sim_time", "evaluation"),
+                            ("/world/ego", "sim_time", "evaluation"),
+                            ("/training/reward", "evaluation", "sim_time")):
+        names = {n for rb in cols[ent] for n in rb.schema.names}
+        assert own in names and other not in names, (ent, names)
