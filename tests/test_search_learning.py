@@ -311,9 +311,10 @@ def test_default_repeats_only_its_own_collisions_and_holds_still_without_signal(
     one = jnp.tile(jnp.asarray([[3, 6, 4, 1]], jnp.int32), (32, 1))
     # first a batch with a signal (weights and Adam's moments move), then one without
     r, rob, hit = outcome(one.at[0].set(jnp.asarray([0, 0, 0, 0])))
-    st = strat.tell_outcome(jax.random.key(2), st, one.at[0].set(0), r, rob, hit, p)
+    tell = jax.jit(strat.tell_outcome)  # compiled once for both batches
+    st = tell(jax.random.key(2), st, one.at[0].set(0), r, rob, hit, p)
     r, rob, hit = outcome(one)
-    after = strat.tell_outcome(jax.random.key(3), st, one, r, rob, hit, p)
+    after = tell(jax.random.key(3), st, one, r, rob, hit, p)
     for a, b in zip(jax.tree.leaves((after.weights, after.opt)),
                     jax.tree.leaves((st.weights, st.opt))):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -324,7 +325,7 @@ def test_default_repeats_only_its_own_collisions_and_holds_still_without_signal(
     st = pytree.replace(norm.init(jax.random.key(0), pn), seen=jnp.ones((1,), bool),
                         told=jnp.int32(100))
     sig = jnp.full(32, 0.3, jnp.float32)
-    after = norm.tell(jax.random.key(3), st, one, sig, pn)
+    after = jax.jit(norm.tell)(jax.random.key(3), st, one, sig, pn)
     for a, b in zip(jax.tree.leaves(after.weights), jax.tree.leaves(st.weights)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
@@ -339,10 +340,12 @@ def test_entropy_until_fades_the_bonus_after_a_collision_linearly():
     idx = jnp.asarray(np.random.default_rng(0).integers(0, 10, (32, 4)), jnp.int32)
     sig = jnp.linspace(-1.0, 1.0, 32, dtype=jnp.float32)
 
+    tell = jax.jit(strat.tell)  # compiled once: the fade, the bonus and told are traced
+
     def weights(params, told, seen=True):
         st = strat.init(jax.random.key(0), params)
         st = pytree.replace(st, seen=jnp.full_like(st.seen, seen), told=jnp.int32(told))
-        return jax.tree.leaves(strat.tell(jax.random.key(1), st, idx, sig, params).weights)
+        return jax.tree.leaves(tell(jax.random.key(1), st, idx, sig, params).weights)
 
     def same(a, b):
         return all(np.allclose(np.asarray(x), np.asarray(y), rtol=1e-6, atol=1e-7)
@@ -500,7 +503,7 @@ def test_default_learns_from_the_near_miss_ttc_signal():
     shape = (6, 5, 4)
     strat, p = search.make("reinforce/default", shape, 16, ttc_weight=0.05)
     st = strat.init(jax.random.key(0), p)
-    idx, st = strat.ask(jax.random.key(1), st, p)
+    idx, st = jax.jit(strat.ask)(jax.random.key(1), st, p)
     g = np.random.default_rng(0)
     rob = g.uniform(-1.0, 1.0, 16).astype(np.float32)
     ttc = np.where(g.uniform(size=16) < 0.3, np.inf, g.uniform(0, 30, 16)).astype(np.float32)
@@ -529,7 +532,7 @@ def test_default_learns_from_the_near_miss_ttc_signal():
     # only the second without a collision yet: the term reaches its slots alone
     two, p2 = search.make("reinforce/default", shape, 16, learners=2)
     s2 = two.init(jax.random.key(0), p2)
-    idx2, s2 = two.ask(jax.random.key(1), s2, p2)
+    idx2, s2 = jax.jit(two.ask)(jax.random.key(1), s2, p2)
     s2 = dataclasses.replace(s2, seen=jnp.array([True, False]))
     tell2 = jax.jit(two.tell_outcome)
     g2 = tell2(jax.random.key(2), s2, idx2, r, rob, hit, p2, ttc=ttc)
@@ -895,8 +898,8 @@ def test_surrogate_screening_asks_the_gp_bucb_picks():
         np.testing.assert_allclose(np.asarray(st2.ell), ell, rtol=1e-6)
         assert len({tuple(i) for i in np.asarray(idx)}) == on.batch
     seen = dataclasses.replace(st, seen=jnp.ones_like(st.seen))
-    np.testing.assert_array_equal(np.asarray(on.ask(key, seen, p)[0]),
-                                  np.asarray(off.ask(key, seen, p)[0]))
+    np.testing.assert_array_equal(np.asarray(ask(key, seen, p)[0]),
+                                  np.asarray(jax.jit(off.ask)(key, seen, p)[0]))
 
 
 # ------------------------------------------------------------------ learning
