@@ -164,29 +164,3 @@ def test_a_partial_last_chunk_changes_no_result_and_resumes(tmp_path, strategy):
         assert pq.read_table(tmp_path / name / "evaluations.parquet").equals(ref), name
         for f in ("summary.json", "critical.csv"):
             assert (tmp_path / name / f).read_bytes() == (tmp_path / "every" / f).read_bytes()
-
-
-def test_library_figures_and_replay_take_the_run_folders_lock(tmp_path):
-    """runs.redraw and replay.record (as the CLI's figures and replay) write into a run folder
-    only under its lock: while another writer holds it they are refused in one line naming
-    that writer's pid, and nothing is written; a recording saved elsewhere needs no lock."""
-    from jaxfalsify import replay
-
-    out = tmp_path / "run"
-    runs.execute(runs.RunConfig(strategy="random", evaluations=40, batch=20), out,
-                 figures=False)
-    before = sorted(os.listdir(out))
-    holder = store.run_folder_lock(out, "replay")
-    try:
-        for call in (lambda: runs.redraw(out), lambda: replay.record(out, "best")):
-            with pytest.raises(store.FolderError, match=f"process {os.getpid()}"):
-                call()
-            assert sorted(os.listdir(out)) == before
-        elsewhere = replay.record(out, "best", save=tmp_path / "best.rrd")
-        assert elsewhere.stat().st_size > 0
-    finally:
-        holder.release()
-    files, report = runs.redraw(out)  # released: drawn
-    assert report == out / "report.md" and all(f.parent == out / "figures" for f in files)
-    with pytest.raises(ValueError, match="not a finished run folder"):
-        store.run_folder_lock(tmp_path, "figures")

@@ -677,3 +677,29 @@ def test_a_second_recording_of_the_same_scenario_keeps_its_timelines(run_with_fi
                             ("/training/reward", "evaluation", "sim_time")):
         names = {n for rb in cols[ent] for n in rb.schema.names}
         assert own in names and other not in names, (ent, names)
+
+
+def test_library_figures_and_replay_take_the_run_folders_lock(run_with_figures, tmp_path):
+    """runs.redraw and replay.record (as the CLI's figures and replay) write into a run folder
+    only under its lock: while another writer holds it they are refused in one line naming
+    that writer's pid, and nothing is written; a recording saved elsewhere needs no lock."""
+    import os
+
+    from jaxfalsify import replay, runs, store
+
+    out = run_with_figures
+    before = sorted(os.listdir(out))
+    holder = store.run_folder_lock(out, "replay")
+    try:
+        for call in (lambda: runs.redraw(out), lambda: replay.record(out, "best")):
+            with pytest.raises(store.FolderError, match=f"process {os.getpid()}"):
+                call()
+            assert sorted(os.listdir(out)) == before
+        elsewhere = replay.record(out, "best", save=tmp_path / "best.rrd")
+        assert elsewhere.stat().st_size > 0
+    finally:
+        holder.release()
+    files, report = runs.redraw(out)  # released: drawn
+    assert report == out / "report.md" and all(f.parent == out / "figures" for f in files)
+    with pytest.raises(ValueError, match="not a finished run folder"):
+        store.run_folder_lock(tmp_path, "figures")
