@@ -451,11 +451,8 @@ def _compare_suite(args, names, stop, startup) -> int:
 
 
 def cmd_simulate(args, stop, startup) -> int:
-    import numpy as np
-
-    import jaxfalsify as jf
-    from jaxfalsify.config import jsonable
-    from jaxfalsify.space import KNOWN_PARAMETERS, check_scenario_values
+    from jaxfalsify.sim import describe
+    from jaxfalsify.space import KNOWN_PARAMETERS
 
     scenario, sut_values = {}, {}
     for item in args.params:
@@ -475,25 +472,14 @@ def cmd_simulate(args, stop, startup) -> int:
             scenario[name] = float(value)
         except ValueError:
             raise UsageError(f"{name}={value!r} is not a number") from None
-    full = check_scenario_values(scenario)
-    from jaxfalsify import sut as sut_lib
-    from jaxfalsify.config import plain
-
     flagged = _sut_values(args.sut_param)
     for name in sut_values:
         if name in flagged:
             raise UsageError(f"sut.{name} given twice (also by --sut-param)")
     given = {**flagged, **{k[4:]: v for k, v in _sut_values(
         [f"sut.{k}={v}" for k, v in sut_values.items()], "").items()}}
-    s, params = sut_lib.make(args.sut or "carla-tm", **given)
-    out = jf.evaluate(full, sut=s, sut_params=params, key=args.seed)
-    # the resolved scenario (defaults filled in, with units) and SUT beside the outcome
-    print(json.dumps(jsonable({
-        "scenario": full,
-        "units": {k: KNOWN_PARAMETERS[k]["unit"] for k in full},
-        "defaults_used": sorted(set(full) - set(scenario)),
-        "sut": args.sut or "carla-tm", "sut_params": sut_lib.params_dict(params),
-        "outcome": {k: plain(np.asarray(v)[()]) for k, v in vars(out).items()}}), indent=2))
+    print(json.dumps(describe(scenario, sut=args.sut or "carla-tm", sut_params=given,
+                              seed=args.seed), indent=2))
     return 0
 
 

@@ -731,3 +731,24 @@ def local_batch_sharding():
     if len(devices) == 1:
         return None
     return NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))
+
+
+def describe(scenario: dict, *, sut="carla-tm", sut_params=None, seed: int = 0) -> dict:
+    """``jaxfalsify simulate``: one concrete scenario ``{name: value}`` (any known parameters;
+    the others take their defaults) evaluated under ``sut`` (a registry name or import path)
+    with ``sut_params`` ``{name: value}`` overrides; the SUT's randomness from ``seed``.
+    Returns a JSON-ready dict: the resolved ``scenario`` with its ``units``, the
+    ``defaults_used``, ``sut`` and every ``sut_params`` value, and the ``outcome`` (each
+    :class:`Outcome` field as a Python number, ``None`` for NaN and infinity). One-line
+    ValueError for an unknown parameter or a value outside its domain."""
+    from jaxfalsify.config import jsonable, plain
+    from jaxfalsify.space import check_scenario_values
+
+    full = check_scenario_values(scenario)
+    s, params = sut_lib.make(sut, **dict(sut_params or {}))
+    out = evaluate(full, sut=s, sut_params=params, key=seed)
+    return jsonable({
+        "scenario": full, "units": {k: KNOWN_PARAMETERS[k]["unit"] for k in full},
+        "defaults_used": sorted(set(full) - set(scenario)),
+        "sut": sut, "sut_params": sut_lib.params_dict(params),
+        "outcome": {k: plain(np.asarray(v)[()]) for k, v in vars(out).items()}})

@@ -114,6 +114,12 @@ def test_cli_simulate_takes_values_after_options_and_sut_values(capsys):
     assert np.isclose(out["outcome"]["min_distance"], float(want.min_distance))
     default = jf.evaluate({"ego_offset": 30.0, "ped_speed": 1.5}, sut="sensor-aeb")
     assert out["outcome"]["min_distance"] != float(default.min_distance)
+    # the library call behind the command gives the same document
+    from jaxfalsify.sim import describe
+    lib = describe({"ego_offset": 30, "ped_speed": 1.5}, sut="sensor-aeb",
+                   sut_params={"ttc_full": 0.4})
+    assert json.loads(json.dumps(lib)) == out and lib["defaults_used"] == sorted(
+        set(lib["scenario"]) - {"ego_offset", "ped_speed"})
 
 
 def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path, capsys):
