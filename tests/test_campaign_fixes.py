@@ -164,3 +164,31 @@ def test_a_partial_last_chunk_changes_no_result_and_resumes(tmp_path, strategy):
         assert pq.read_table(tmp_path / name / "evaluations.parquet").equals(ref), name
         for f in ("summary.json", "critical.csv"):
             assert (tmp_path / name / f).read_bytes() == (tmp_path / "every" / f).read_bytes()
+
+
+def test_jax_compilation_cache_dir_is_respected_and_the_off_switch_writes_nothing(tmp_path):
+    """JAX's own JAX_COMPILATION_CACHE_DIR takes the executables (the per-user folder keeps
+    only jaxfalsify's exported programs); without it they go under the per-user folder's
+    jax/; with JAXFALSIFY_NO_CACHE=1 neither folder is created."""
+    def simulate(given):
+        env = {k: v for k, v in os.environ.items()
+               if k not in ("JAX_COMPILATION_CACHE_DIR", "JAXFALSIFY_NO_CACHE")}
+        env.update({k: v for k, v in given.items() if v is not None})
+        r = subprocess.run([sys.executable, "-m", "jaxfalsify", "simulate", "ego_offset=9"],
+                           env=env, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr[-2000:]
+
+    def files(folder):
+        return [p for p in Path(folder).rglob("*") if p.is_file()] if Path(folder).exists() \
+            else []
+
+    own, jaxs = tmp_path / "own", tmp_path / "jaxcc"
+    simulate({"JAXFALSIFY_CACHE_DIR": str(own), "JAX_COMPILATION_CACHE_DIR": str(jaxs),
+              "JAXFALSIFY_NO_CACHE": None})
+    assert files(jaxs) and not files(own / "jax")
+    simulate({"JAXFALSIFY_CACHE_DIR": str(tmp_path / "own2"), "JAX_COMPILATION_CACHE_DIR": None,
+              "JAXFALSIFY_NO_CACHE": None})
+    assert files(tmp_path / "own2" / "jax")
+    simulate({"JAXFALSIFY_CACHE_DIR": str(tmp_path / "off"), "JAX_COMPILATION_CACHE_DIR": None,
+              "JAXFALSIFY_NO_CACHE": "1"})
+    assert not (tmp_path / "off").exists()
