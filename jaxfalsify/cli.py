@@ -345,6 +345,7 @@ def cmd_sweep(args, stop, startup) -> int:
             **{k: getattr(args, k) for k in ("space", "space_seed", "sut", "seed", "chunk",
                                              "rows") if getattr(args, k) is not None},
             sut_params=_assignments(args.sut_param, "--sut-param", many=True))
+        config.build()  # refused before any process waits for the others
         out = args.out  # None: sweeps/<space>-<sut>-s<space seed>
     pid, n_proc = _start_distributed(args)
     s = sweep.execute(config, out, resume=args.resume is not None, force=args.force,
@@ -477,7 +478,7 @@ def cmd_simulate(args, stop, startup) -> int:
         if name in flagged:
             raise UsageError(f"sut.{name} given twice (also by --sut-param)")
     given = {**flagged, **{k[4:]: v for k, v in _sut_values(
-        [f"sut.{k}={v}" for k, v in sut_values.items()], "").items()}}
+        [f"sut.{k}={v}" for k, v in sut_values.items()], "simulate").items()}}
     print(json.dumps(describe(scenario, sut=args.sut or "carla-tm", sut_params=given,
                               seed=args.seed), indent=2))
     return 0

@@ -77,7 +77,7 @@ def _writing(run_dir: Path, save: Path | None, what: str):
 
     from jaxfalsify import store
 
-    return store.run_folder_lock(run_dir, what) if save is None else contextlib.nullcontext()
+    return store.run_folder_lock(run_dir, what) if not save else contextlib.nullcontext()
 
 
 def record(run_dir: Path, scenario: str = "best", save: Path | None = None,

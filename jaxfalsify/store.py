@@ -110,14 +110,16 @@ def write_all_atomic(files: dict[Path, bytes]) -> None:
 
 
 def replace_files(staged: list[Path], folder: Path, is_old) -> list[Path]:
-    """Publish a set of finished files ``staged`` (in a temporary folder *inside* ``folder``,
-    so every move is a rename) into ``folder`` in place of an earlier set (the files whose
-    names ``is_old(name)`` accepts): the earlier files are moved aside first, then the new
-    ones in; on a failure the new ones are removed and the earlier ones put back. Returns the
-    published paths."""
+    """Publish a set of finished files ``staged`` (on ``folder``'s file system, e.g. in a
+    temporary folder inside it, so every move is a rename) into ``folder`` in place of an
+    earlier set (the files whose names ``is_old(name)`` accepts): the earlier files are moved
+    aside (into a hidden folder of ``folder``) first, then the new ones in; on a failure the
+    new ones are removed and every earlier one put back (where one cannot be, the hidden
+    folder is kept and the error names it). Returns the published paths."""
+    if not staged:
+        raise ValueError("replace_files: no files to publish (the earlier set would go)")
     folder = Path(folder)
-    aside = Path(tempfile.mkdtemp(dir=staged[0].parent if staged else folder,
-                                  prefix=".replaced-"))
+    aside = Path(tempfile.mkdtemp(dir=folder, prefix=".replaced-"))
     old, new = [], []
     try:
         for f in sorted(folder.iterdir()):
@@ -127,11 +129,18 @@ def replace_files(staged: list[Path], folder: Path, is_old) -> list[Path]:
         for f in staged:
             os.replace(f, folder / f.name)
             new.append(f.name)
-    except BaseException:
+    except BaseException as e:
         for n in new:
             (folder / n).unlink(missing_ok=True)
+        lost = []
         for n in old:
-            os.replace(aside / n, folder / n)
+            try:
+                os.replace(aside / n, folder / n)
+            except OSError:
+                lost.append(n)
+        if lost:
+            raise OSError(f"{folder}: publishing failed ({e}) and {len(lost)} earlier "
+                          f"file(s) could not be put back; they are in {aside}") from e
         aside.rmdir()
         raise
     shutil.rmtree(aside, ignore_errors=True)  # the earlier set, replaced
@@ -382,7 +391,7 @@ class FolderError(ValueError):
 
 RESULT_FILES = {
     "run": ("evaluations.parquet", "summary.json", "critical.csv", "timing.json", "report.md",
-            "best.rrd"),
+            "best.rrd", "episodes.parquet"),  # (the last: a run of an earlier version)
     "sweep": ("sweep.parquet", "summary.json", "timing.json"),
     "compare": ("compare.json", "compare.md", "timing.json"),
     "suite": ("suite.json", "suite.md", "timing.json"),
@@ -536,6 +545,7 @@ def clear(out: Path, kind: str) -> None:
         from jaxfalsify.report import FIGURES
 
         for p in [*(out / "figures" / f for f, _ in FIGURES), out / "campaign.rrd",
+                  out / "figures" / "reward_per_episode.png",  # an earlier version's name
                   *out.glob("replay-*.rrd")]:
             p.unlink(missing_ok=True)
         with contextlib.suppress(OSError):  # only if nothing else is in it

@@ -339,6 +339,10 @@ CASES = [
     # distributed
     (["sweep", "--distributed", "--coordinator", "nohost", "--num-processes", "2",
       "--process-id", "0"], "expected HOST:PORT"),
+    # a bad setting is refused before the process waits for a coordinator (a worker would
+    # wait two minutes for one at 127.0.0.1:9, then name it instead of the setting)
+    (["sweep", "--space", "tiny.toml", "--sut", "carla_tm", "--distributed", "--coordinator",
+      "127.0.0.1:9", "--num-processes", "2", "--process-id", "1"], "unknown SUT 'carla_tm'"),
     # simulate validates like a space does
     (["simulate", "weather=99"], "weather=99 outside the allowed"),
     (["simulate", "weather=2.5"], "weather=2.5 must be an integer"),

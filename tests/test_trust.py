@@ -646,3 +646,42 @@ def test_replace_files_publishes_a_set_or_puts_the_earlier_one_back(tmp_path):
     assert {p.name: p.read_text() for p in folder.iterdir() if p.is_file()} == {
         "a.xosc": "new a", "c.xosc": "new c", "notes.txt": "mine"}
     assert [p.name for p in stage.iterdir()] == []
+    assert sorted(p.name for p in folder.iterdir() if p.is_dir()) == [stage.name]
+    with pytest.raises(ValueError, match="no files to publish"):  # would only delete
+        store.replace_files([], folder, is_old)
+    # an earlier file that cannot be put back is kept aside, and the error says where
+    (stage / "e.xosc").write_text("new e")
+    real = os.replace
+
+    def flaky(src, dst):
+        if Path(src).name == "missing.xosc" or (Path(src).parent.name.startswith(".replaced-")
+                                                and Path(src).name == "c.xosc"):
+            raise OSError(5, "Input/output error")
+        return real(src, dst)
+
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(store.os, "replace", flaky)
+        with pytest.raises(OSError, match="could not be put back; they are in") as e:
+            store.replace_files([stage / "e.xosc", stage / "missing.xosc"], folder, is_old)
+    kept = Path(str(e.value).rsplit(" ", 1)[-1])
+    assert kept.parent == folder and (kept / "c.xosc").read_text() == "new c"
+    assert (folder / "a.xosc").read_text() == "new a" and not (folder / "e.xosc").exists()
+
+
+def test_a_run_folder_of_an_earlier_version_is_named_and_cleared(tmp_path):
+    """A run written before evaluations.parquet had that name: reading it says so in one line
+    (not "missing evaluations.parquet"); --force's clear removes its old results by name."""
+    from jaxfalsify.figures import load_run
+
+    out = tmp_path / "old"
+    out.mkdir()
+    (out / "config.toml").write_text(runs.RunConfig().to_toml())
+    for name in ("summary.json", "episodes.parquet"):
+        (out / name).write_text("{}")
+    (out / "figures").mkdir()
+    (out / "figures" / "reward_per_episode.png").write_bytes(b"png")
+    (out / "figures" / "mine.png").write_bytes(b"mine")
+    with pytest.raises(ValueError, match="earlier jaxfalsify .episodes.parquet.: rename it"):
+        load_run(out)
+    store.clear(out, "run")
+    assert sorted(p.name for p in out.rglob("*")) == ["figures", "mine.png"]
