@@ -141,7 +141,8 @@ def test_a_prime_number_of_updates_still_gives_few_chunks(n_updates, every):
     assert p.done_after(p.n_chunks) == p.evaluations
 
 
-@pytest.mark.parametrize("strategy", ["random", "reinforce/default"])
+@pytest.mark.parametrize("strategy", [  # the default's two campaign programs: ~45 s
+    "random", pytest.param("reinforce/default", marks=pytest.mark.slow)])
 def test_a_partial_last_chunk_changes_no_result_and_resumes(tmp_path, strategy):
     """61 updates (prime) in chunks of 3, the last one running past the budget, give the
     files of the same run checkpointed every update (61 chunks); stopped after 5 chunks and

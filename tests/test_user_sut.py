@@ -356,6 +356,7 @@ values = [0.5, 0.9, 1.5]
 """
 
 
+@pytest.mark.slow  # a run, its resume, figures, a --config repeat and a sweep: ~40 s
 def test_a_space_varying_a_sut_parameter_round_trips(tmp_path):
     """A space with a ``sut.NAME`` dimension: its run is interrupted and resumed, its
     figures re-simulate rows of different calibrations (each equal to simulating that
