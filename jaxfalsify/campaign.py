@@ -6,7 +6,8 @@ traced argument (:class:`Args`: the space's value table, the SUT's and the strat
 parameters, the world, the budget), so another space seed, calibration or hyperparameter value
 reuses the compiled code; only the static configuration (space layout, SUT, strategy, batch,
 updates per chunk) compiles anew. The host (:func:`drive`) calls it once per chunk of updates
-so progress can be shown, checkpoints committed and a stop request honoured between chunks.
+so progress can be shown, checkpoints committed and a stop request honoured between chunks,
+and times each chunk (compilation done ahead and timed apart; :meth:`Result.search_seconds_at`).
 
 Many seeds run inside one compiled call (``lax.map`` over keys: each seed's batch is already
 hundreds of scenarios wide, and vmapping the LSTM controller over seeds deadlocked XLA:CPU in
@@ -241,7 +242,15 @@ def program(c: Campaign, args: Args, n_seeds: int) -> cache.Program:
 
 @dataclasses.dataclass
 class Result:
-    """Every evaluated scenario of a campaign, host-side, in evaluation order (1..budget)."""
+    """Every evaluated scenario of a campaign, host-side, in evaluation order (1..budget).
+
+    Timing (see :func:`drive`): ``compile_seconds`` lowering and compiling the chunk program
+    (a program already compiled in this process costs milliseconds); ``search_seconds`` the
+    host loop over chunks after that; ``chunk_seconds`` ``(n_chunks,)`` float64 seconds of
+    each chunk's compiled call until its records were on the host (NaN: a chunk restored from
+    a checkpoint, run by an earlier process; None: not timed), shared by the
+    ``seeds_per_call`` seeds of that call. :meth:`search_seconds_at` turns them into the
+    search time elapsed at an evaluation."""
 
     space: Space
     batch: int
@@ -249,6 +258,9 @@ class Result:
     fields: dict[str, np.ndarray]  # RECORD_FIELDS -> (N,)
     compile_seconds: float = 0.0
     search_seconds: float = 0.0
+    chunk_seconds: np.ndarray | None = None  # (n_chunks,) float64 seconds
+    updates_per_chunk: int = 0  # updates per compiled call (the plan's)
+    seeds_per_call: int = 1  # seeds that shared each compiled call
 
     @property
     def n(self) -> int:
@@ -262,19 +274,45 @@ class Result:
     def update(self) -> np.ndarray:
         return (self.evaluation - 1) // self.batch
 
+    def search_seconds_at(self, evaluation: int) -> float | None:
+        """Search seconds (compilation excluded) this seed had spent at the end of the update
+        holding evaluation ``evaluation`` (1-based): the chunks before that update's chunk in
+        full, plus its chunk's seconds divided evenly among the chunk's updates, for the
+        updates up to and including this one; divided by ``seeds_per_call`` (seeds sharing a
+        compiled call run one after another with the same work, so each is given an even
+        share). Resolution: one update (exact at chunk boundaries). None when the campaign
+        was not timed or a chunk up to there was restored from a checkpoint."""
+        if isinstance(evaluation, bool) or not isinstance(evaluation, (int, np.integer)) \
+                or not 1 <= evaluation <= max(self.n, 1):
+            raise ValueError(f"evaluation must be an integer in 1..{max(self.n, 1)} "
+                             f"(got {evaluation!r})")
+        if self.chunk_seconds is None or self.updates_per_chunk <= 0:
+            return None
+        u = (int(evaluation) - 1) // self.batch  # 0-based update
+        c, j = divmod(u, self.updates_per_chunk)
+        t = np.asarray(self.chunk_seconds, np.float64)
+        if c >= len(t) or not np.all(np.isfinite(t[:c + 1])):
+            return None
+        done = float(np.sum(t[:c])) + float(t[c]) * (j + 1) / self.updates_per_chunk
+        return done / self.seeds_per_call
+
 
 def collect(records: list[dict], space: Space, p: Plan, compile_s: float = 0.0,
-            search_s: float = 0.0) -> list[Result]:
-    """Flatten chunk records ``(S, U, B, ...)`` into one Result per seed."""
+            search_s: float = 0.0, chunk_s: np.ndarray | None = None) -> list[Result]:
+    """Flatten chunk records ``(S, U, B, ...)`` into one Result per seed (``chunk_s``: the
+    ``(n_chunks,)`` seconds per chunk that :func:`drive` measured, shared by the S seeds)."""
     host = [jax.tree.map(np.asarray, r) for r in records]
     cat = {k: np.concatenate([h[k] for h in host], axis=1) for k in host[0]}
+    n_seeds = cat["reward"].shape[0]
 
     def one(c):
         idx = c["indices"].reshape(-1, len(space.shape))[: p.evaluations]
         fields = {f: c[f].reshape(-1)[: p.evaluations] for f in RECORD_FIELDS}
-        return Result(space, p.batch, idx.astype(np.int32), fields, compile_s, search_s)
+        return Result(space, p.batch, idx.astype(np.int32), fields, compile_s, search_s,
+                      None if chunk_s is None else np.array(chunk_s, np.float64),
+                      p.updates_per_chunk, n_seeds)
 
-    return [one({k: v[s] for k, v in cat.items()}) for s in range(cat["reward"].shape[0])]
+    return [one({k: v[s] for k, v in cat.items()}) for s in range(n_seeds)]
 
 
 class Stopped(Exception):
@@ -285,16 +323,43 @@ class Stopped(Exception):
         self.chunks_done = chunks_done
 
 
+def _compile_ahead(prog: cache.Program, carry, key_data, args_leaves, flags, fresh: bool,
+                   chunks: int) -> None:
+    """Compile the chunk program for the calls :func:`drive` will make, before the first one
+    (the calls reuse what ``lower(...).compile()`` built). On several local devices the carry
+    comes back sharded as the program's outputs are, which later calls see as other input
+    shardings: those programs are compiled here too (until the carry's shardings repeat)."""
+    compiled = prog.call.lower(carry, key_data, args_leaves, flags[fresh]).compile()
+    if jax.local_device_count() == 1 or chunks < 2:  # inputs committed as the outputs are
+        return
+    seen = []
+    for _ in range(3):
+        shardings = list(compiled.output_shardings[0])
+        if shardings in seen:
+            return
+        seen.append(shardings)
+        carry = [jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh)
+                 for x, sh in zip(carry, shardings)]
+        compiled = prog.call.lower(carry, key_data, args_leaves, flags[False]).compile()
+
+
 def drive(prog: cache.Program, seeds: list[int], args: Args, p: Plan, *, progress=None,
-          checkpoint=None, resumed=None, stop: Callable[[], bool] | None = None):
+          checkpoint=None, resumed=None, stop: Callable[[], bool] | None = None,
+          timed: list | None = None):
     """Host loop over chunks of updates: ``(records, compile seconds, search seconds)``.
 
     ``progress(done, records)`` after each chunk (``done`` in evaluations); with a
     checkpoint (:class:`jaxfalsify.store.CampaignCheckpoint`) each chunk is committed to it;
     ``resumed = (carry, records)`` continues after the chunks those records hold;
     ``stop()`` is checked before each chunk: when true, raise :class:`Stopped` (everything
-    done so far is committed). The first chunk's time counts as compilation (its compile time
-    plus one chunk's run time).
+    done so far is committed).
+
+    Timing: compile seconds are the program's lowering and compilation, done ahead of the
+    first chunk (``lower(...).compile()``, which the chunk calls then reuse; a program already
+    compiled in this process costs milliseconds); search seconds run from there to the end of
+    the loop. ``timed``, when given, receives one float per chunk of the plan: the seconds of
+    that chunk's compiled call until its records were on the host (a blocking transfer, so
+    the chunk's device work is done), NaN for the chunks ``resumed`` holds.
     """
     t0 = time.perf_counter()
     # every input committed to the device, as the outputs fed back are: the first and later
@@ -311,23 +376,27 @@ def drive(prog: cache.Program, seeds: list[int], args: Args, p: Plan, *, progres
         records, fresh = [], True
     carry = jax.device_put(carry, dev)
     flags = [jax.device_put(np.bool_(f), dev) for f in (False, True)]
-    compile_s = 0.0
-    t_search = None
+    if timed is not None:
+        timed[:] = [float("nan")] * len(records)
+    if len(records) < p.n_chunks:  # compiled here, so that no chunk's time includes it
+        _compile_ahead(prog, carry, key_data, args_leaves, flags, fresh, p.n_chunks - len(records))
+    compile_s = time.perf_counter() - t0
+    t_search = time.perf_counter()
     for c in range(len(records), p.n_chunks):
         if stop is not None and stop():
             raise Stopped(len(records))
+        t_chunk = time.perf_counter()
         carry, rec = prog(carry, key_data, args_leaves, flags[fresh])
         fresh = False
         records.append(jax.tree.map(np.asarray, rec))
-        if t_search is None:
-            compile_s = time.perf_counter() - t0
-            t_search = time.perf_counter()
+        if timed is not None:
+            timed.append(time.perf_counter() - t_chunk)
         if checkpoint is not None:
             checkpoint.save(c, [np.asarray(x) for x in carry], records[-1],
                             p.done_after(c + 1))
         if progress:
             progress(p.done_after(c + 1), records)
-    search_s = time.perf_counter() - t_search if t_search is not None else 0.0
+    search_s = time.perf_counter() - t_search
     return records, compile_s, search_s
 
 
@@ -337,12 +406,16 @@ def run_seeds(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy,
     """Campaigns for many seeds in one compiled function (mapped over the seeds), chunk by
     chunk on the host (see :func:`drive` for the keywords). A resumed campaign gives
     bit-identical results to an uninterrupted one: the carry (strategy and optimiser state,
-    PRNG keys, update count) is restored exactly and the same compiled chunk continues."""
+    PRNG keys, update count) is restored exactly and the same compiled chunk continues. Each
+    Result carries the chunks' measured seconds (:meth:`Result.search_seconds_at`); the seeds
+    of one call share them evenly, so a caller that wants each seed's own measured time calls
+    this once per seed (the one-seed program is compiled once and reused)."""
     args = args_for(space, sut_params, strategy_params, world, p.evaluations)
     prog = program(Campaign(space.layout, sut, strategy, p.updates_per_chunk), args,
                    len(seeds))
-    records, compile_s, search_s = drive(prog, list(seeds), args, p, **drive_kw)
-    return collect(records, space, p, compile_s, search_s)
+    chunk_s: list[float] = []
+    records, compile_s, search_s = drive(prog, list(seeds), args, p, timed=chunk_s, **drive_kw)
+    return collect(records, space, p, compile_s, search_s, np.asarray(chunk_s, np.float64))
 
 
 def run(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy, strategy_params,

@@ -121,7 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
     strategies = ", ".join(search.names())
 
     r = sub.add_parser("run", help="falsification campaign (the main job); no arguments: the "
-                       "paper space, carla-tm, reinforce/default, seed 0, 4000 evaluations")
+                       "paper space, carla-tm, reinforce/default, seed 0, 300 updates of 4096 "
+                       "scenarios")
     r.add_argument("--config", type=Path, help="a run's config.toml to repeat; flags override it")
     r.add_argument("--space", help="built-in name (paper, paper-extended) or TOML file")
     r.add_argument("--space-seed", type=_int("--space-seed"), dest="space_seed",
@@ -131,8 +132,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--strategy-param", action="append", dest="strategy_param",
                    metavar="NAME=VALUE", help="set a strategy option (repeatable)")
     r.add_argument("--evaluations", type=_int("--evaluations", 1),
-                   help="budget in evaluated scenarios (default 4000, the paper's)")
-    r.add_argument("--batch", type=_int("--batch", 1), help="scenarios per update")
+                   help="budget in evaluated scenarios (default: the strategy's; "
+                   "reinforce/default 1,228,800 = 300 updates of 4096, reinforce/paper and the "
+                   "others the paper's 4000)")
+    r.add_argument("--batch", type=_int("--batch", 1), help="scenarios per update (default: "
+                   "the strategy's; reinforce/default 4096 on a CPU, 65,536 on a GPU)")
     r.add_argument("--seed", type=_int("--seed"), help="search seed (default 0)")
     r.add_argument("--checkpoint-every", type=_int("--checkpoint-every", 1),
                    dest="checkpoint_every", help="updates between checkpoints (default: "

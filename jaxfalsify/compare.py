@@ -1,12 +1,15 @@
 """``jaxfalsify compare``: strategies on the same space and SUT, many seeds, against the
 exhaustive sweep as ground truth (from the per-user cache, see :func:`jaxfalsify.sweep.ground_truth`).
 
-Per strategy (its seeds in one compiled call), see :func:`seed_stats` and :func:`strategy_row`:
+Per strategy (one compiled program, its seeds run through it one after another), see
+:func:`seed_stats` and :func:`strategy_row`:
 
 * seeds that found a collision;
 * evaluations to the first collision, median and IQR over **all** seeds, a seed that found none
   counting ``budget + 1`` (censored; a median above the budget means most seeds found none),
   beside uniform random's analytic expectation (:func:`uniform_first_collision`);
+* search seconds to the first collision and distinct collisions per search second, per seed
+  and as medians, with the strategy's compile seconds apart (see *Search time* below);
 * the best reward, normalised as ``(best - global min) / (global max - global min)`` in [0, 1]
   (1 = the global maximum; never negative, whatever the sign of the rewards), median over the
   seeds with a finite best; and how many seeds reached the global maximum;
@@ -23,7 +26,23 @@ Per strategy (its seeds in one compiled call), see :func:`seed_stats` and :func:
 The strategies run ``jobs`` at a time in threads (XLA runs a compiled campaign without Python's
 lock, and a campaign of small batches keeps one core busy): on 2 cores two side by side take
 about half the time of one after the other. Every result is the same whatever ``jobs`` is
-(each strategy's seeds are their own compiled call); only the wall times differ.
+(each strategy's seeds are their own compiled calls); only the measured seconds differ.
+
+Search time. Each seed is its own call of the strategy's compiled campaign program (compiled
+once, ahead of the first chunk: ``compile_seconds``, not part of any seed's search time), so
+each seed's time is measured, not a share of a call over all seeds (seeds mapped inside one
+call run one after another and cannot be timed apart from the host; the results are the same
+either way). :func:`jaxfalsify.campaign.drive` times every chunk of updates on the host (the
+call until its records are on the host, so the device work is done); a seed's search seconds
+at evaluation ``e`` are the chunks before the one holding ``e``'s update, plus that chunk's
+seconds divided evenly among its updates, up to the end of ``e``'s update
+(:meth:`jaxfalsify.campaign.Result.search_seconds_at`; resolution one update, exact at chunk
+boundaries). Per seed: ``first_collision_seconds`` (None when the seed found no collision
+within the budget, never 0), ``search_seconds`` (to the end of the update holding the budget's
+last evaluation; updates a chunk runs past the budget are not counted) and
+``failures_per_second`` (distinct collision scenarios / ``search_seconds``). With ``jobs`` > 1
+the strategies share the machine while they search, so their seconds include that sharing;
+``jobs = 1`` times each strategy alone.
 
 ``compare.json`` holds every figure per seed (``per_seed`` rows).
 """
@@ -40,7 +59,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from jaxfalsify import analysis, campaign, config as cfg, search, store
+from jaxfalsify import analysis, campaign, config as cfg, search, sim, store
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.runs import RunConfig, timestamp
@@ -181,7 +200,11 @@ def truncate(r: campaign.Result, budget: int) -> campaign.Result:
 def seed_stats(seed: int, r: campaign.Result, truth: dict, budget: int | None = None) -> dict:
     """One seed's figures (see the module docstring), over its first ``budget`` evaluations
     (default all). ``truth``: :func:`truth_summary` (``global_max_reward`` None when the
-    space is too large to sweep)."""
+    space is too large to sweep). Times in seconds of search, compilation excluded
+    (:meth:`jaxfalsify.campaign.Result.search_seconds_at`): ``first_collision_seconds`` at the
+    end of the update holding the first collision (None without one), ``search_seconds`` at
+    the end of the update holding evaluation ``budget``, ``failures_per_second`` = distinct
+    collision scenarios / ``search_seconds`` (all three None when ``r`` was not timed)."""
     budget = r.n if budget is None else int(budget)
     r = truncate(r, budget)
     gmax, gmin = truth["global_max_reward"], truth["global_min_reward"]
@@ -192,15 +215,21 @@ def seed_stats(seed: int, r: campaign.Result, truth: dict, budget: int | None = 
     first = analysis.first_collision(r.fields)
     tail = ranked[r.n - max(1, r.n // 4):] if r.n else ranked
     tail = tail[np.isfinite(tail)]
+    distinct = len(analysis.distinct_critical(r.indices, r.fields))
+    searched = r.search_seconds_at(r.n) if r.n else None  # None: not timed
     return {"seed": seed, "first_collision": first,
             "first_collision_censored": first if first is not None else budget + 1,
+            "first_collision_seconds": (None if first is None or searched is None
+                                        else r.search_seconds_at(first)),
+            "search_seconds": searched,
+            "failures_per_second": (distinct / searched if searched else None),
             "best": best if np.isfinite(best) else None,
             "best_normalised": (None if gmax is None else
                                 float((best - gmin) / (gmax - gmin)) if np.isfinite(best)
                                 and gmax > gmin else (1.0 if np.isfinite(best) else None)),
             "reached_global_max": (None if gmax is None else
                                    bool(np.isfinite(best) and best >= gmax - TOL)),
-            "distinct": len(analysis.distinct_critical(r.indices, r.fields)),
+            "distinct": distinct,
             "corner_share": float(np.mean(corner_mask(r.indices, r.space.shape)))
             if r.n else 0.0,
             "final_mean_reward": float(np.mean(tail)) if tail.size else None}
@@ -211,8 +240,29 @@ def _median(xs) -> float:
     return float(np.median(xs)) if xs else float("nan")
 
 
-def strategy_row(name: str, stats: list[dict], truth: dict, wall: float) -> dict:
-    """A strategy's summary over its seeds (``stats``: :func:`seed_stats` rows)."""
+def _time_median(xs) -> float | None:
+    """Median of per-seed seconds or rates; None when any seed's is missing (not timed)."""
+    xs = list(xs)
+    return float(np.median(xs)) if xs and all(x is not None for x in xs) else None
+
+
+def first_collision_seconds_median(stats: list[dict]) -> float | None:
+    """Median over **all** seeds of the search seconds to the first collision, a seed that
+    found none counting as later than any (infinite): None when that median is not finite
+    (half or more of the seeds found none) or a seed was not timed."""
+    if not stats or any(s.get("search_seconds") is None for s in stats):
+        return None
+    t = [np.inf if s["first_collision_seconds"] is None else s["first_collision_seconds"]
+         for s in stats]
+    m = float(np.median(np.asarray(t, np.float64)))
+    return m if np.isfinite(m) else None
+
+
+def strategy_row(name: str, stats: list[dict], truth: dict, wall: float,
+                 compile_seconds: float | None = None) -> dict:
+    """A strategy's summary over its seeds (``stats``: :func:`seed_stats` rows); ``wall`` and
+    ``compile_seconds`` (lowering and compiling its program, apart from every seed's search
+    seconds) in seconds."""
     first = np.array([s["first_collision_censored"] for s in stats], np.float64)
     q = np.percentile(first, [25, 50, 75])
     found = sum(s["first_collision"] is not None for s in stats)
@@ -221,6 +271,11 @@ def strategy_row(name: str, stats: list[dict], truth: dict, wall: float) -> dict
             "found_collision_share": found / len(stats),
             "first_collision_median": float(q[1]),
             "first_collision_iqr": [float(q[0]), float(q[2])],
+            "first_collision_seconds_median": first_collision_seconds_median(stats),
+            "search_seconds_median": _time_median(s.get("search_seconds") for s in stats),
+            "failures_per_second_median": _time_median(s.get("failures_per_second")
+                                                       for s in stats),
+            "compile_seconds": compile_seconds,
             "best_normalised_median": best_norm,
             "seeds_reaching_global_max": (None if any(s["reached_global_max"] is None
                                                       for s in stats) else
@@ -230,6 +285,21 @@ def strategy_row(name: str, stats: list[dict], truth: dict, wall: float) -> dict
             "corner_share_median": _median(s["corner_share"] for s in stats),
             "final_mean_reward_median": _median(s["final_mean_reward"] for s in stats),
             "wall_seconds": wall, "per_seed": stats}
+
+
+SEED_TIME_KEYS = ("first_collision_seconds", "search_seconds", "failures_per_second")
+ROW_TIME_KEYS = ("first_collision_seconds_median", "search_seconds_median",
+                 "failures_per_second_median", "compile_seconds", "wall_seconds")
+
+
+def without_times(row: dict) -> dict:
+    """A :func:`strategy_row` without its measured seconds and rates (:data:`ROW_TIME_KEYS`,
+    and :data:`SEED_TIME_KEYS` of every per-seed row): the figures that repeat exactly
+    between comparisons of the same configuration."""
+    out = {k: v for k, v in row.items() if k not in ROW_TIME_KEYS}
+    out["per_seed"] = [{k: v for k, v in s.items() if k not in SEED_TIME_KEYS}
+                       for s in row.get("per_seed", [])]
+    return out
 
 
 TRUTH_SAMPLE = 1_000_000  # uniform scenarios that estimate the collision share of a space
@@ -381,8 +451,12 @@ OVERHEAD_SEEDS = 2  # seeds the search-overhead timing runs (a per-evaluation fi
 
 def _search_side_by_side(builds, seeds: list[int], jobs: int, progress: Progress, stop,
                          out: Path, evaluations: int, overhead_seeds: int = 0) -> dict:
-    """Every strategy's campaigns on ``seeds``, ``jobs`` strategies at a time in threads, one
-    progress bar over all of them. Returns ``{label: {"results", "wall", "compile"}}`` and
+    """Every strategy's campaigns on ``seeds``, ``jobs`` strategies at a time in threads (a
+    strategy's seeds one after another, each its own call of the strategy's compiled program,
+    so that each seed's search time is measured), one progress bar over all of them. Returns
+    ``{label: {"results", "wall", "compile"}}`` (seconds; ``compile``: tracing and exporting
+    or loading the program, and compiling it, which the first seed does and the others find
+    done) and
     ``"_wall"`` (the whole); with ``overhead_seeds`` each strategy's overhead program is
     loaded after its search (``"overhead_program"``), to be timed later. A stop request,
     Ctrl-C or an error in one strategy stops the others at their next chunk; then
@@ -393,7 +467,7 @@ def _search_side_by_side(builds, seeds: list[int], jobs: int, progress: Progress
     lock = threading.Lock()
     done: dict[str, int] = {}
     finished: list[str] = []
-    total = sum(b.plan.evaluations for _, b in builds)  # evaluations per seed, all strategies
+    total = sum(b.plan.evaluations for _, b in builds) * len(seeds)  # all evaluations
     bar = {"started": False}
 
     def halted() -> bool:
@@ -411,21 +485,31 @@ def _search_side_by_side(builds, seeds: list[int], jobs: int, progress: Progress
     def one(item):
         label, b = item
         t0 = time.perf_counter()
-        results = campaign.run_seeds(b.space, b.sut, b.sut_params, b.strategy,
-                                     b.strategy_params, b.plan, seeds,
-                                     progress=lambda n, _r, label=label: tick(label, n),
-                                     stop=halted) if seeds else []
+        if seeds:  # traced and exported (or loaded): counted with the compilation
+            campaign.program(campaign.Campaign(b.space.layout, b.sut, b.strategy,
+                                               b.plan.updates_per_chunk),
+                             campaign.args_for(b.space, b.sut_params, b.strategy_params,
+                                               sim.WORLD, b.plan.evaluations), 1)
+        prepare = time.perf_counter() - t0
+        results = []
+        for k, seed in enumerate(seeds):  # one call per seed: each seed's time is measured
+            before = k * b.plan.evaluations
+            results += campaign.run_seeds(
+                b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan, [seed],
+                progress=lambda n, _r, label=label, before=before: tick(label, before + n),
+                stop=halted)
         wall = time.perf_counter() - t0
         prepared = (overhead_program(b.strategy, b.strategy_params, b.plan, overhead_seeds)
                     if overhead_seeds and not halted() else None)
         with lock:
             finished.append(label)
+        # the first seed compiles the program; the others find it compiled (milliseconds)
         return {"results": results, "wall": wall, "overhead_program": prepared,
-                "compile": results[0].compile_seconds if results else 0.0}
+                "compile": prepare + float(sum(r.compile_seconds for r in results))}
 
     progress.phase(f"searching: {len(builds)} strategies x {len(seeds)} seeds x {evaluations} "
                    f"evaluations, {jobs} side by side (each compiles or loads its program "
-                   f"first)")
+                   f"first, then runs its seeds one after another)")
     t0 = time.perf_counter()
     ex = ThreadPoolExecutor(jobs, thread_name_prefix="jaxfalsify-compare")
     futures = [ex.submit(one, item) for item in builds]
@@ -539,19 +623,21 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
         barrier("jaxfalsify-compare-parts-read")  # process 0 deletes them when it is done
         merged = {k: {"stats": sum((p[k]["stats"] for p in all_parts), []),
                       "wall": max(p[k]["wall"] for p in all_parts),
+                      "compile": max(p[k]["compile"] for p in all_parts),
                       "overhead": _median(p[k].get("overhead") for p in all_parts),
                       "small": {b: sum((p[k]["small"][b] for p in all_parts), [])
                                 for b in parts[k]["small"]}}
                   for k in parts}
     else:
         merged = parts
-    rows = [strategy_row(k, v["stats"], truth, v["wall"]) for k, v in merged.items()]
+    rows = [strategy_row(k, v["stats"], truth, v["wall"], v["compile"])
+            for k, v in merged.items()]
     by_budget = []
     for b in sorted(set(config.budgets) | {config.evaluations}):
         if b == config.evaluations:
             b_rows = rows
         else:
-            b_rows = [strategy_row(k, v["small"][str(b)], truth, v["wall"])
+            b_rows = [strategy_row(k, v["small"][str(b)], truth, v["wall"], v["compile"])
                       for k, v in merged.items()]
         u = (uniform_first_collision(truth["n_scenarios"], truth["n_collisions"], b)
              if truth["n_collisions"] is not None else
@@ -636,28 +722,50 @@ def side_by_side(result: dict) -> str:
     return f", {jobs} strategies side by side" if jobs > 1 else ""
 
 
+def _seconds(x) -> str:
+    """Seconds or a rate, three significant digits (``0.0312``, ``41.7``); ``-`` for none."""
+    return _num(x, ".3g")
+
+
+TIME_NOTE = ("Search s: the seed's own search time, compilation excluded (compile s, apart), "
+             "to the end of the update holding the first collision (chunks of updates timed "
+             "on the host, a chunk's time divided evenly among its updates); median over all "
+             "seeds, a seed without a collision counting as never (- when half or more found "
+             "none). Collisions per search s: distinct collision scenarios / the seed's search "
+             "seconds for the budget, median.")
+
+
 def table_markdown(result: dict) -> str:
     """The comparison as a Markdown table, with uniform random's analytic expectation."""
     budget = result["evaluations"]
     head = ("| strategy | seeds with a collision | evaluations to first collision, median "
-            f"[IQR] (none = {budget + 1}) | best, normalised (median) | seeds at global max | "
+            f"[IQR] (none = {budget + 1}) | search s to first collision (median) | "
+            "collisions per search s (median) | best, normalised (median) | "
+            "seeds at global max | "
             "distinct critical found (median) / all | evaluations on box corners (median) | "
             "mean reward, last quarter (median) | overhead s / 1000 evaluations | "
-            f"wall s (all seeds{side_by_side(result)}) |")
-    lines = [head, "|" + "---|" * 10]
+            f"compile s | wall s (all seeds{side_by_side(result)}) |")
+    lines = [head, "|" + "---|" * 13]
     overhead = result.get("overhead", {})
     for r in result["rows"]:
         iqr = r["first_collision_iqr"]
         first = f"{r['first_collision_median']:g} [{iqr[0]:g}, {iqr[1]:g}]"
         lines.append(f"| {r['strategy']} | {r['found_collision_share'] * r['seeds']:.0f}/"
-                     f"{r['seeds']} | {first} | {_num(r['best_normalised_median'], '.4f')} | "
+                     f"{r['seeds']} | {first} | "
+                     f"{_seconds(r.get('first_collision_seconds_median'))} | "
+                     f"{_seconds(r.get('failures_per_second_median'))} | "
+                     f"{_num(r['best_normalised_median'], '.4f')} | "
                      f"{_frac(r['seeds_reaching_global_max'], r['seeds'])} | "
                      f"{_num(r['distinct_critical_median'], 'g')} / "
                      f"{'-' if r['all_critical'] is None else r['all_critical']} | "
                      f"{_percent(r['corner_share_median'])} | "
                      f"{_num(r['final_mean_reward_median'], '.4f')} | "
                      f"{_num(overhead.get(r['strategy']), '.3f')} | "
+                     f"{_num(r.get('compile_seconds'), '.1f')} | "
                      f"{r['wall_seconds']:.1f} |")
+    lines += ["", TIME_NOTE + (f" With {result['jobs']} strategies side by side these seconds "
+                               "include sharing the machine (--jobs 1 times each alone)."
+                               if result.get("jobs", 1) > 1 else "")]
     u = result.get("uniform_first_collision")
     if u:
         lines += ["", uniform_line(result, u, budget)]
@@ -677,17 +785,21 @@ def table_markdown(result: dict) -> str:
 
 def budgets_markdown(result: dict) -> str:
     """One table per comparison: per strategy and budget, seeds with a collision, evaluations
-    to the first collision (median [IQR] over all seeds, none = budget + 1) and seeds at the
-    global maximum; uniform random's expectation in the last row (its collision chance within
-    the budget and E[min(X, budget + 1)], X its evaluations to the first collision, so it
-    compares with the censored medians beside it)."""
+    to the first collision (median [IQR] over all seeds, none = budget + 1), seeds at the
+    global maximum and the search seconds to the first collision (median over all seeds, see
+    :func:`first_collision_seconds_median`); at the largest budget the distinct failures and
+    the distinct collisions per search second (medians), the box-corner share, the search
+    overhead and the compile seconds; uniform random's expectation in the last row (its
+    collision chance within the budget and E[min(X, budget + 1)], X its evaluations to the
+    first collision, so it compares with the censored medians beside it)."""
     blist = result["budgets"]
     top = blist[-1]["budget"]
     head = "| strategy | " + " | ".join(
-        f"{b['budget']}: collision / first [IQR] / global max" for b in blist) + \
-        (f" | distinct failures (median at {top}) | box corners (median at {top}) | "
-         "overhead ms / evaluation |")
-    lines = [head, "|" + "---|" * (len(blist) + 4)]
+        f"{b['budget']}: collision / first [IQR] / global max / search s to first"
+        for b in blist) + \
+        (f" | distinct failures (median at {top}) | collisions per search s (median at {top}) | "
+         f"box corners (median at {top}) | overhead ms / evaluation | compile s |")
+    lines = [head, "|" + "---|" * (len(blist) + 6)]
     overhead = result.get("overhead", {})
     names = [r["strategy"] for r in blist[-1]["rows"]]
     for k, name in enumerate(names):
@@ -697,13 +809,16 @@ def budgets_markdown(result: dict) -> str:
             iqr = r["first_collision_iqr"]
             cells.append(f"{r['found_collision_share'] * r['seeds']:.0f}/{r['seeds']} / "
                          f"{r['first_collision_median']:g} [{iqr[0]:g}, {iqr[1]:g}] / "
-                         f"{_frac(r['seeds_reaching_global_max'], r['seeds'])}")
+                         f"{_frac(r['seeds_reaching_global_max'], r['seeds'])} / "
+                         f"{_seconds(r.get('first_collision_seconds_median'))}")
         last = blist[-1]["rows"][k]
         o = overhead.get(name)
         lines.append(f"| {name} | " + " | ".join(cells) +
                      f" | {_num(last['distinct_critical_median'], 'g')} | "
+                     f"{_seconds(last.get('failures_per_second_median'))} | "
                      f"{_percent(last['corner_share_median'])} | "
-                     f"{'-' if o is None else f'{o:.3f}'} |")
+                     f"{'-' if o is None else f'{o:.3f}'} | "
+                     f"{_num(last.get('compile_seconds'), '.1f')} |")
     cells = []
     for b in blist:
         u = b["uniform_first_collision"]
@@ -712,7 +827,7 @@ def budgets_markdown(result: dict) -> str:
     estimated = ", p estimated from a uniform sample" if result.get("n_collisions") is None \
         else ""
     lines.append(f"| uniform random (analytic{estimated}) | " + " | ".join(cells) +
-                 f" | | {_percent(result['uniform_corner_share'])} | |")
+                 f" | | | {_percent(result['uniform_corner_share'])} | | |")
     return "\n".join(lines)
 
 
@@ -959,7 +1074,11 @@ def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = 
 
 def suite_markdown(summary: dict) -> str:
     """A section per space: what it is, its ground truth, and the per-budget table."""
-    parts = [f"# Search benchmark: {summary['suite']} ({summary['seeds']} seeds per strategy)"]
+    jobs = max((r.get("jobs", 1) for r in summary["entries"]), default=1)
+    parts = [f"# Search benchmark: {summary['suite']} ({summary['seeds']} seeds per strategy)",
+             "", TIME_NOTE + (f" With {jobs} strategies side by side these seconds include "
+                              "sharing the machine (--jobs 1 times each alone)."
+                              if jobs > 1 else "")]
     options = summary.get("strategy_params") or {}
     if options:
         parts.append("Strategy options (every space): " + "; ".join(

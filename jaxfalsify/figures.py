@@ -14,7 +14,10 @@ Host-side only (matplotlib, Agg backend); the jitted core never imports this mod
   the run's evaluated scenarios on top; axes in the parameters' units, ticks at their values;
 * ``search_distribution.png`` — beyond the paper: where the search went, per parameter the
   share of each value among the evaluations of each stretch of the run (the learner's
-  sampling distribution over time).
+  sampling distribution over time);
+* ``failure_clusters.png`` — beyond the paper: the failure clusters
+  (:func:`jaxfalsify.analysis.failure_clusters`), their sizes and the distinct critical
+  scenarios on the two parameters they vary most, coloured by cluster.
 """
 
 from __future__ import annotations
@@ -417,6 +420,7 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
         base = prepared and prepared.critical_base(sp, truth["collision"])
         save(critical_region_figure(plt, sp, truth, ep, base=base), "critical_regions.png")
     save(search_figure(plt, sp, ep, rc.strategy), "search_distribution.png")
+    save(cluster_figure(plt, sp, ep), "failure_clusters.png")
     out.mkdir(exist_ok=True)
     store.write_all_atomic(drawn)
     return list(drawn)
@@ -579,4 +583,114 @@ def search_figure(plt, sp, ep: dict, strategy: str = "", stretches: int = 20):
         x += lw + width + rw
     fig.suptitle(f"Where the search went ({strategy}): share of each value per stretch of "
                  f"{max(1, n // k)} evaluations", y=1 - EDGE / H, va="top")
+    return fig
+
+
+CLUSTER_BARS = 20  # failure clusters the bar chart shows (the largest; summary.json lists as many)
+CLUSTER_COLOURS = 9  # failure clusters drawn in their own colour (tab10 but its grey)
+CLUSTER_POINTS = 5000  # distinct critical scenarios drawn at most (a fixed subsample beyond)
+
+
+def cluster_axes(sp, points: np.ndarray) -> tuple[int, int | None]:
+    """The two parameters along which ``points`` ``(n, P)`` (index vectors) vary most: the
+    most distinct values, then the wider index range, then the space's order; the second is
+    None in a one-parameter space."""
+    pts = np.asarray(points).reshape(-1, len(sp.names))
+    score = [(-len(np.unique(c)), -(int(np.ptp(c)) if c.size else 0), p)
+             for p, c in enumerate(pts.T)]
+    ranked = [p for _, _, p in sorted(score)]
+    return ranked[0], (ranked[1] if len(ranked) > 1 else None)
+
+
+def cluster_colours(plt, k: int) -> list:
+    """A colour per failure cluster 1..k: the 9 largest in tab10's colours (its grey left
+    out), the rest light grey."""
+    cmap = plt.get_cmap("tab10")
+    own = [cmap(i) for i in (0, 1, 2, 3, 4, 5, 6, 8, 9)][:CLUSTER_COLOURS]
+    return [own[c] if c < len(own) else "0.75" for c in range(k)]
+
+
+def cluster_figure(plt, sp, ep: dict):
+    """The failure clusters of a run (:func:`jaxfalsify.analysis.failure_clusters`, from its
+    ``evaluations.parquet`` columns ``ep``): left, the size (distinct critical scenarios) of
+    the 20 largest, bars in the clusters' colours (:func:`cluster_colours`); right, the
+    distinct critical scenarios on the two parameters they vary most (:func:`cluster_axes`;
+    value indices jittered by up to 0.3 so that scenarios sharing a cell stay visible, ticks
+    at the values; at most 5000, a fixed subsample beyond), each coloured cluster's
+    representative (its best-reward member) a black-edged star. A run without a collision
+    gets a figure saying so."""
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import MaxNLocator
+
+    idx, fields = analysis.from_evaluations(ep, sp)
+    fc = analysis.failure_clusters(idx, fields)
+    W, H = 12, 5
+    fig = plt.figure(figsize=(W, H))
+    axes = [fig.add_axes([0.1, 0.1, 0.35, 0.8]), fig.add_axes([0.55, 0.1, 0.35, 0.8])]
+    colours = cluster_colours(plt, fc.k)
+    bars, scat = axes
+    shown = min(fc.k, CLUSTER_BARS)
+    bars.bar(np.arange(1, shown + 1), fc.sizes[:shown], color=colours[:shown])
+    bars.set_xlabel("failure cluster (numbered by size)")
+    bars.set_ylabel("distinct critical scenarios")
+    bars.set_xlim(0.5, max(shown, 1) + 0.5)
+    bars.set_xticks(np.arange(1, shown + 1))
+    bars.yaxis.set_major_locator(MaxNLocator(integer=True))
+    more = f", {fc.k - shown} smaller not shown" if fc.k > shown else ""
+    bars.set_title(f"{fc.k} failure cluster{'s' if fc.k > 1 else ''} of {fc.n} distinct "
+                   f"critical scenario{'s' if fc.n > 1 else ''}{more}"
+                   if fc.k else "no collision found: no failure clusters", fontsize=10)
+    if not fc.k:
+        bars.set_xticks([])
+        bars.set_yticks([])
+    a, b = cluster_axes(sp, fc.indices)
+    handles = []
+    if fc.k:
+        rows = np.arange(fc.n)
+        if fc.n > CLUSTER_POINTS:
+            rows = np.sort(np.random.default_rng(0).choice(fc.n, CLUSTER_POINTS,
+                                                         replace=False))
+        jitter = np.random.default_rng(0).uniform(-0.3, 0.3, (rows.size, 2))
+        x = fc.indices[rows, a] + jitter[:, 0]
+        y = (fc.indices[rows, b] if b is not None else fc.labels[rows]) + jitter[:, 1]
+        lab = fc.labels[rows]
+        for c in range(fc.k if fc.k <= CLUSTER_COLOURS else CLUSTER_COLOURS + 1, 0, -1):
+            sel = lab == c if c <= CLUSTER_COLOURS else lab > CLUSTER_COLOURS
+            scat.scatter(x[sel], y[sel], s=10, color=colours[c - 1], alpha=0.7,
+                         linewidths=0, zorder=2)
+        top = min(fc.k, CLUSTER_COLOURS)
+        rep = fc.representative[:top]
+        scat.scatter(fc.indices[rep, a], fc.indices[rep, b] if b is not None else
+                     np.arange(1, top + 1), s=150, marker="*", color=colours[:top],
+                     edgecolors="black", linewidths=0.8, zorder=3)
+        handles.append(Line2D([], [], ls="", marker="*", ms=11, color="0.8", mec="black",
+                              label="representative (best reward) of a cluster"))
+        if fc.k > CLUSTER_COLOURS:
+            handles.append(Line2D([], [], ls="", marker="o", ms=4, color=colours[-1],
+                                  label=f"clusters {CLUSTER_COLOURS + 1}..{fc.k}"))
+        sub = f" ({rows.size} of {fc.n} shown)" if rows.size < fc.n else ""
+        scat.set_title(f"Distinct critical scenarios by cluster{sub}", fontsize=10)
+    else:
+        scat.text(0.5, 0.5, "no collision found", ha="center", va="center",
+                  transform=scat.transAxes)
+    scat.set_xlim(-0.5, sp.shape[a] - 0.5)
+    scat.set_xticks(*value_ticks(sp, a))
+    scat.set_xlabel(axis_label(sp, a))
+    if b is not None:
+        scat.set_ylim(-0.5, sp.shape[b] - 0.5)
+        scat.set_yticks(*value_ticks(sp, b))
+        scat.set_ylabel(axis_label(sp, b))
+    else:
+        scat.set_ylim(0.5, max(fc.k, 1) + 0.5)
+        scat.yaxis.set_major_locator(MaxNLocator(integer=True))
+        scat.set_ylabel("failure cluster")
+    if handles:
+        _bottom_legend(fig, handles, [h.get_label() for h in handles], ncol=len(handles))
+    m = _Metrics(fig)
+    lefts = [_left_margin(m, ax) for ax in axes]
+    bottom = EDGE + LEGEND + TICK + _line() + LABELPAD + _line()
+    height = H - bottom - EDGE - TITLE
+    width = (W - 2 * EDGE - sum(lefts) - 0.3 - 0.25) / 2
+    _place(fig, axes[0], EDGE + lefts[0], bottom, width, height)
+    _place(fig, axes[1], EDGE + lefts[0] + width + 0.3 + lefts[1], bottom, width, height)
     return fig

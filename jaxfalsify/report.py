@@ -20,7 +20,10 @@ FIGURES = [("reward_per_evaluation.png", "Reward per evaluation (paper Fig. 6)")
            ("critical_regions.png", "Critical regions from the exhaustive sweep, with a "
             "subsample of the evaluated scenarios (collisions as red crosses)"),
            ("search_distribution.png", "Where the search went: each parameter's values among "
-            "the evaluations of each stretch of the run")]
+            "the evaluations of each stretch of the run"),
+           ("failure_clusters.png", "Failure clusters: their sizes, and the distinct critical "
+            "scenarios on the two parameters they vary most, coloured by cluster (stars: each "
+            "cluster's best-reward member)")]
 
 
 def simulate_command(sp, rc, ep: dict, row: int) -> list[str]:
@@ -43,6 +46,42 @@ def simulate_command(sp, rc, ep: dict, row: int) -> list[str]:
             f"{int(ep['evaluation'][row])}'s; replay shows the run's own draw", cmd]
 
 
+REPORT_CLUSTERS = 10  # failure clusters report.md tabulates (the largest)
+
+
+def cluster_cell(fc: analysis.FailureClusters) -> str:
+    """The summary table's failure-cluster cell: how many, and the largest's size."""
+    if fc.k == 0:
+        return "none (no collision)"
+    return (f"{fc.k} (largest: {int(fc.sizes[0])} of the {fc.n} distinct critical scenarios; "
+            "neighbours: index vectors at most one value apart in every parameter)")
+
+
+def cluster_section(sp, fc: analysis.FailureClusters, fields: dict) -> list[str]:
+    """report.md's failure-cluster table: the 10 largest clusters, their size, the evaluation
+    that first found one of their members, and their representative (best-reward member)."""
+    if fc.k == 0:
+        return []
+    shown = min(fc.k, REPORT_CLUSTERS)
+    header = ["cluster", "size", "first found at evaluation", "best reward",
+              *(f"{n} [{u}]" if u else n for n, u in zip(sp.names, sp.units))]
+    rows = []
+    for c in range(shown):
+        j = int(fc.representative[c])
+        rows.append([str(c + 1), str(int(fc.sizes[c])), str(int(fc.first_evaluation[c])),
+                     f"{float(np.asarray(fields['reward'])[fc.rows[j]]):.4f}",
+                     *(analysis.format_value(sp, p, sp.table[p][int(fc.indices[j, p])])
+                       for p in range(len(sp.names)))])
+    lead = (f"The {shown} largest of {fc.k} failure clusters (the others in `critical.csv`'s "
+            "`cluster` column)" if fc.k > shown else
+            f"The {fc.k} failure clusters" if fc.k > 1 else "The one failure cluster")
+    return ["", "## Failure clusters", "",
+            f"{lead}: distinct critical scenarios "
+            "whose index vectors differ by at most one value in every parameter are neighbours, "
+            "and a cluster is a chain of neighbours. Each row shows the cluster's best-reward "
+            "member.", "", analysis.markdown_table(header, rows)]
+
+
 def write_report(run_dir: Path, timing: dict | None = None) -> Path:
     """Write ``run_dir/report.md``; ``timing``: the run's wall-time split (else read from its
     ``timing.json``; the run itself passes it, so report.md's writing counts in timing.json)."""
@@ -57,6 +96,7 @@ def write_report(run_dir: Path, timing: dict | None = None) -> Path:
     idx, fields = analysis.from_evaluations(ep, sp)
     b = analysis.best(fields)
     fc = s["first_collision_evaluation"]
+    clusters = analysis.failure_clusters(idx, fields)
     lines = [f"# Falsification run `{run_dir.name}`", "",
              "| | |", "|---|---|",
              f"| strategy | {s['strategy']} |",
@@ -65,6 +105,7 @@ def write_report(run_dir: Path, timing: dict | None = None) -> Path:
              f"| seed | {s['seed']} |",
              f"| evaluations | {s['evaluations']} (batch {s['batch']}) |",
              f"| collisions | {s['n_collisions']} ({s['n_distinct_critical']} distinct) |",
+             f"| failure clusters | {cluster_cell(clusters)} |",
              f"| first collision at evaluation | {fc if fc is not None else 'none found'} |",
              (f"| best reward | {s['best']['reward']:.4f}, first evaluated at "
               f"{s['best']['evaluation']} |" if s["best_reached_evaluation"] is not None else
@@ -79,7 +120,8 @@ def write_report(run_dir: Path, timing: dict | None = None) -> Path:
              "", ("## Best critical scenario beside a typical non-critical one (paper Table II "
                   "layout)" if fc is not None else
                   "## No collision found: the best scenario beside a typical one"),
-             "", analysis.markdown_table(*analysis.table_ii(sp, idx, fields))]
+             "", analysis.markdown_table(*analysis.table_ii(sp, idx, fields)),
+             *cluster_section(sp, clusters, fields)]
     figs = [(f, cap) for f, cap in FIGURES if (run_dir / "figures" / f).exists()]
     if figs:
         lines += ["", "## Figures", ""]

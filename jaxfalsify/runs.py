@@ -8,7 +8,8 @@ A run folder holds:
 * ``checkpoint/`` — while the run is unfinished (see :class:`jaxfalsify.store.CampaignCheckpoint`);
 * ``evaluations.parquet`` — every evaluated concrete scenario;
 * ``summary.json`` — the run's outcome, bit-identical between runs of the same config and seed;
-* ``critical.csv`` — the distinct collision scenarios found, ranked by reward;
+* ``critical.csv`` — the distinct collision scenarios found, ranked by reward, with their
+  failure cluster (:func:`jaxfalsify.analysis.failure_clusters`);
 * ``timing.json`` — wall time from start to exit, split into start-up, compile, search,
   writing and figures;
 * ``figures/``, ``report.md`` (and ``best.rrd`` if asked).
@@ -122,7 +123,9 @@ class Built:
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
     """What a run needs. Defaults: the paper's space (space seed 0), ``carla-tm``,
-    ``reinforce/default``, search seed 0, the paper's 4000 evaluations."""
+    ``reinforce/default``, search seed 0, the strategy's default budget
+    (:func:`jaxfalsify.search.default_evaluations`: 1,228,800 evaluations, 300 updates of 4096,
+    for ``reinforce/default``; the paper's 4000 for ``reinforce/paper`` and the others)."""
 
     space: Any = "paper"  # built-in name, TOML path, or a space description table
     space_seed: int = 0  # discretisation seed of the space
@@ -130,7 +133,7 @@ class RunConfig:
     sut_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
     strategy: str = "reinforce/default"
     strategy_params: Mapping[str, Any] = dataclasses.field(default_factory=dict)
-    evaluations: int = PAPER_BUDGET  # the budget, in evaluated scenarios
+    evaluations: int | None = None  # the budget, in evaluated scenarios (None: the strategy's)
     batch: int | None = None  # scenarios per update (None: the strategy's default)
     seed: int = 0  # search seed
     checkpoint_every: int | None = None  # updates between checkpoints (None: ~1/20 of the run)
@@ -139,7 +142,8 @@ class RunConfig:
         """Validate and build everything; ValueError (one line) on bad values."""
         check_int("seed", self.seed, 0, SEED_LIMIT - 1)
         check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
-        check_int("evaluations", self.evaluations, 1, 10**9)
+        if self.evaluations is not None:
+            check_int("evaluations", self.evaluations, 1, 10**9)
         if self.batch is not None:
             check_int("batch", self.batch, 1, 10**6)
         if self.checkpoint_every is not None:
@@ -154,8 +158,9 @@ class RunConfig:
         strat, strat_params = search.make(name, sp.shape, self.batch,
                                           **check_mapping("strategy_params",
                                                           self.strategy_params))
+        evaluations = self.evaluations or search.default_evaluations(name)
         return Built(sp, sut, sut_params, strat, strat_params,
-                     campaign.plan(self.evaluations, strat.batch, every=self.checkpoint_every))
+                     campaign.plan(evaluations, strat.batch, every=self.checkpoint_every))
 
     def resolved(self, built: Built | None = None) -> "RunConfig":
         """Every default filled in: the canonical strategy name, its batch and full options,
@@ -164,6 +169,7 @@ class RunConfig:
         return dataclasses.replace(
             self, space=b.space.describe(), strategy=search.canonical(self.strategy),
             sut=sut_lib.recorded_spec(self.sut), batch=b.strategy.batch,
+            evaluations=b.plan.evaluations,
             sut_params=fixed_sut_params(sut_lib.params_dict(b.sut_params), b.space),
             strategy_params=_strategy_options(b))
 
@@ -301,10 +307,33 @@ def evaluations_table(res: campaign.Result) -> dict[str, np.ndarray]:
     return cols
 
 
+CLUSTERS_LISTED = 20  # failure clusters summary.json describes (the largest)
+
+
+def cluster_entries(space: Space, fc: analysis.FailureClusters, fields: dict,
+                    most: int = CLUSTERS_LISTED) -> list[dict]:
+    """The ``most`` largest failure clusters as ``summary.json`` lists them: per cluster its
+    number, ``size`` (distinct critical scenarios), ``first_evaluation`` (1-based, the first
+    evaluation of any member) and ``representative``, its best-reward member: ``params``
+    (values), ``indices``, ``critical_rank`` (its row in ``critical.csv``), ``evaluation``
+    (its first) and ``reward``."""
+    out = []
+    for c in range(min(fc.k, most)):
+        j = int(fc.representative[c])
+        row = int(fc.rows[j])
+        out.append({"cluster": c + 1, "size": int(fc.sizes[c]),
+                    "first_evaluation": int(fc.first_evaluation[c]),
+                    "representative": {"params": space.values_at(fc.indices[j]),
+                                       "indices": [int(i) for i in fc.indices[j]],
+                                       "critical_rank": j + 1, "evaluation": row + 1,
+                                       "reward": cfg.plain(np.asarray(fields["reward"])[row])}})
+    return out
+
+
 def summary_dict(res: campaign.Result, rc: RunConfig) -> dict:
     """``summary.json`` (``rc`` resolved): bit-identical for the same config and seed."""
     b = analysis.best(res.fields)
-    crit = analysis.distinct_critical(res.indices, res.fields)
+    fc = analysis.failure_clusters(res.indices, res.fields)
     best = {"params": res.space.values_at(res.indices[b]),
             "indices": [int(i) for i in res.indices[b]], "evaluation": b + 1,
             **{k: cfg.plain(res.fields[k][b]) for k in
@@ -314,23 +343,29 @@ def summary_dict(res: campaign.Result, rc: RunConfig) -> dict:
             "sut": rc.sut, "seed": rc.seed, "evaluations": res.n, "batch": rc.batch,
             "first_collision_evaluation": analysis.first_collision(res.fields),
             "n_collisions": int(np.sum(analysis.collided(res.fields))),
-            "n_distinct_critical": len(crit),
+            "n_distinct_critical": fc.n, "n_failure_clusters": fc.k,
             "n_nonfinite": int(np.sum(res.fields["nonfinite"])),
             "best": best, "best_reached_evaluation": analysis.best_reached(res.fields),
             "learner_converged_evaluation": analysis.learner_converged(res.fields),
+            "failure_clusters": cluster_entries(res.space, fc, res.fields),
+            "failure_clusters_omitted": max(fc.k - CLUSTERS_LISTED, 0),
             "versions": cfg.versions()}
 
 
 def critical_csv(res: campaign.Result) -> str:
+    """``critical.csv``: one row per distinct critical scenario, ranked by reward, with its
+    failure cluster (the number ``summary.json`` lists it under)."""
     buf = io.StringIO()
     w = csv.writer(buf)
     names = list(res.space.names)
-    w.writerow(["rank", *names, "reward", "min_distance", "high_risk_share_second_half",
-                "first_evaluation", "times_evaluated"])
+    w.writerow(["rank", "cluster", *names, "reward", "min_distance",
+                "high_risk_share_second_half", "first_evaluation", "times_evaluated"])
+    labels = analysis.failure_clusters(res.indices, res.fields).labels
     for rank, c in enumerate(analysis.distinct_critical(res.indices, res.fields), 1):
         vals = res.space.values_at(c["indices"])
-        w.writerow([rank, *(f"{vals[n]:g}" for n in names), f"{c['reward']:.6f}",
-                    f"{c['min_distance']:.4f}", f"{c['high_risk_share_second_half']:.4f}",
+        w.writerow([rank, int(labels[rank - 1]), *(f"{vals[n]:g}" for n in names),
+                    f"{c['reward']:.6f}", f"{c['min_distance']:.4f}",
+                    f"{c['high_risk_share_second_half']:.4f}",
                     c["first_evaluation"], c["times_evaluated"]])
     return buf.getvalue()
 
@@ -639,7 +674,7 @@ def run_lines(s: dict) -> list[str]:
     """What a run found, in words (the closing report and report.md)."""
     fc = s["first_collision_evaluation"]
     found = (f"{s['n_collisions']} collisions, {s['n_distinct_critical']} distinct critical "
-             f"scenarios, the first at evaluation {fc}" if fc is not None else
+             f"scenarios{cluster_words(s)}, the first at evaluation {fc}" if fc is not None else
              "no collision found (the best scenario below is not critical)")
     conv = s.get("learner_converged_evaluation")
     best = (f"Best reward {s['best']['reward']:.4f}, first evaluated at "
@@ -652,6 +687,17 @@ def run_lines(s: dict) -> list[str]:
                 f"{conv} (from there its moving mean reward over 100 evaluations stays within "
                 "5 % of the reward range of its final value)." if conv is not None else
                 "- (too few evaluations to tell).")]
+
+
+def cluster_words(s: dict) -> str:
+    """`` in 7 failure clusters (largest 120)`` from a summary (empty for a summary without
+    clusters)."""
+    k = s.get("n_failure_clusters")
+    if not k:
+        return ""
+    if k == 1:
+        return " in 1 failure cluster"
+    return f" in {k} failure clusters (largest {s['failure_clusters'][0]['size']})"
 
 
 def timestamp() -> str:

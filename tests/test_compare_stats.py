@@ -74,7 +74,8 @@ def test_seed_stats_and_row_by_hand_with_a_failed_seed():
                                  "uniform_first_collision":
                                      compare.uniform_first_collision(24, 5, 8),
                                  "uniform_corner_share": 8 / 24, **TRUTH})
-    assert "| x | 2/3 | 8 [5.5, 8.5] | 0.9333 | 1/3 |" in md
+    # not timed (a hand-built result): the search-time columns read "-", never 0
+    assert "| x | 2/3 | 8 [5.5, 8.5] | - | - | 0.9333 | 1/3 |" in md
     assert "1/p = 4.8" in md
 
 
@@ -131,7 +132,7 @@ def test_smaller_budgets_are_the_first_evaluations_by_hand():
                            "uniform_first_collision": compare.uniform_first_collision(24, 5, 8)}],
               "overhead": {"x": 0.5}, "uniform_corner_share": 8 / 24}
     md = compare.budgets_markdown(result)
-    assert "| x | 1/2 / 4 [3.5, 4.5] / 1/2 | 2/2 / 5.5 [4.25, 6.75] / 1/2 |" in md
+    assert "| x | 1/2 / 4 [3.5, 4.5] / 1/2 / - | 2/2 / 5.5 [4.25, 6.75] / 1/2 / - |" in md
     # uniform: p = 5/24; within 4 evaluations with probability 1 - (19/24)^4
     assert f"{1 - (19 / 24) ** 4:.0%}" in md.splitlines()[-1]
 
@@ -195,8 +196,7 @@ def test_strategies_side_by_side_give_the_same_results(tmp_path):
     three = _tiny_compare(tmp_path, "three", jobs=3)
     assert one["jobs"] == 1 and three["jobs"] == 3
     assert [r["strategy"] for r in three["rows"]] == ["random", "cem", "anneal"]
-    drop = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"}  # noqa: E731
-                         for r in rows]
+    drop = lambda rows: [compare.without_times(r) for r in rows]  # noqa: E731
     assert drop(one["rows"]) == drop(three["rows"])
     for a, b in zip(one["budgets"], three["budgets"]):
         assert drop(a["rows"]) == drop(b["rows"])
@@ -208,7 +208,7 @@ def test_strategies_side_by_side_give_the_same_results(tmp_path):
     assert "3 strategies side by side" in md
     # the smaller budget's table is in the file, not only on the console, cell for cell
     assert compare.budgets_markdown(three) in md
-    assert "| 16: collision / first [IQR] / global max | 48: " in md
+    assert "| 16: collision / first [IQR] / global max / search s to first | 48: " in md
     assert json.loads((tmp_path / "one" / "compare.json").read_text())["rows"][0]["per_seed"]
 
 

@@ -10,7 +10,8 @@ from conftest import grid_run
 from jaxfalsify.cli import main
 
 SIZES = {"reward_per_evaluation.png": (500, 800), "distance_challenging.png": (500, 1200),
-         "high_risk_second_half.png": (450, 500), "distance_14_scenarios.png": (500, 800)}
+         "high_risk_second_half.png": (450, 500), "distance_14_scenarios.png": (500, 800),
+         "failure_clusters.png": (500, 1200)}
 
 
 @pytest.fixture(scope="module")
@@ -79,12 +80,16 @@ def test_report_links_resolve_and_table_matches_summary(run_with_figures):
 
     text = (run_with_figures / "report.md").read_text()
     links = re.findall(r"\]\(([^)]+)\)", text)
-    assert len(links) == 6
+    assert len(links) == 7
     for link in links:
         assert (run_with_figures / link).is_file(), link
     s = json.loads((run_with_figures / "summary.json").read_text())
     assert f"{s['best']['reward']:.4f}" in text
     assert f"jaxfalsify run --config {run_with_figures}/config.toml" in text
+    k = s["n_failure_clusters"]
+    assert (f"| failure clusters | {k} (largest: {s['failure_clusters'][0]['size']} of the "
+            f"{s['n_distinct_critical']} distinct" if k else
+            "| failure clusters | none (no collision) |") in text
 
 
 def test_figures_command_regenerates_and_rejects_non_runs(run_with_figures, tmp_path, capsys):
@@ -112,7 +117,7 @@ def test_a_failure_while_drawing_leaves_every_figure_as_it_was(run_with_figures,
     def broken(*args, **kwargs):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(figures, "search_figure", broken)
+    monkeypatch.setattr(figures, "cluster_figure", broken)  # the last one drawn
     try:
         assert main(["figures", str(run_with_figures)]) == 1  # a failure, not bad input
         err = capsys.readouterr().err.strip()

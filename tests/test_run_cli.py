@@ -130,8 +130,8 @@ def test_closing_report_and_report_md_agree(tmp_path, capsys):
     text = capsys.readouterr().out.splitlines()
     md = (out / "report.md").read_text().splitlines()
     start = next(i for i, ln in enumerate(md) if ln.startswith("| parameter |"))
-    md_rows = [[c.strip() for c in ln.strip("|").split("|")] for ln in md[start + 2:]
-               if ln.startswith("|")]
+    end = next(i for i in range(start, len(md) + 1) if i == len(md) or not md[i].startswith("|"))
+    md_rows = [[c.strip() for c in ln.strip("|").split("|")] for ln in md[start + 2:end]]
     term_rows = [ln.split() for ln in text[1:len(md_rows) + 1]]
     assert len(md_rows) >= 10
     for m, t in zip(md_rows, term_rows):

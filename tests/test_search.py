@@ -88,7 +88,7 @@ def test_registry_options_and_errors():
     with pytest.raises(ValueError, match="batch"):
         search.make("random", SHAPE, 0)
     with pytest.raises(ValueError, match="learners=7 must divide batch=20"):
-        search.make("reinforce/default", SHAPE, 20, learners=7)
+        search.make("reinforce/screened", SHAPE, 20, learners=7)
     with pytest.raises(ValueError, match="chains=7 must divide batch=20"):
         search.make("reinforce/factorised", SHAPE, 20, chains=7)
     with pytest.raises(ValueError, match="signal must be one of"):
@@ -99,16 +99,16 @@ def test_registry_options_and_errors():
 def test_option_types_and_intervals():
     """Static options take the type of their default (a command line gives strings and
     numbers); hyperparameters must lie in their class's declared interval."""
-    as_python = search.make("reinforce/default", SHAPE, anchored=False, hidden=16)[0]
+    as_python = search.make("reinforce/screened", SHAPE, anchored=False, hidden=16)[0]
     for text in ("false", "False", " FALSE ", 0):
-        assert search.make("reinforce/default", SHAPE, anchored=text, hidden=16.0)[0] == \
+        assert search.make("reinforce/screened", SHAPE, anchored=text, hidden=16.0)[0] == \
             as_python
-    assert search.make("reinforce/default", SHAPE, anchored="true")[0].anchored is True
+    assert search.make("reinforce/screened", SHAPE, anchored="true")[0].anchored is True
     # NumPy and JAX scalars are numbers like Python's (a sweep over np.linspace, say)
-    strat, params = search.make("reinforce/default", SHAPE, hidden=np.int64(16),
+    strat, params = search.make("reinforce/screened", SHAPE, hidden=np.int64(16),
                                 lr=np.float32(0.5), kappa=jnp.asarray(2.0))
     assert strat.hidden == 16 and isinstance(strat.hidden, int)
-    assert search.make("reinforce/default", SHAPE, anchored=np.bool_(False))[0].anchored is False
+    assert search.make("reinforce/screened", SHAPE, anchored=np.bool_(False))[0].anchored is False
     assert (float(params.lr), float(params.kappa)) == (0.5, 2.0)
     for bad, needle in [(dict(anchored="maybe"), "not a boolean"),
                         (dict(anchored=2), "not a boolean"),
@@ -124,7 +124,7 @@ def test_option_types_and_intervals():
                          .replace("10{30}", str(10**30))),
                         (dict(memory=99999999999), r"memory=99999999999 is outside")]:
         with pytest.raises(ValueError, match=needle):
-            search.make("reinforce/default", SHAPE, **bad)
+            search.make("reinforce/screened", SHAPE, **bad)
     # the interval notation: brackets closed, parentheses open
     for value, interval, inside in [(0.0, "(0, 1]", False), (1.0, "(0, 1]", True),
                                     (0.5, "(0, 1]", True), (1.0, "[0, 1)", False),
@@ -391,3 +391,15 @@ def test_anneal_moves_only_parameters_that_can_move():
     prop = np.asarray(s.ask(jax.random.key(2), st, p)[0])[:, 0]
     down = (prop < 50).mean()
     assert 0.45 < down < 0.55, down  # a fair coin for the sign, 4000 draws: sd 0.008
+
+
+def test_flax_init_and_one_draw_init_give_the_same_tree():
+    """The strategies' one-draw initialiser and the Flax module's own give parameter trees of
+    the same structure and shapes, so either can be applied."""
+    shape = (3, 5, 2)
+    mine = controller.init(jax.random.key(0), shape)
+    flax_tree = controller.PaperController(shape).init(jax.random.key(0), jnp.zeros(3))["params"]
+    assert jax.tree.structure(mine) == jax.tree.structure(flax_tree)
+    assert jax.tree.map(jnp.shape, mine) == jax.tree.map(jnp.shape, flax_tree)
+    b = np.asarray(flax_tree["lstm1"]["b"])
+    assert np.all(b[32:64] == 1.0) and np.all(b[:32] == 0) and np.all(b[64:] == 0)

@@ -175,12 +175,12 @@ def test_anchored_controller_log_prob_matches_step_by_step_numpy(controller_path
 def test_zoomed_anchored_draws_are_wider_by_the_zoom():
     """A zoom z widens the initial anchored bump (1.5 value steps) by e^z: the moved draws'
     spread around the anchor is the discretised Gaussian's (closed form) at width 1.5 e^z, and
-    reinforce/default's widest zoom is 0.3 of a parameter's range."""
+    reinforce/screened's widest zoom is 0.3 of a parameter's range."""
     shape = (1, 801)
     w = ar.init(jax.random.key(0), shape, 8, anchored=True)
     anchor = jnp.array([0, 400])
     u = jax.random.uniform(jax.random.key(1), (20000, 2))
-    lsm = jnp.log(search.options("reinforce/default")["sigma_min"])
+    lsm = jnp.log(search.options("reinforce/screened")["sigma_min"])
     zoomed = jax.jit(jax.vmap(lambda ui, zz: ar.sample(w, ui, shape, lsm,
                                                        (anchor, jnp.bool_(True), zz)),
                               in_axes=(0, None)))
@@ -193,7 +193,7 @@ def test_zoomed_anchored_draws_are_wider_by_the_zoom():
         pd = np.exp(-0.5 * (d / sigma) ** 2)
         expected = np.sqrt(np.sum(pd * d ** 2) / np.sum(pd))  # the rms step of a moved draw
         assert np.sqrt(np.mean(step.astype(float) ** 2)) == pytest.approx(expected, rel=0.05)
-    strat, params = search.make("reinforce/default", (5, 1001))
+    strat, params = search.make("reinforce/screened", (5, 1001))
     widest = ar.LOCAL_STEPS * np.exp(np.asarray(strat._log_zoom(params)))
     np.testing.assert_allclose(widest, [1.5, 0.3 * 1000], rtol=1e-5)
 
@@ -201,13 +201,13 @@ def test_zoomed_anchored_draws_are_wider_by_the_zoom():
 def test_initial_anchored_draws_move_about_one_parameter_near_the_anchor():
     """At initialisation an anchored draw keeps each parameter's value with probability
     1 - 1/(parameters with two or more values), so about one parameter moves per draw, by
-    about 1.5 value steps (the bump's initial width; reinforce/default's sigma_min = 0.001
+    about 1.5 value steps (the bump's initial width; reinforce/screened's sigma_min = 0.001
     never binds here)."""
     shape = (20, 30, 1, 40)
     w = ar.init(jax.random.key(0), shape, 8, anchored=True)
     anchor = jnp.array([10, 15, 0, 20])
     u = jax.random.uniform(jax.random.key(1), (20000, 4))
-    lsm = jnp.log(search.options("reinforce/default")["sigma_min"])
+    lsm = jnp.log(search.options("reinforce/screened")["sigma_min"])
     draws = np.asarray(jax.jit(jax.vmap(lambda ui: ar.sample(w, ui, shape, lsm,
                                                              (anchor, jnp.bool_(True)))))(u))
     moved = draws != np.asarray(anchor)
@@ -258,11 +258,11 @@ def _search(strat, p, outcome, key, updates):
 
 
 def test_default_never_repeats_a_scenario_before_a_collision():
-    """reinforce/default's novelty filter: 30 updates of 32 on a space of 10,000 scenarios
+    """reinforce/screened's novelty filter: 30 updates of 32 on a space of 10,000 scenarios
     with a smooth objective and no collision: 960 evaluations, all distinct (the learner
     concentrates around the best it found, so without the filter it would repeat)."""
     shape = (10, 10, 10, 10)
-    strat, p = search.make("reinforce/default", shape)
+    strat, p = search.make("reinforce/screened", shape)
     target = jnp.array([7, 2, 5, 4])
 
     def outcome(idx):
@@ -278,13 +278,13 @@ def test_default_never_repeats_a_scenario_before_a_collision():
 
 
 def test_default_repeats_only_its_own_collisions_and_holds_still_without_signal():
-    """After its first collision reinforce/default may repeat a scenario only if it is one of
+    """After its first collision reinforce/screened may repeat a scenario only if it is one of
     its own collisions (a repeated near miss teaches nothing); and a batch whose signals all
     tie (copies of its best) moves neither its weights nor Adam's state (the learner walked
     off its best on Adam's momentum and rounding noise). Collisions: a band of 250 of the
     10,000 scenarios; 60 updates of 32."""
     shape = (10, 10, 10, 10)
-    strat, p = search.make("reinforce/default", shape)
+    strat, p = search.make("reinforce/screened", shape)
 
     def outcome(idx):
         d = jnp.abs(idx[..., 0] + idx[..., 1] - 9) + jnp.abs(idx[..., 2] - 4)
@@ -320,7 +320,7 @@ def test_default_repeats_only_its_own_collisions_and_holds_still_without_signal(
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     # the same with normalised advantages (x - mean of equal float32 values is noise, which
     # the division by their std of the same noise blew up to O(1))
-    norm, pn = search.make("reinforce/default", shape, advantage="normalised", surrogate=0,
+    norm, pn = search.make("reinforce/screened", shape, advantage="normalised", surrogate=0,
                            resample=1)
     st = pytree.replace(norm.init(jax.random.key(0), pn), seen=jnp.ones((1,), bool),
                         told=jnp.int32(100))
@@ -335,7 +335,7 @@ def test_entropy_until_fades_the_bonus_after_a_collision_linearly():
     evaluations, steps as with the constant bonus ``entropy_found * (1 - told * batch / U)``
     (0 from U on); without a collision the bonus is ``entropy``, unfaded."""
     shape = (10, 10, 10, 10)
-    strat, p = search.make("reinforce/default", shape, entropy_found=0.2, entropy_until=1280.0)
+    strat, p = search.make("reinforce/screened", shape, entropy_found=0.2, entropy_until=1280.0)
     plain = pytree.replace(p, entropy_until=0.0)
     idx = jnp.asarray(np.random.default_rng(0).integers(0, 10, (32, 4)), jnp.int32)
     sig = jnp.linspace(-1.0, 1.0, 32, dtype=jnp.float32)
@@ -390,13 +390,13 @@ def test_centred_ranks_are_exact_fractions_under_jit():
 
 @pytest.mark.slow
 def test_default_anchors_every_draw_once_it_has_a_collision():
-    """reinforce/default draws a share ``global_share`` (0.25) without an anchor until its
+    """reinforce/screened draws a share ``global_share`` (0.25) without an anchor until its
     first collision and none after (``global_share_found`` 0): over 100 asks of 32 from the
     same state, the unanchored share is 0.25 +- 0.03 before (a binomial with sd 0.005) and
     exactly 0 after. (Without the novelty filter, ``resample=1``, which would otherwise
     reject the repeats that anchored draws make more often.)"""
     shape = (10, 10, 10, 10)
-    strat, p = search.make("reinforce/default", shape, resample=1, surrogate=0)
+    strat, p = search.make("reinforce/screened", shape, resample=1, surrogate=0)
     asks = jax.jit(jax.vmap(lambda k, st: strat.ask(k, st, p), in_axes=(0, None)))
     tell = jax.jit(strat.tell_outcome)
     keys = jax.random.split(jax.random.key(3), 100)  # 100 asks from one state, compiled once
@@ -423,7 +423,7 @@ def test_edge_explore_puts_that_share_of_uniform_values_on_the_bounds():
     either bound equally often (30 asks x 32 slots x 4 values of uniform candidates, binomial
     sd <= 0.006). q is traced: one compiled function for both."""
     shape = (10, 10, 10, 10)
-    strat, p0 = search.make("reinforce/default", shape, resample=2, surrogate=0, hidden=8)
+    strat, p0 = search.make("reinforce/screened", shape, resample=2, surrogate=0, hidden=8)
     state = strat.init(jax.random.key(0), p0)
     cands = jax.jit(lambda ks, p: jax.vmap(lambda k: strat.candidates(k, state, p))(ks))
     keys = jax.random.split(jax.random.key(7), 30)
@@ -438,13 +438,13 @@ def test_edge_explore_puts_that_share_of_uniform_values_on_the_bounds():
 
 @pytest.mark.slow
 def test_default_anchors_nearer_the_best_once_it_has_a_collision():
-    """reinforce/default picks the k-th best of its queue as an anchor with weight
+    """reinforce/screened picks the k-th best of its queue as an anchor with weight
     ``anchor_decay^k`` (0.9) until its first collision and ``anchor_decay_found^k`` (registered
     0.9 too; 0.8 here, so the switch shows) after: with 32 queued scenarios the best one
     anchors (1 - d) / (1 - d^32) of the anchored draws (0.1036 before, 0.2002 after; 3,200
     draws from one state, binomial sd <= 0.0071)."""
     shape = (10, 10, 10, 10)
-    strat, p = search.make("reinforce/default", shape, resample=1, surrogate=0,
+    strat, p = search.make("reinforce/screened", shape, resample=1, surrogate=0,
                            anchor_decay_found=0.8)
     asks = jax.jit(jax.vmap(lambda k, st: strat.ask(k, st, p), in_axes=(0, None)))
     tell = jax.jit(strat.tell_outcome)
@@ -466,7 +466,7 @@ def test_default_anchors_nearer_the_best_once_it_has_a_collision():
         at_best = np.all(np.asarray(s2.anchors) == np.asarray(st.queue[0, 0]), axis=-1)
         return np.mean(at_best[a & ~e])
 
-    opts = search.options("reinforce/default")
+    opts = search.options("reinforce/screened")
     assert (opts["anchor_decay"], opts["anchor_decay_found"]) == (0.9, 0.9)
     for st, d in ((before, 0.9), (after, 0.8)):
         assert abs(best_share(st) - (1 - d) / (1 - d ** 32)) < 0.02, d
@@ -496,12 +496,12 @@ def test_near_miss_ttc_by_hand():
 
 
 def test_default_learns_from_the_near_miss_ttc_signal():
-    """reinforce/default told the TTCs with ``ttc_weight`` > 0 (its default 0.05) ends in the
+    """reinforce/screened told the TTCs with ``ttc_weight`` > 0 (its default 0.05) ends in the
     state it reaches told the robustness combined by hand (NumPy); with ``ttc_weight`` 0, or
     once the learner has seen a collision, the TTCs change nothing; and the campaign hands
     them only to strategies that take them."""
     shape = (6, 5, 4)
-    strat, p = search.make("reinforce/default", shape, 16, ttc_weight=0.05)
+    strat, p = search.make("reinforce/screened", shape, 16, ttc_weight=0.05)
     st = strat.init(jax.random.key(0), p)
     idx, st = jax.jit(strat.ask)(jax.random.key(1), st, p)
     g = np.random.default_rng(0)
@@ -522,7 +522,7 @@ def test_default_learns_from_the_near_miss_ttc_signal():
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert any(not np.array_equal(np.asarray(x), np.asarray(y))
                for x, y in zip(jax.tree.leaves(a.weights), jax.tree.leaves(c.weights)))
-    assert float(search.make("reinforce/default", shape, 16)[1].ttc_weight) == np.float32(0.05)
+    assert float(search.make("reinforce/screened", shape, 16)[1].ttc_weight) == np.float32(0.05)
     seen = dataclasses.replace(st, seen=jnp.ones_like(st.seen))  # after a first collision
     e = tell(jax.random.key(2), seen, idx, r, rob, hit, p, ttc=ttc)
     f = tell(jax.random.key(2), seen, idx, r, rob, hit, p)
@@ -530,7 +530,7 @@ def test_default_learns_from_the_near_miss_ttc_signal():
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     # two learners sharing the batch (learner-major: the first 8 slots are learner 0's),
     # only the second without a collision yet: the term reaches its slots alone
-    two, p2 = search.make("reinforce/default", shape, 16, learners=2)
+    two, p2 = search.make("reinforce/screened", shape, 16, learners=2)
     s2 = two.init(jax.random.key(0), p2)
     idx2, s2 = jax.jit(two.ask)(jax.random.key(1), s2, p2)
     s2 = dataclasses.replace(s2, seen=jnp.array([True, False]))
@@ -785,7 +785,7 @@ def test_an_unknown_kernel_is_refused_in_one_line():
     """``--strategy-param kernel=...`` names the kernels it knows; the GP's own functions too."""
     with pytest.raises(ValueError,
                        match=r"^kernel must be one of se, matern52, auto \(got 'rbf'\)$"):
-        search.make("reinforce/default", (5, 5), kernel="rbf")
+        search.make("reinforce/screened", (5, 5), kernel="rbf")
     with pytest.raises(ValueError, match="kernel must be one of se, matern52, auto"):
         surrogate.kernel(jnp.zeros(3), "rbf")
 
@@ -833,7 +833,7 @@ def test_batch_ucb_matches_sequential_conditioning(kind):
 
 
 def _np_screen(st, cand, allowed, shape, kappa, b, prior=0.0, kind="se"):
-    """reinforce/default's screening in float64: the GP's data are the history ring and the
+    """reinforce/screened's screening in float64: the GP's data are the history ring and the
     queue of best scenarios (a history row that is also a filled queue row or an earlier
     history row dropped), scaled to [0, 1]; while ``told`` < the number of movable parameters
     each of them in turn, after that only parameter ``told mod (movable parameters)``, gets
@@ -860,15 +860,15 @@ def _np_screen(st, cand, allowed, shape, kappa, b, prior=0.0, kind="se"):
 
 @pytest.mark.slow
 def test_surrogate_screening_asks_the_gp_bucb_picks():
-    """Before a collision, reinforce/default (GP screening on by default) asks exactly the
+    """Before a collision, reinforce/screened (GP screening on by default) asks exactly the
     candidates a float64 reimplementation of its screening picks (data, ARD step, GP-BUCB;
     :func:`_np_screen`), each new and distinct, and keeps the refined length scales; after a
     collision the screening is off: the same ask as with ``surrogate=0`` (the first allowed
     candidates in drawing order)."""
     shape = (10, 10, 10, 10)
     target = jnp.array([7, 2, 5, 4])
-    on, p = search.make("reinforce/default", shape, surrogate=64)
-    off, _ = search.make("reinforce/default", shape, surrogate=0)
+    on, p = search.make("reinforce/screened", shape, surrogate=64)
+    off, _ = search.make("reinforce/screened", shape, surrogate=0)
 
     def outcome(idx):
         rob = jnp.sqrt(jnp.sum(jnp.square(idx - target), -1)).astype(jnp.float32) + 0.5
@@ -919,7 +919,7 @@ def island_outcome(idx):
     return reward, robustness.astype(jnp.float32), collision
 
 
-@pytest.fixture(scope="module", params=["reinforce/default", "reinforce/factorised"])
+@pytest.fixture(scope="module", params=["reinforce/screened", "reinforce/factorised"])
 def island_runs(request):
     """A learner on the island for seeds 0..3, 80 updates each (2560 evaluations at the
     default's batch of 32, 4000 at the factorised learner's 50), one compiled call."""
@@ -945,7 +945,7 @@ def test_learners_find_and_concentrate_on_the_interior_island(island_runs):
         assert corners.mean() < 0.005, (name, s)
         reached += bool(np.any(np.all(idx[s] == CENTRE, axis=-1)))
     # the unique optimum inside the island (uniform random: 1 - (1 - 1/8000)^n per seed)
-    assert reached >= (4 if name == "reinforce/default" else 3), (name, reached)
+    assert reached >= (4 if name == "reinforce/screened" else 3), (name, reached)
     assert n >= 1536
 
 

@@ -81,7 +81,7 @@ def test_a_space_too_large_to_sweep_is_searched_with_a_sampled_estimate(tmp_path
     assert main(["sweep", "--space", str(path), "--out", str(tmp_path / "s"),
                  "--quiet"]) == 2
     assert not (tmp_path / "s").exists()
-    res = run_campaign(sp, "reinforce/default", batch=32, evaluations=64, seed=1)
+    res = run_campaign(sp, "reinforce/screened", batch=32, evaluations=64, seed=1)
     assert res.indices.shape == (64, 3) and np.all(res.indices < np.array(sp.shape))
     # compare: no ground truth; the share is estimated from a uniform sample, whose
     # Clopper-Pearson interval holds the estimate
@@ -253,11 +253,11 @@ def test_suite_strategy_options_from_the_file_and_the_command_line(tmp_path, cap
     with pytest.raises(ValueError, match=r"typo.toml: strategy_params: 'cme' is not among"):
         compare.load_suite(typo)
     alias = tmp_path / "alias.toml"
-    alias.write_text('strategies = ["reinforce"]\n[strategy_params."reinforce/default"]\n'
+    alias.write_text('strategies = ["reinforce/screened"]\n[strategy_params."reinforce/screened"]\n'
                      'kappa = 0.5\n[[entry]]\nspace = "tiny.toml"\n')
-    got = compare.load_suite(alias, strategy_params={"reinforce/default": {"lr": 0.01}})
-    assert got.strategy_params == {"reinforce": {"kappa": 0.5, "lr": 0.01}}
-    built = got.compare_config(got.entries[0]).run_config("reinforce").build()
+    got = compare.load_suite(alias, strategy_params={"reinforce/screened": {"lr": 0.01}})
+    assert got.strategy_params == {"reinforce/screened": {"kappa": 0.5, "lr": 0.01}}
+    built = got.compare_config(got.entries[0]).run_config("reinforce/screened").build()
     assert np.isclose(float(built.strategy_params.kappa), 0.5)
     bad = tmp_path / "bad.toml"
     bad.write_text('strategy_params = { cem = 3 }\n[[entry]]\nspace = "tiny.toml"\n')

@@ -17,6 +17,7 @@ import numpy as np
 from jaxfalsify import pytree
 from jaxfalsify.search.anneal import Anneal
 from jaxfalsify.search.base import Strategy
+from jaxfalsify.search.batched import BatchedReinforce
 from jaxfalsify.search.cem import CEM
 from jaxfalsify.search.cmaes import CMAES
 from jaxfalsify.search.grid import Grid
@@ -25,24 +26,33 @@ from jaxfalsify.search.reinforce import Reinforce
 from jaxfalsify.search.reinforce_ar import AutoregressiveReinforce
 
 
+PAPER_BUDGET = 4000  # the paper's evaluations (episodes)
+
+
 @dataclasses.dataclass(frozen=True)
 class Entry:
     cls: type
-    batch: int  # default scenarios per ask
+    batch: int  # default scenarios per ask on CPUs
     options: tuple[tuple[str, Any], ...] = ()  # fixed static config / params of the entry
     doc: str = ""
+    evaluations: int = PAPER_BUDGET  # default budget of a run
+    batch_accelerator: int | None = None  # default batch on GPUs / TPUs (None: ``batch``)
 
 
 REGISTRY: dict[str, Entry] = {}
 ALIASES: dict[str, str] = {"reinforce": "reinforce/default"}
 
 
-def register(name: str, cls: type, *, batch: int, doc: str = "", **options) -> None:
-    """Add a registry entry ``name``: ``cls`` with a default batch and option defaults."""
+def register(name: str, cls: type, *, batch: int, doc: str = "",
+             evaluations: int = PAPER_BUDGET, batch_accelerator: int | None = None,
+             **options) -> None:
+    """Add a registry entry ``name``: ``cls`` with a default batch (``batch_accelerator`` on
+    a GPU or TPU), a default budget and option defaults."""
     if not (isinstance(cls, type) and issubclass(cls, Strategy)):
         raise ValueError(f"register('{name}'): {cls!r} is not a Strategy class")
     _split(cls, options, where=f"register('{name}')")
-    REGISTRY[name] = Entry(cls, batch, tuple(options.items()), doc)
+    REGISTRY[name] = Entry(cls, batch, tuple(options.items()), doc, evaluations,
+                           batch_accelerator)
 
 
 def canonical(name: str) -> str:
@@ -106,12 +116,23 @@ def _typed(value, default, what: str):
         if x is None or not x.is_integer():
             raise ValueError(f"{what} is not a whole number")
         return int(x)
+    if isinstance(default, float):
+        x = pytree.real_number(value)
+        if x is None or not math.isfinite(x):
+            raise ValueError(f"{what} is not a finite number")
+        return float(x)
     if isinstance(default, str) and not isinstance(value, str):
         raise ValueError(f"{what} is not a string")
     return value
 
 
-register("reinforce/default", AutoregressiveReinforce, batch=32, learners=1, queue=32,
+register("reinforce/default", BatchedReinforce, batch=4096, batch_accelerator=65536,
+         evaluations=300 * 4096,
+         doc="the Flax LSTM controller + REINFORCE (optax Adam) on thousands of scenarios per "
+         "update: a mixture of discretised Gaussians over the value ranks (cost independent of "
+         "the number of values), rank-based advantages of the STL-robustness-shaped signal, a "
+         "uniform floor, collisions already found count less (keeps looking for others)")
+register("reinforce/screened", AutoregressiveReinforce, batch=32, learners=1, queue=32,
          resample=8, surrogate=128, anchored=True, advantage="rank", signal="shaped", lr=0.02,
          lr_found=0.03, sigma_min=0.001, repeat_found=0.8, anchor_decay=0.9,
          anchor_decay_found=0.9, global_share_found=0.0, zoom=0.3, kappa=1.0, edge_mass=0.2,
@@ -161,7 +182,20 @@ def check_options(name: str, options: Mapping[str, Any], where: str | None = Non
 
 
 def default_batch(name: str) -> int:
-    return REGISTRY[canonical(name)].batch
+    """Scenarios per update when none is given: the entry's ``batch_accelerator`` when JAX's
+    default backend is a GPU or TPU, its ``batch`` otherwise."""
+    e = REGISTRY[canonical(name)]
+    if e.batch_accelerator is not None:
+        import jax
+
+        if jax.default_backend() != "cpu":
+            return e.batch_accelerator
+    return e.batch
+
+
+def default_evaluations(name: str) -> int:
+    """A run's budget when none is given: the entry's (the paper's 4000 unless it says)."""
+    return REGISTRY[canonical(name)].evaluations
 
 
 def make(name: str, shape: tuple[int, ...], batch: int | None = None, /,
@@ -186,9 +220,10 @@ def make(name: str, shape: tuple[int, ...], batch: int | None = None, /,
                             where=f"strategy '{canonical(name)}'")
     if batch is None and getattr(e.cls, "BATCH_AT_MOST_SIZE", False):
         batch = min(e.batch, math.prod(int(n) for n in dims))  # grid on a small space
-    strat = e.cls(shape=tuple(int(n) for n in dims), batch=batch or e.batch, **static)
+    strat = e.cls(shape=tuple(int(n) for n in dims), batch=batch or default_batch(name),
+                  **static)
     return strat, pytree.replace(strat.default_params(), **params)
 
 
 __all__ = ["Strategy", "REGISTRY", "register", "make", "canonical", "options", "check_options",
-           "default_batch", "names"]
+           "default_batch", "default_evaluations", "names"]

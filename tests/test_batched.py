@@ -1,0 +1,238 @@
+"""reinforce/default: the Flax LSTM controller's mixture of discretised Gaussians and its
+REINFORCE update, each against an independent oracle (float64 NumPy step by step, exact
+enumeration of a tiny space, the exact gradient of the expected reward)."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxfalsify import search
+from jaxfalsify.search import base, batched, discretised
+
+SHAPE = (4, 1, 3, 5)  # a one-value parameter too
+
+
+def _np_ndtr(x):
+    return 0.5 * math.erfc(-x / math.sqrt(2.0))
+
+
+def _np_bin_mass(v, n, mu, sigma):
+    """Float64 mass of value ``v`` of ``n`` under a Gaussian over ranks truncated to the tiled
+    interval (the module docstring's formula, written out)."""
+    if n == 1:
+        return 1.0
+    h = 0.5 / (n - 1)
+    r = v / (n - 1)
+    num = _np_ndtr((r + h - mu) / sigma) - _np_ndtr((r - h - mu) / sigma)
+    den = _np_ndtr((1 + h - mu) / sigma) - _np_ndtr((-h - mu) / sigma)
+    return num / den
+
+
+def _np_sigmoid(x):
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+def _np_controller(params, shape, hidden, K):
+    """The MixtureController step by step in float64: the LSTM equations (gates i, f, g, o,
+    tanh), the shared head scaled by 0.1 plus the per-parameter bias, the mixture head."""
+    f = lambda x: np.asarray(x, np.float64)  # noqa: E731
+    w, u, b = f(params["lstm"]["w"]), f(params["lstm"]["u"]), f(params["lstm"]["b"])
+    hw, hb = f(params["head"]["w"]), f(params["head"]["b"])
+    bias = f(params["bias"])
+    P = len(shape)
+    h, c, prev, outs = np.zeros(hidden), np.zeros(hidden), np.zeros(2 * K), []
+    for p in range(P):
+        x = np.concatenate([np.eye(P)[p], prev])
+        z = x @ w + h @ u + b
+        i, fg, g, o = np.split(z, 4)
+        c = _np_sigmoid(fg) * c + _np_sigmoid(i) * np.tanh(g)
+        h = _np_sigmoid(o) * np.tanh(c)
+        prev = 0.1 * (h @ hw + hb) + bias[p]
+        outs.append(prev)
+    z = np.stack(outs, axis=1)
+    mix = 0.1 * (h @ f(params["mix"]["w"]) + f(params["mix"]["b"]))
+    n = np.asarray(shape, np.float64)
+    half = 0.5 / np.maximum(n - 1, 1)
+    mu = -half + (1 + 2 * half) * _np_sigmoid(z[:K])
+    lo = np.log(batched.SIGMA_MIN_STEPS / np.maximum(n - 1, 1))
+    log_sigma = lo + (batched.LOG_SIGMA_MAX - lo) * _np_sigmoid(z[K:])
+    return mix, mu, log_sigma
+
+
+def _np_log_prob(mix, mu, log_sigma, a, shape, eps):
+    w = np.exp(mix - mix.max())
+    w /= w.sum()
+    comp = sum(w[k] * np.prod([_np_bin_mass(a[p], shape[p], mu[k, p], math.exp(log_sigma[k, p]))
+                               for p in range(len(shape))]) for k in range(len(w)))
+    return math.log((1 - eps) * comp + eps / np.prod(shape))
+
+
+@pytest.fixture(scope="module")
+def strat():
+    s, p = search.make("reinforce/default", SHAPE, 64, hidden=8, components=3)
+    state = s.init(jax.random.key(0), p)
+    # move every weight off its initial value so the LSTM and heads all matter
+    leaves, tree = jax.tree.flatten(state.params)
+    keys = jax.random.split(jax.random.key(1), len(leaves))
+    moved = [x + 0.3 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)]
+    return s, p, dataclasses.replace(state, params=jax.tree.unflatten(tree, moved))
+
+
+def _every(shape):
+    return np.array(list(itertools.product(*[range(n) for n in shape])), np.int32)
+
+
+def test_controller_and_log_probs_match_numpy_step_by_step(strat):
+    s, p, state = strat
+    mix, mu, log_sigma = (np.asarray(x, np.float64) for x in s.distribution(state))
+    e_mix, e_mu, e_ls = _np_controller(state.params, SHAPE, 8, 3)
+    np.testing.assert_allclose(mix, e_mix, atol=1e-5)
+    np.testing.assert_allclose(mu, e_mu, atol=1e-5)
+    np.testing.assert_allclose(log_sigma, e_ls, atol=1e-5)
+    acts = _every(SHAPE)[::7]
+    got = np.asarray(s.log_prob(state.params, jnp.asarray(acts), p), np.float64)
+    want = [_np_log_prob(e_mix, e_mu, e_ls, a, SHAPE, float(p.eps)) for a in acts]
+    np.testing.assert_allclose(got, want, atol=2e-5)
+
+
+def test_probabilities_sum_to_one_and_sampling_matches_them(strat):
+    s, p, state = strat
+    every = _every(SHAPE)
+    prob = np.exp(np.asarray(s.log_prob(state.params, jnp.asarray(every), p), np.float64))
+    assert prob.sum() == pytest.approx(1.0, abs=1e-5)
+    # 200,000 draws from ask: each scenario's frequency within 5 standard errors
+    big = s.__class__(**{**s.__dict__, "batch": 200_000})
+    idx, _ = jax.jit(lambda k: big.ask(k, state, p))(jax.random.key(7))
+    flat = np.ravel_multi_index(np.asarray(idx).T, SHAPE)
+    freq = np.bincount(flat, minlength=len(every)) / len(flat)
+    order = np.ravel_multi_index(every.T, SHAPE)
+    se = np.sqrt(prob * (1 - prob) / len(flat))
+    assert np.all(np.abs(freq[order] - prob) <= 5 * se + 1e-6)
+    assert np.all(np.asarray(idx)[:, 1] == 0)
+
+
+def test_marginals_table_matches_enumeration(strat):
+    s, p, state = strat
+    every = _every(SHAPE)
+    prob = np.exp(np.asarray(s.log_prob(state.params, jnp.asarray(every), p), np.float64))
+    table = np.asarray(s.probs(state, p), np.float64)
+    for q, n in enumerate(SHAPE):
+        want = np.array([prob[every[:, q] == v].sum() for v in range(n)])
+        np.testing.assert_allclose(table[q, :n], want, atol=1e-5)
+        assert np.all(table[q, n:] == 0)
+
+
+def test_log_mass_keeps_far_tails():
+    """A bin 8 standard deviations out keeps its (tiny, finite) mass: log Phi differences
+    are taken in the tail where both bounds lie (oracle: the Mills-ratio asymptote)."""
+    lo, hi = 8.0, 8.01
+    got = float(discretised.log_mass(jnp.float32(lo), jnp.float32(hi)))
+    phi = lambda x: math.exp(-x * x / 2) / math.sqrt(2 * math.pi)  # noqa: E731
+    tail = lambda x: phi(x) / x * (1 - 1 / x**2 + 3 / x**4)  # noqa: E731
+    assert got == pytest.approx(math.log(tail(lo) - tail(hi)), abs=2e-2)
+
+
+def test_cost_does_not_grow_with_the_number_of_values():
+    """The distribution has the same parameters for 10 or 4,000 values per parameter: its
+    size (and a scenario's log-probability's work) does not depend on the values."""
+    a, pa = search.make("reinforce/default", (10,) * 5, 16)
+    b, pb = search.make("reinforce/default", (4000,) * 5, 16)
+    sa = jax.tree.map(jnp.shape, a.init(jax.random.key(0), pa).params)
+    sb = jax.tree.map(jnp.shape, b.init(jax.random.key(0), pb).params)
+    assert sa == sb
+
+
+def test_reinforce_gradient_estimate_matches_exact_gradient_of_expected_reward(strat):
+    """grad E_pi[R] = sum_a pi(a) R(a) grad log pi(a) (Eq. 3), by exact enumeration of the
+    60 scenarios, against the estimator (1/B) sum_i R(a_i) grad log pi(a_i) averaged over
+    400,000 draws: each component of the gradient within 5 standard errors."""
+    s, p, state = strat
+    every = jnp.asarray(_every(SHAPE))
+    reward = jnp.asarray(np.random.default_rng(0).normal(size=len(every)), jnp.float32)
+
+    def expected(w):
+        return jnp.sum(jnp.exp(s.log_prob(w, every, p)) * reward)
+
+    exact = jax.flatten_util.ravel_pytree(jax.grad(expected)(state.params))[0]
+    table = {tuple(map(int, a)): float(r) for a, r in zip(np.asarray(every), reward)}
+    flat_r = np.zeros(SHAPE, np.float32)
+    for a, r in table.items():
+        flat_r[a] = r
+    rgrid = jnp.asarray(flat_r)
+    big = s.__class__(**{**s.__dict__, "batch": 4000})
+
+    @jax.jit
+    def per_sample_grads(key):
+        idx, _ = big.ask(key, state, p)
+        r = rgrid[tuple(idx.T)]
+
+        def one(a, ri):
+            g = jax.grad(lambda w: s.log_prob(w, a[None], p)[0])(state.params)
+            return jax.flatten_util.ravel_pytree(g)[0] * ri
+
+        g = jax.vmap(one)(idx, r)
+        return jnp.sum(g, 0), jnp.sum(g * g, 0)
+
+    tot, sq, n = 0.0, 0.0, 0
+    for k in jax.random.split(jax.random.key(3), 100):
+        a, b = per_sample_grads(k)
+        tot, sq, n = tot + np.asarray(a, np.float64), sq + np.asarray(b, np.float64), n + 4000
+    mean = tot / n
+    se = np.sqrt(np.maximum(sq / n - mean**2, 0) / n)
+    exact = np.asarray(exact, np.float64)
+    assert np.all(np.abs(mean - exact) <= 5 * se + 1e-6), np.max(np.abs(mean - exact) / (se + 1e-9))
+    assert np.max(np.abs(exact)) > 10 * np.median(se)  # the check has power
+
+
+def test_learns_an_interior_optimum_at_batch_1024():
+    """A synthetic objective on 5 parameters x 200 values whose optimum lies inside the box
+    (oracle: the known optimum); after 30 updates of 1,024 most of the last batch lies
+    within 3 value steps of it in every parameter (uniform sampling: (7/200)^5 ~ 5e-8)."""
+    shape = (200,) * 5
+    target = jnp.array([37, 150, 99, 12, 180])
+    s, p = search.make("reinforce/default", shape, 1024)
+
+    def loop(key):
+        def one(carry, _):
+            state, key = carry
+            key, k1, k2 = jax.random.split(key, 3)
+            idx, state = s.ask(k1, state, p)
+            r = -jnp.sum(jnp.abs(idx - target), axis=-1).astype(jnp.float32)
+            return (s.tell(k2, state, idx, r, p), key), idx
+
+        k0, k1 = jax.random.split(key)
+        return jax.lax.scan(one, (s.init(k0, p), k1), None, length=30)[1]
+
+    idx = np.asarray(jax.jit(loop)(jax.random.key(0)))
+    near = np.all(np.abs(idx[-1] - np.asarray(target)) <= 3, axis=-1)
+    assert near.mean() > 0.5, (near.mean(), idx[-1][:5])
+
+
+def test_a_collision_seen_before_counts_less():
+    """After a collision is told, the same scenario told again as a collision has its signal
+    lowered by ``novelty``; a collision not seen before, and a non-collision, keep the shaped
+    signal (oracle: base.shaped_signal)."""
+    s, p = search.make("reinforce/default", (50, 50), 4)
+    state = s.init(jax.random.key(0), p)
+    old, new, miss = jnp.array([10, 10]), jnp.array([40, 40]), jnp.array([25, 25])
+    idx = jnp.stack([old, miss, miss, miss])
+    r = jnp.array([0.25, -0.1, -0.1, -0.1], jnp.float32)
+    col = jnp.array([True, False, False, False])
+    rob = jnp.array([-1.0, 0.5, 0.5, 0.5], jnp.float32)
+    state = s.tell_outcome(jax.random.key(1), state, idx, r, rob, col, p)
+    idx2 = jnp.stack([old, new, miss, old])
+    col2 = jnp.array([True, True, False, False])
+    r2 = jnp.array([0.25, 0.25, -0.1, -0.1], jnp.float32)
+    rob2 = jnp.array([-1.0, -1.0, 0.5, 0.5], jnp.float32)
+    got = np.asarray(s.signal(state, idx2, r2, rob2, col2, p))
+    want = np.array(base.shaped_signal(r2, rob2, col2))
+    want[0] -= float(p.novelty)
+    np.testing.assert_allclose(got, want, rtol=1e-6)
