@@ -32,10 +32,8 @@ SPACES = {
     "aeb-6e5": (SUITE / "aeb-6e5.toml", "sensor-aeb", {"ttc_full": 2.0, "ttc_partial": 3.0}),
     "huge-aeb": (SUITE / "huge-aeb.toml", "sensor-aeb", {}),
     "paper": ("paper", "carla-tm", {}),
-    "rare-aeb-near": (SPACES_DIR / "rare-aeb-near.toml", "sensor-aeb",
-                      {"ttc_full": 2.0, "ttc_partial": 3.0}),
-    "rare-aeb-far": (SPACES_DIR / "rare-aeb-far.toml", "sensor-aeb",
-                     {"ttc_full": 2.0, "ttc_partial": 3.0}),
+    "strong-aeb": (SPACES_DIR / "strong-aeb.toml", "sensor-aeb",
+                   {"ttc_full": 2.4, "ttc_partial": 3.4, "fov": 90.0, "range": 60.0}),
 }
 
 
@@ -74,25 +72,77 @@ def one(space_name, strategy, seeds, batch, evaluations, every):
     return rows
 
 
+WIDE = {"name": "wide", "parameters": {  # 4 parameters x 4000 values, 1 x 3000 (the cost row;
+    # 4000 on all five would pass the 1e18 scenarios a space may hold)
+    "ego_offset": {"distribution": "uniform", "low": 1.0, "high": 10.0, "samples": 4000},
+    "ped_accel": {"distribution": "uniform", "low": 0.0, "high": 0.1, "samples": 4000},
+    "ped_speed": {"distribution": "uniform", "low": 0.5, "high": 2.5, "samples": 4000},
+    "ped_offset": {"distribution": "uniform", "low": 2.0, "high": 6.0, "samples": 4000},
+    "ped_speed_change": {"distribution": "uniform", "low": -0.3, "high": 0.3, "samples": 3000}}}
+
+
+def controller_cost(space, sut, sut_params, batch, updates=20, repeats=3):
+    """``(controller s, simulator s)`` per update at ``batch``: the default's ask + tell alone
+    (sampling, log-probabilities, gradients, the optax steps; a synthetic reward), jitted as
+    one scan of ``updates``, best of ``repeats``; and a ``random`` campaign's search seconds
+    per update (the simulator's cost for the same batch: uniform sampling costs ~0)."""
+    import jax
+    import jax.numpy as jnp
+
+    b = runs.RunConfig(space=space, sut=sut, sut_params=sut_params, batch=batch,
+                       evaluations=batch * updates, checkpoint_every=updates).build()
+    strat, p = b.strategy, b.strategy_params
+
+    def step(state, key):
+        k1, k2 = jax.random.split(key)
+        idx, state = strat.ask(k1, state, p)
+        r = -jnp.sum(idx.astype(jnp.float32), axis=1)
+        return strat.tell_outcome(k2, state, idx, r, -r, r > 1e30, p), None
+
+    f = jax.jit(lambda st, keys: jax.lax.scan(step, st, keys)[0])
+    st = strat.init(jax.random.key(0), p)
+    keys = jax.random.split(jax.random.key(1), updates)
+    jax.block_until_ready(f(st, keys))
+    best = np.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(f(st, keys))
+        best = min(best, time.perf_counter() - t)
+    rb = runs.RunConfig(space=space, sut=sut, sut_params=sut_params, strategy="random",
+                        batch=batch, evaluations=batch * updates,
+                        checkpoint_every=updates).build()
+    sim_s = min(campaign.run(rb.space, rb.sut, rb.sut_params, rb.strategy, rb.strategy_params,
+                             rb.plan, seed).search_seconds for seed in range(repeats))
+    return best / updates, sim_s / updates
+
+
+def learning(seeds: int, batch: int, evaluations: int | None):
+    """The paper space's learning target: per seed, the last update's mean reward over the
+    global maximum (the exhaustive sweep's, cached per machine)."""
+    from jaxfalsify import sweep
+
+    b = runs.RunConfig(batch=batch, evaluations=evaluations).build()
+    gmax = float(np.max(sweep.ground_truth(b.space, "carla-tm")["reward"]))
+    out = []
+    for seed in range(seeds):
+        res = campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan,
+                           seed)
+        last = np.asarray(res.fields["reward"][-b.strategy.batch:], np.float64)
+        out.append(float(np.nanmean(last)) / gmax)
+    return gmax, out
+
+
 def poisson_interval(k: int) -> tuple[float, float]:
-    """Exact 95 % interval of a Poisson mean given ``k`` events (Garwood), by bisection on
-    the Poisson CDF (no SciPy)."""
-    def cdf(x, lam):
-        term = total = np.exp(-lam)
-        for i in range(1, x + 1):
-            term *= lam / i
-            total += term
-        return total
-
-    def solve(f, lo, hi):
-        for _ in range(200):
-            mid = (lo + hi) / 2
-            lo, hi = (mid, hi) if f(mid) else (lo, mid)
-        return (lo + hi) / 2
-
-    lower = 0.0 if k == 0 else solve(lambda lam: 1 - cdf(k - 1, lam) < 0.025, 0.0, 10.0 * k + 10)
-    upper = solve(lambda lam: cdf(k, lam) > 0.025, 0.0, 10.0 * k + 10)
-    return lower, upper
+    """Approximate 95 % interval of a Poisson mean given ``k`` events: Garwood's exact bounds
+    through the Wilson-Hilferty cube-root approximation (within 1 % of the exact bounds from
+    k = 1 on; no SciPy)."""
+    z = 1.959964
+    if k == 0:
+        return 0.0, 3.689
+    lo = k * (1 - 1 / (9 * k) - z / (3 * np.sqrt(k))) ** 3
+    k1 = k + 1
+    hi = k1 * (1 - 1 / (9 * k1) + z / (3 * np.sqrt(k1))) ** 3
+    return float(lo), float(hi)
 
 
 def median_time(rows):
@@ -104,7 +154,8 @@ def median_time(rows):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--spaces", nargs="+", default=["aeb-9e6", "huge-aeb"])
+    ap.add_argument("--spaces", nargs="*", default=["aeb-9e6", "huge-aeb", "strong-aeb",
+                                                     "paper"])
     ap.add_argument("--strategies", nargs="+",
                     default=["random", "reinforce/default", "cmaes", "cem"])
     ap.add_argument("--seeds", type=int, default=5)
@@ -115,8 +166,28 @@ def main(argv=None):
     ap.add_argument("--estimate", type=int, default=0,
                     help="first estimate each space's collision share from this many uniform "
                     "draws")
+    ap.add_argument("--cost", action="store_true",
+                    help="first the controller's cost per update against the simulator's, "
+                    "on the paper space and on 5 parameters x 4000 values")
+    ap.add_argument("--learning", type=int, default=0, metavar="SEEDS",
+                    help="first the paper space's learning target over this many seeds (the "
+                    "main job's budget)")
     a = ap.parse_args(argv)
     out = {}
+    if a.learning:
+        gmax, ratios = learning(a.learning, a.batch, None)
+        print(f"paper space, the main job's budget: last update's mean reward / global maximum "
+              f"({gmax:.4f}) per seed: {', '.join(f'{r:.3f}' for r in ratios)}; >= 0.9 in "
+              f"{sum(r >= 0.9 for r in ratios)}/{len(ratios)}", flush=True)
+        out["learning"] = {"global_max": gmax, "last_update_over_max": ratios}
+    if a.cost:
+        print(f"controller cost per update at batch {a.batch} (ask + tell of reinforce/default "
+              f"alone) against the simulator's (a random campaign's search time per update):")
+        for label, space in (("paper (carla-tm)", "paper"), ("4000^4 x 3000 values", WIDE)):
+            c, sim_s = controller_cost(space, "carla-tm", {}, a.batch)
+            print(f"  {label:28s} controller {c * 1e3:6.2f} ms, simulator {sim_s * 1e3:6.2f} ms: "
+                  f"{c / sim_s:.1%}", flush=True)
+            out.setdefault("cost", {})[label] = {"controller_s": c, "simulator_s": sim_s}
     for sp in a.spaces if a.estimate else ():
         hits, n = estimate_share(sp, a.estimate)
         lo, hi = poisson_interval(hits)

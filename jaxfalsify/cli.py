@@ -176,6 +176,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--seeds", type=_int("--seeds", 1), help="seeds 0..N-1 (default 10)")
     c.add_argument("--evaluations", type=_int("--evaluations", 1), default=None,
                    help="budget per strategy and seed (default 4000)")
+    c.add_argument("--batch", type=_int("--batch", 1),
+                   help="scenarios per update of every strategy (default: each strategy's "
+                   "own), so that wall times compare at the same batch")
     c.add_argument("--budgets", help="also report at these budgets, comma-separated "
                    "(the first evaluations of the same runs)")
     c.add_argument("--suite", type=Path, metavar="FILE",
@@ -395,7 +398,7 @@ def cmd_compare(args, stop, startup) -> int:
         except ValueError:
             raise UsageError(f"--budgets {args.budgets!r}: comma-separated integers") from None
     given = {k: getattr(args, k) for k in ("seeds", "evaluations", "space", "space_seed", "sut",
-                                           "jobs") if getattr(args, k) is not None}
+                                           "jobs", "batch") if getattr(args, k) is not None}
     config = compare.CompareConfig(**given, **({"strategies": names} if names else {}),
                                    sut_params=_sut_values(args.sut_param),
                                    strategy_params=_per_strategy(args.strategy_param),
@@ -445,7 +448,8 @@ def _compare_suite(args, names, stop, startup) -> int:
     entries = _names("--entries", args.entries, "space", "aeb-9e6,island-dash")
     suite = compare.load_suite(args.suite, seeds=args.seeds, strategies=names,
                                jobs=args.jobs or 0, entries=entries,
-                               strategy_params=_per_strategy(args.strategy_param))
+                               strategy_params=_per_strategy(args.strategy_param),
+                               batch=args.batch)
     result = compare.execute_suite(suite, args.out, force=args.force,
                                    progress=_progress(args.quiet), stop=stop,
                                    startup_seconds=startup)

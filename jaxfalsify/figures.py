@@ -2,7 +2,9 @@
 
 Host-side only (matplotlib, Agg backend); the jitted core never imports this module.
 
-* ``reward_per_evaluation.png`` — reward per evaluation and its moving average (paper Fig. 6);
+* ``reward_per_evaluation.png`` — reward per evaluation and its moving average (paper Fig. 6;
+  for a batch of ``PER_UPDATE_FROM`` or more, the mean reward of each update instead; at most
+  ``MAX_POINTS`` evaluations drawn, evenly thinned);
 * ``distance_challenging.png`` — distance over time of the best critical scenario and of a
   typical non-critical one, high-risk steps red, low-risk green, the < 1 m collision zone
   shaded (paper Fig. 7);
@@ -33,6 +35,8 @@ import numpy as np
 from jaxfalsify import analysis, store
 
 FIGSIZE = (8, 4.5)
+MAX_POINTS = 200_000  # evaluations drawn in the reward figure (evenly thinned beyond)
+PER_UPDATE_FROM = 256  # batch from which the reward figure's curve is the mean per update
 DPI = 100
 N_TRAJECTORIES = 16  # simulated per figure set: best, typical and 14 (a fixed shape: one program)
 TRUTH_LIMIT = 5_000_000  # largest space whose ground truth the critical-region map sweeps
@@ -333,10 +337,23 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
     # Fig. 6: reward per episode
     fig, ax, place = _single(plt, (8, 5), top=TITLE, legend=True)
     e, r = ep["evaluation"], ep["reward"]
-    ax.plot(e, r, ".", ms=2, color="tab:blue", alpha=0.4, label="reward per evaluation")
-    w = max(1, min(100, len(r) // 10))
-    ma = np.convolve(np.nan_to_num(r), np.ones(w) / w, mode="valid")
-    ax.plot(e[w - 1:], ma, color="tab:orange", lw=2, label=f"moving average ({w})")
+    thin = max(1, -(-len(r) // MAX_POINTS))  # every thin-th evaluation drawn (file size, time)
+    ax.plot(e[::thin], r[::thin], ".", ms=2, color="tab:blue", alpha=0.4,
+            label="reward per evaluation" + (f" (every {thin}th)" if thin > 1 else ""))
+    batch = int(rc.batch or 1)
+    if batch >= PER_UPDATE_FROM and len(r) >= 2 * batch:  # a batched search: its learning
+        # curve is the mean reward of each update
+        n_up = -(-len(r) // batch)
+        padded = np.full(n_up * batch, np.nan)
+        padded[:len(r)] = np.where(np.isfinite(r), r, np.nan)
+        with np.errstate(all="ignore"):
+            means = np.nanmean(padded.reshape(n_up, batch), axis=1)
+        ends = np.minimum(np.arange(1, n_up + 1) * batch, len(r))
+        ax.plot(ends, means, color="tab:orange", lw=2, label=f"mean per update ({batch})")
+    else:
+        w = max(1, min(100, len(r) // 10))
+        ma = np.convolve(np.nan_to_num(r), np.ones(w) / w, mode="valid")
+        ax.plot(e[w - 1:], ma, color="tab:orange", lw=2, label=f"moving average ({w})")
     ax.set_xlabel("evaluation (episode)")
     ax.set_ylabel("reward")
     ax.set_title(f"{rc.strategy} on {sp.name}, {rc.sut}, seed {rc.seed}")

@@ -217,9 +217,10 @@ def test_learns_an_interior_optimum_at_batch_1024():
 
 
 def test_a_collision_seen_before_counts_less():
-    """After a collision is told, the same scenario told again as a collision has its signal
-    lowered by ``novelty``; a collision not seen before, and a non-collision, keep the shaped
-    signal (oracle: base.shaped_signal)."""
+    """After a collision is told (the batch's elite of one), the same scenario told again as
+    a collision has its signal lowered by ``novelty``, and told again without a collision by
+    ``revisit``; a collision not seen before, and a scenario that was neither in the elite nor
+    a collision, keep the shaped signal (oracle: base.shaped_signal)."""
     s, p = search.make("reinforce/default", (50, 50), 4)
     state = s.init(jax.random.key(0), p)
     old, new, miss = jnp.array([10, 10]), jnp.array([40, 40]), jnp.array([25, 25])
@@ -234,5 +235,6 @@ def test_a_collision_seen_before_counts_less():
     rob2 = jnp.array([-1.0, -1.0, 0.5, 0.5], jnp.float32)
     got = np.asarray(s.signal(state, idx2, r2, rob2, col2, p))
     want = np.array(base.shaped_signal(r2, rob2, col2))
-    want[0] -= float(p.novelty)
+    want[0] -= float(p.novelty)  # the collision seen before
+    want[3] -= float(p.revisit)  # the same scenario, now not colliding: a revisit
     np.testing.assert_allclose(got, want, rtol=1e-6)

@@ -23,10 +23,13 @@ batch gets CMA-ES-style log-rank weights, every scenario minus the batch mean we
 advantages sum to zero. Adam (optax) with learning rate ``lr`` takes one step per update; an
 entropy bonus ``entropy x mean log sigma`` keeps the components from collapsing early.
 
-After the first collision the search keeps looking: ``novelty`` lowers the signal of a
-collision whose scenario was already evaluated in an earlier update (the state keeps a hashed
-table of collisions seen), so the elite moves on to collisions not yet found instead of
-re-drawing the best one.
+The search keeps moving: a scenario that was in an earlier update's elite or collided is
+remembered (a hashed table in the state); drawn again, a collision loses ``novelty`` (0.5: it
+ranks below every new scenario, so after the first collision the elite moves on to collisions
+not found yet instead of re-drawing the best one), a non-collision ``revisit`` (0.01, the
+signal of 0.2 m of robustness: among near misses of about the same distance a new one ranks
+first). From ``novelty_until`` evaluations on (by default half the default budget) neither
+applies and the policy converges on the best failures (the paper's reward ranks them).
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ from jaxfalsify.search.base import (Strategy, near_miss_ttc, rank_order, shaped_
                                     uniform)
 from jaxfalsify.search.controller import Linear, LSTMCell
 
-SIGMA_MIN_STEPS = 0.3  # narrowest component, in value steps (~90 % of its mass on one value)
+SIGMA_MIN_STEPS = 0.2  # narrowest component, in value steps (98.8 % of its mass on one value)
 LOG_SIGMA_MAX = 0.0  # widest component: sigma = 1 (the whole range)
 SIGMA_INIT = 0.3  # initial width, in rank units
 CHUNK = 1024  # scenarios per chunk of the log-probabilities (see BatchedReinforce.log_prob)
@@ -62,7 +65,7 @@ class MixtureController(nn.Module):
 
     shape: tuple[int, ...]
     hidden: int = 32
-    components: int = 8
+    components: int = 32
 
     @nn.compact
     def __call__(self):
@@ -108,12 +111,16 @@ class BatchedParams:
     lr: float = 0.03  # Adam learning rate
     eps: float = 0.01  # the uniform floor's weight in the policy
     entropy: float = 0.01  # bonus on the components' mean log-width
-    novelty: float = 0.5  # signal taken off a collision already evaluated before
+    novelty: float = 0.5  # signal taken off a collision seen before (elite or collision) ...
+    revisit: float = 0.01  # ... off a scenario seen before that did not collide ...
+    novelty_until: float = 614400.0  # ... until this many evaluations were told (then the
+    # policy converges on the best failures)
     ttc_weight: float = 0.05  # near misses told apart by their min TTC [m per s]
     ttc_below: float = -0.5  # ... below this robustness [m]
 
     RANGES = {"lr": "[0, inf)", "eps": "(0, 1)", "entropy": "[0, inf)",
-              "novelty": "[0, inf)", "ttc_weight": "[0, inf)", "ttc_below": "(-inf, inf)"}
+              "novelty": "[0, inf)", "revisit": "[0, inf)",
+              "novelty_until": "[0, inf)", "ttc_weight": "[0, inf)", "ttc_below": "(-inf, inf)"}
 
 
 @pytree.dataclass
@@ -130,7 +137,7 @@ class BatchedReinforce(Strategy):
     collisions-seen hash table (a power of two)."""
 
     hidden: int = 32
-    components: int = 8
+    components: int = 32
     steps: int = 8
     elite: float = 0.1
     table: int = 1 << 16
@@ -192,28 +199,35 @@ class BatchedReinforce(Strategy):
         return out.reshape(-1)[:B]
 
     def tell(self, key, state, indices, rewards, params):
-        return self._learn(key, state, indices, rewards, params)
+        return self._learn(key, state, indices, rewards, params)[0]
 
     def tell_outcome(self, key, state, indices, rewards, robustness, collision, params,
                      ttc=None):
         signal = self.signal(state, indices, rewards, robustness, collision, params, ttc)
-        state = self._learn(key, state, indices, signal, params)
+        state, elite = self._learn(key, state, indices, signal, params)
+        # remembered: this update's elite and its collisions (a later draw of one of them
+        # counts less, see signal)
+        keep = (collision & jnp.isfinite(rewards)) | elite
         h = self._hash(indices)
         slot = (h & (self.table - 1)).astype(jnp.int32)
-        new = jnp.where(collision & jnp.isfinite(rewards), h, state.seen[slot])
+        new = jnp.where(keep, h, state.seen[slot])
         return dataclasses.replace(state, seen=state.seen.at[slot].set(new))
 
     def signal(self, state, indices, rewards, robustness, collision, params, ttc=None):
         """``(B,)`` what the update ranks: the shaped signal (near misses told apart by their
-        minimum TTC ``ttc (B,)`` [s] when given), less ``novelty`` for a collision whose
-        scenario the collisions-seen table holds (a hash collision in the table can make an
-        unseen collision count as seen: rare with a table much larger than the collisions)."""
+        minimum TTC ``ttc (B,)`` [s] when given), less ``novelty`` for a scenario the seen
+        table holds (one that was in an earlier update's elite, or collided), as long as
+        fewer than ``novelty_until`` evaluations were told. A hash collision in the table can
+        make an unseen scenario count as seen: rare with a table much larger than the
+        scenarios it holds."""
         if ttc is not None:
             robustness = near_miss_ttc(robustness, ttc, params.ttc_weight, params.ttc_below)
         signal = shaped_signal(rewards, robustness, collision)
         h = self._hash(indices)
-        seen = (state.seen[(h & (self.table - 1)).astype(jnp.int32)] == h) & collision
-        return jnp.where(seen, signal - params.novelty, signal)
+        seen = state.seen[(h & (self.table - 1)).astype(jnp.int32)] == h
+        seen &= state.told < params.novelty_until
+        return jnp.where(seen, signal - jnp.where(collision, params.novelty, params.revisit),
+                         signal)
 
     def _hash(self, indices) -> jax.Array:
         """``(B,)`` uint32 hash of each scenario's index vector, never 0 (0 marks an empty
@@ -229,7 +243,7 @@ class BatchedReinforce(Strategy):
         return max(1, min(self.batch, round(self.elite * self.batch)))
 
     def _learn(self, key, state, indices, signal, params):
-        """``steps`` Adam steps on ``-sum_j w_j log pi(a_j)`` over the ``top`` best scenarios
+        """``(state, elite (B,) bool)``: ``steps`` Adam steps on ``-sum_j w_j log pi(a_j)`` over the ``top`` best scenarios
         of the batch (ties at random), ``w_j`` CMA-ES's log-rank weights summing to 1: REINFORCE
         (Eq. 2) with non-negative rank utilities and baseline 0, which is unbiased for any
         baseline; the scenarios below the top have utility 0 and drop out of the sum."""
@@ -257,5 +271,6 @@ class BatchedReinforce(Strategy):
 
         (weights, opt), _ = jax.lax.scan(adam_step, (state.params, state.opt), None,
                                          length=self.steps)
+        elite_mask = jnp.zeros(self.batch, bool).at[at].set(jnp.isfinite(best))
         return dataclasses.replace(state, params=weights, opt=opt,
-                                   told=state.told + self.batch)
+                                   told=state.told + self.batch), elite_mask
