@@ -93,7 +93,13 @@ def _distinct_critical_rows(indices: np.ndarray, fields: dict):
     if rows.size == 0:
         return (np.zeros((0, idx.shape[1]), idx.dtype), np.zeros(0, np.int64),
                 np.zeros(0, np.int64))
-    keys, first, counts = np.unique(idx[rows], axis=0, return_index=True, return_counts=True)
+    sel = idx[rows].astype(np.int64)
+    # one int64 code per index vector (mixed radix; the radices' product is at most the
+    # space's size, below 2**63): a 1-D unique is ~10x faster than np.unique(axis=0)
+    radix = sel.max(axis=0) + 1
+    weights = np.concatenate([np.cumprod(radix[::-1])[::-1][1:], [1]])
+    _, first, counts = np.unique(sel @ weights, return_index=True, return_counts=True)
+    keys = idx[rows][first]
     first_rows = rows[first]
     reward = np.asarray(fields["reward"])[first_rows]
     order = np.lexsort((first_rows, -reward))

@@ -158,7 +158,8 @@ def load_run(run_dir: Path):
         raise ValueError(f"{where} is damaged (no '{gone[0]}')")
     where = run_dir / "evaluations.parquet"
     try:
-        ep = {k: np.asarray(v) for k, v in pq.read_table(where).to_pydict().items()}
+        table = pq.read_table(where)
+        ep = {k: table.column(k).to_numpy() for k in table.column_names}
     except Exception as e:  # pyarrow raises several kinds for a damaged file
         raise ValueError(f"{where} is damaged ({type(e).__name__}: {str(e)[:120]})") from None
     cols = ["evaluation", *RECORD_FIELDS,
