@@ -30,6 +30,8 @@ SPACES = {
     # name: (space file, SUT, SUT parameters)
     "aeb-9e6": (SUITE / "aeb-9e6.toml", "sensor-aeb", {"ttc_full": 2.0, "ttc_partial": 3.0}),
     "aeb-6e5": (SUITE / "aeb-6e5.toml", "sensor-aeb", {"ttc_full": 2.0, "ttc_partial": 3.0}),
+    "aeb-2e4": (SUITE / "aeb-2e4.toml", "sensor-aeb", {"ttc_full": 2.0, "ttc_partial": 3.0}),
+    "island-dash": (SUITE / "island-dash.toml", "carla-tm", {"walker_time": 2.5}),
     "huge-aeb": (SUITE / "huge-aeb.toml", "sensor-aeb", {}),
     "paper": ("paper", "carla-tm", {}),
     "strong-aeb": (SPACES_DIR / "strong-aeb.toml", "sensor-aeb",
@@ -52,11 +54,27 @@ def estimate_share(space_name, draws, per_seed=1 << 20):
     return hits, n
 
 
+def truth_clusters(b, sut, sut_params):
+    """``(labels (N,), count)``: the exhaustive sweep's failure clusters (value-grid
+    neighbours, :func:`jaxfalsify.analysis.chebyshev_components`) over every scenario number
+    of a sweepable space (label -1: no collision)."""
+    from jaxfalsify import sweep
+
+    gt = sweep.ground_truth(b.space, sut, sut_params)
+    hit = np.asarray(gt["collision"], bool) & ~np.asarray(gt["nonfinite"], bool)
+    labels = np.full(hit.size, -1, np.int64)
+    where = np.nonzero(hit)[0]
+    comp = analysis.chebyshev_components(b.space.unravel(where))
+    labels[where] = comp
+    return labels, int(comp.max()) + 1 if comp.size else 0
+
+
 def one(space_name, strategy, seeds, batch, evaluations, every):
     space, sut, sut_params = SPACES[space_name]
     rc = runs.RunConfig(space=str(space), sut=sut, sut_params=sut_params, strategy=strategy,
                         evaluations=evaluations, batch=batch, checkpoint_every=every)
     b = rc.build()
+    truth = truth_clusters(b, sut, sut_params) if b.space.size <= 20_000_000 else None
     rows = []
     for seed in seeds:
         res = campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan,
@@ -65,7 +83,12 @@ def one(space_name, strategy, seeds, batch, evaluations, every):
         t_first = res.search_seconds_at(first) if first else None
         hit = analysis.collided(res.fields)
         distinct = len(np.unique(res.indices[hit], axis=0)) if hit.any() else 0
-        rows.append({"seed": seed, "first_collision": first, "seconds_to_first": t_first,
+        clusters = None
+        if truth is not None:  # ground-truth failure clusters with a member found
+            found = truth[0][b.space.ravel(res.indices[hit])] if hit.any() else []
+            clusters = f"{len(set(np.asarray(found).tolist()) - {-1})}/{truth[1]}"
+        rows.append({"seed": seed, "truth_clusters_found": clusters,
+                     "first_collision": first, "seconds_to_first": t_first,
                      "search_seconds": res.search_seconds, "compile_seconds":
                      res.compile_seconds, "collisions": int(hit.sum()),
                      "distinct_collisions": distinct})
@@ -213,7 +236,10 @@ def main(argv=None):
             print(f"{st:20s} {len(rows) - cens:>3d}/{len(rows):<2d} "
                   f"{np.median(firsts):>20.0f} {('>' if cens * 2 >= len(rows) else '') + f'{med:.3f}':>18s} "
                   f"{ratio:>9s} {np.median([r['distinct_collisions'] for r in rows]):>9.0f} "
-                  f"{per_up * 1e3:>7.1f}ms {rows[0]['compile_seconds']:>9.1f}", flush=True)
+                  f"{per_up * 1e3:>7.1f}ms {rows[0]['compile_seconds']:>9.1f}"
+                  + (f"  truth clusters found: "
+                     f"{' '.join(r['truth_clusters_found'] for r in rows)}"
+                     if rows[0]["truth_clusters_found"] else ""), flush=True)
             out.setdefault(sp, {})[st] = {"rows": rows, "median_seconds_to_first": med,
                                           "censored": cens,
                                           "wall_seconds": time.perf_counter() - t0}
