@@ -6,8 +6,12 @@ strategies (``jaxfalsify.search``) and host-side outputs are imported on first u
 (``jaxfalsify.search.make(...)`` works after a bare ``import jaxfalsify``: PEP 562).
 """
 
-import importlib as _importlib
-import sys as _sys
+import time as _time
+
+IMPORTED_AT = _time.perf_counter()  # when this package began to load (start-up accounting)
+
+import importlib as _importlib  # noqa: E402
+import sys as _sys  # noqa: E402
 
 
 def _command_line() -> bool:

@@ -595,9 +595,9 @@ def entry() -> None:
     takes about half a second; every file is already written and closed)."""
     import os
 
-    from jaxfalsify.progress import process_age
+    from jaxfalsify.progress import startup_seconds
 
-    code = main(startup=process_age())
+    code = main(startup=startup_seconds())
     try:
         sys.stdout.flush()
     except BrokenPipeError:  # the reader went away before our last lines (see main)

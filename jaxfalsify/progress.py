@@ -79,6 +79,24 @@ def process_age() -> float:
         return 0.0
 
 
+EXEC_SLACK = 1.0  # s: process age beyond the package's own load time that means another program
+# ran first in this process
+
+
+def startup_seconds() -> float:
+    """Start-up of this command: seconds since the interpreter started, as the process's age
+    (:func:`process_age`: interpreter start-up and imports). A shell runs the last command of
+    ``a && b`` by replacing itself (exec), so the process's age then also counts ``a`` (e.g.
+    ``pip install``); when the age exceeds the time since ``jaxfalsify`` began to load by more
+    than ``EXEC_SLACK``, the latter is taken (interpreter start-up before it, ~0.05 s, is then
+    left out)."""
+    import jaxfalsify
+
+    own = time.perf_counter() - jaxfalsify.IMPORTED_AT
+    age = process_age()
+    return age if age <= own + EXEC_SLACK else own
+
+
 class Clock:
     """Wall time of named phases (``with clock("figures"): ...``), from a start offset."""
 

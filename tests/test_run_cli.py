@@ -186,3 +186,20 @@ def test_config_with_flags_drops_what_the_flag_replaces(tmp_path, monkeypatch):
     assert runs.configure(grid, space=str(tmp_path / "tiny.toml")).build().strategy.batch == 32
     with pytest.raises(ValueError, match="no run setting 'budget'"):
         runs.configure(None, budget=10)
+
+
+def test_startup_does_not_count_a_program_that_ran_before_in_the_same_process():
+    """``sleep 2 && exec python ...``: the process (one PID across exec) is over 2 s old, but
+    the command's start-up is its own (oracle: the sleep's known length); without the sleep
+    it is the process's age (within the slack)."""
+    import subprocess
+    import sys
+
+    code = ("import jaxfalsify.progress as p; print(p.startup_seconds(), p.process_age())")
+    out = subprocess.run(["bash", "-c", f"sleep 2 && exec {sys.executable} -c '{code}'"],
+                         capture_output=True, text=True, check=True).stdout.split()
+    startup, age = float(out[0]), float(out[1])
+    assert age >= 2.0 and startup < 1.5, (startup, age)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert float(out[0]) == pytest.approx(float(out[1]), abs=0.05)  # a plain start: its age
