@@ -36,6 +36,12 @@ try:  # importing JAX takes most of a second: a Ctrl-C then ends the command in 
     from jaxfalsify.sut import SUT, Observation
 
     _cache.enable_compilation_cache()
+except ValueError as _e:  # a JAX setting from the environment that JAX refuses at import
+    if not _command_line() or "JAX flag" not in str(_e):
+        raise
+    print(f"jaxfalsify: error: {str(_e).splitlines()[0]} (set in the environment: fix or unset "
+          f"it)", file=_sys.stderr)
+    raise SystemExit(2) from None
 except KeyboardInterrupt:
     if not _command_line():  # a library user's interrupt stays theirs
         raise

@@ -574,6 +574,12 @@ def main(argv=None, startup: float = 0.0) -> int:
     except MemoryError:
         print("jaxfalsify: error: out of memory (lower --batch or --chunk)", file=sys.stderr)
         return 1
+    except RuntimeError as e:
+        if not str(e).startswith("Unable to initialize backend"):
+            raise
+        print(f"jaxfalsify: error: JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: "
+              f"{str(e).splitlines()[0][:200]}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("jaxfalsify: interrupted; nothing was written in place of earlier results",
               file=sys.stderr)

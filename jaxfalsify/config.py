@@ -93,7 +93,9 @@ def dumps_toml(doc: dict[str, Any], _prefix: str = "") -> str:
     return out + ("\n" if out and not out.endswith("\n") else "")
 
 
-MAX_TOML_BYTES = 1 << 20  # configs and spaces are a few kB
+MAX_TOML_BYTES = 64 << 20  # configs and spaces are a few kB; a guard against naming a data
+# file (a Parquet file, a recording) by mistake, well above any TOML a person writes, comments
+# included
 
 
 def read_text_file(path: Path, what: str = "", limit: int = MAX_TOML_BYTES) -> str:
@@ -119,7 +121,8 @@ def read_text_file(path: Path, what: str = "", limit: int = MAX_TOML_BYTES) -> s
     except OSError as e:
         raise ValueError(f"{label}: cannot read ({e.strerror})") from None
     if len(data) > limit:
-        raise ValueError(f"{label}: larger than {limit // 1024} KiB; not a config file")
+        raise ValueError(f"{label}: larger than {limit >> 20} MiB, the most a config, space or "
+                         f"suite file may hold (a data file named by mistake?)")
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError:

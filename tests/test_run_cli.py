@@ -203,3 +203,24 @@ def test_startup_does_not_count_a_program_that_ran_before_in_the_same_process():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout.split()
     assert float(out[0]) == pytest.approx(float(out[1]), abs=0.05)  # a plain start: its age
+
+
+@pytest.mark.parametrize("env, says", [
+    ({"JAX_PLATFORMS": "tpu"}, "JAX_PLATFORMS='tpu': Unable to initialize backend 'tpu'"),
+    ({"JAX_DEFAULT_MATMUL_PRECISION": "bogus"},
+     'Invalid value "bogus" for JAX flag jax_default_matmul_precision'),
+])
+def test_jax_settings_jax_refuses_give_one_line_and_exit_2(tmp_path, env, says):
+    """A JAX setting from the environment that JAX cannot use: one line naming it, exit 2,
+    no run folder (a real process: JAX reads its settings once per process)."""
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    p = subprocess.run([sys.executable, "-m", "jaxfalsify", "run", "--evaluations", "10",
+                        "--out", str(out)], capture_output=True, text=True,
+                       env={**os.environ, **env}, timeout=120)
+    lines = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(lines) == 1 and says in lines[0], p.stderr[-500:]
+    assert not out.exists()

@@ -187,3 +187,25 @@ def test_malformed_toml_and_unknown_names(tmp_path):
         jf.load_space("nope")
     with pytest.raises(ValueError, match="seed"):
         jf.load_space("paper", seed=-1)
+
+
+def test_a_valid_space_file_with_megabytes_of_comments_loads(tmp_path):
+    """Comments count towards no limit a person would reach: 10 MB of them before a valid
+    space (oracle: the same space without the comments); a file over the 64 MiB guard is
+    refused in one line naming it."""
+    from jaxfalsify.space import load_space
+
+    body = ('name = "c"\n[parameters.ego_offset]\ndistribution = "integers"\nlow = 1\n'
+            'high = 5\nsamples = 5\n')
+    plain = tmp_path / "plain.toml"
+    plain.write_text(body)
+    commented = tmp_path / "commented.toml"
+    commented.write_text(("# " + "x" * 98 + "\n") * 100_000 + body)
+    assert commented.stat().st_size > 10_000_000
+    assert load_space(str(commented)).values[0].tolist() == \
+        load_space(str(plain)).values[0].tolist()
+    huge = tmp_path / "huge.toml"
+    with open(huge, "wb") as f:
+        f.truncate((64 << 20) + 1)
+    with pytest.raises(ValueError, match=r"huge.toml: larger than 64 MiB"):
+        load_space(str(huge))
