@@ -543,6 +543,7 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
     ckpt = store.CampaignCheckpoint(out / "checkpoint", fingerprint(rc, b))
     resumed = None
     if resume:
+        store.check_checkpoint_folder(ckpt.folder)
         on_disk = RunConfig.from_toml(out / "config.toml").resolved()
         if on_disk.to_toml() != rc.to_toml():
             raise store.CheckpointError(f"--resume {out}: config.toml does not match the run "

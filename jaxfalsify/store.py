@@ -294,6 +294,15 @@ def identity(fingerprint: Any) -> str:
     return sha256(json.dumps(fingerprint, sort_keys=True).encode())[:16]
 
 
+def check_checkpoint_folder(folder: Path) -> None:
+    """A checkpoint path that exists must be a folder: CheckpointError (one line naming it)
+    before anything is written when something else stands there."""
+    folder = Path(folder)
+    if (folder.exists() or folder.is_symlink()) and not folder.is_dir():
+        raise CheckpointError(f"checkpoint {folder} is damaged: not a folder (remove it, and "
+                              "start the run again with --force)")
+
+
 class CampaignCheckpoint:
     """The checkpoint folder of one campaign (``RUN_DIR/checkpoint``).
 

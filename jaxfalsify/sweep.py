@@ -648,6 +648,8 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
     begin, end, planned, ck, fingerprint = _layout(config, space, calib, out, process_id,
                                                    num_processes, world)
     done, reds, files = 0, [Reducer() for _ in range(calib.count)], {}
+    if resume:
+        store.check_checkpoint_folder(ck)
     if resume and (ck / "state.json").exists():
         done, reds, files = _load_progress(ck, fingerprint, calib.count, begin, end, planned,
                                            config.rows)

@@ -685,3 +685,22 @@ def test_a_run_folder_of_an_earlier_version_is_named_and_cleared(tmp_path):
         load_run(out)
     store.clear(out, "run")
     assert sorted(p.name for p in out.rglob("*")) == ["figures", "mine.png"]
+
+
+@pytest.mark.parametrize("what", ["run", "sweep"])
+def test_a_file_in_place_of_the_checkpoint_folder_is_refused_and_status_kept(checkpoints,
+                                                                             what):
+    """``checkpoint/`` replaced by a file: ``--resume`` exits 2 with one line naming the
+    damaged checkpoint, and status.json is left as it was (nothing rewritten while failing)."""
+    tmp = Path(tempfile.mkdtemp(dir=checkpoints["base"]))
+    folder = tmp / what
+    shutil.copytree(checkpoints["base"] / what, folder)
+    shutil.rmtree(folder / "checkpoint")
+    (folder / "checkpoint").write_text("not a checkpoint\n")
+    status = (folder / "status.json").read_bytes()
+    code, err = cli([what, "--resume", folder, "--quiet"]
+                    + (["--no-figures"] if what == "run" else []))
+    assert_one_line_error(code, err)
+    assert f"checkpoint {folder / 'checkpoint'} is damaged: not a folder" in err, err
+    assert (folder / "status.json").read_bytes() == status
+    shutil.rmtree(tmp)
