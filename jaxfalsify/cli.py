@@ -72,9 +72,21 @@ class StopFlag:
         self.signum = signum
 
     def install(self):
+        """Handle SIGINT and SIGTERM, except a signal this process inherited as ignored (a
+        script's background job, ``cmd &``, ignores SIGINT: it keeps ignoring it)."""
+        self.previous = {}
         for s in (signal.SIGINT, signal.SIGTERM):
+            before = signal.getsignal(s)
+            if before is signal.SIG_IGN:
+                continue
+            self.previous[s] = before
             signal.signal(s, self.handler)
         return self
+
+    def restore(self) -> None:
+        """The handlers from before :meth:`install`."""
+        for s, before in getattr(self, "previous", {}).items():
+            signal.signal(s, before if before is not None else signal.SIG_DFL)
 
     @property
     def exit_code(self) -> int:
@@ -592,8 +604,7 @@ def main(argv=None, startup: float = 0.0) -> int:
             return stop.exit_code
         raise
     finally:
-        for s in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(s, signal.SIG_DFL if s == signal.SIGTERM else signal.default_int_handler)
+        stop.restore()
 
 
 def entry() -> None:

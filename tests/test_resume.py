@@ -233,3 +233,20 @@ def test_a_signal_during_the_last_chunk_still_interrupts_and_resumes(tmp_path):
     runs.execute(rc, tmp_path / "ref", figures=False)
     for f in ("summary.json", "critical.csv"):
         assert (tmp_path / "late" / f).read_bytes() == (tmp_path / "ref" / f).read_bytes(), f
+
+
+def test_a_run_that_inherited_an_ignored_sigint_keeps_ignoring_it(tmp_path):
+    """A script's background job (``cmd &``) starts with SIGINT ignored: a SIGINT sent to it
+    mid-run changes nothing, and the run completes with the same files as an undisturbed one
+    (SIGTERM still stops runs: the other tests)."""
+    args = [*RUN_ARGS, "--strategy", "random"]
+    reference = tmp_path / "reference"
+    assert main([*args, "--out", str(reference)]) == 0
+    out = tmp_path / "ignoring"
+    proc = _cli([*args, "--out", str(out)],
+                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    _wait_for_chunks(proc, out / "checkpoint" / "state.json", 2, "run")
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-2000:]
+    _same_run(reference, out)
