@@ -542,6 +542,12 @@ def resolve(spec: str | SUT | Callable) -> SUT:
                                  f"arguments): {_error_line(e)}") from None
         if isinstance(obj, SUT):
             return dataclasses.replace(obj, name=spec) if obj.name != spec else obj
+        builtin = next((s for s in REGISTRY.values() if s.act is obj or s.init is obj), None)
+        if builtin is not None:  # a built-in's own function needs its state and parameters
+            raise ValueError(f"SUT '{spec}' is the '{builtin.name}' SUT's "
+                             f"{'act' if builtin.act is obj else 'init'} function, which needs "
+                             f"that SUT's state and parameters: name the SUT, --sut "
+                             f"{builtin.name}")
         if callable(obj):
             return SUT(spec, obj, _no_state, None)
         raise ValueError(f"SUT '{spec}' is a {type(obj).__name__}, not a SUT or act function")

@@ -214,6 +214,11 @@ CASES = [
      "exceeds the space's 32 scenarios"),
     # unknown names
     (["run", "--sut", "tesla"], "unknown SUT 'tesla'"),
+    # a built-in SUT's own functions by import path (they need its state and parameters)
+    (["run", "--sut", "jaxfalsify.sut:carla_tm_act"], "is the 'carla-tm' SUT's act function"),
+    (["simulate", "--sut", "jaxfalsify.sut:none_act"], "is the 'none' SUT's act function"),
+    (["sweep", "--sut", "jaxfalsify.sut:sensor_aeb_act"],
+     "is the 'sensor-aeb' SUT's act function"),
     (["run", "--strategy", "ga"], "unknown strategy 'ga'"),
     (["run", "--space", "moon"], "unknown space 'moon'"),
     (["run", "--strategy", "reinforce/fast"], "unknown strategy 'reinforce/fast'"),
