@@ -445,6 +445,9 @@ def _load_attr(spec: str):
         return getattr(module, attr)
     except AttributeError:
         raise ValueError(f"SUT '{spec}': {mod_name} has no attribute '{attr}'") from None
+    except (Exception, SystemExit) as e:  # noqa: BLE001 - a module __getattr__ can raise
+        raise ValueError(f"SUT '{spec}': looking up '{attr}' in {mod_name} raised "
+                         f"{_error_line(e)}") from None
 
 
 def recorded_spec(spec: str, folder: Path | None = None) -> str:

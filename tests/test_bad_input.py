@@ -79,6 +79,8 @@ def world(tmp_path_factory):
     }
     for name, text in files.items():
         (w / name).write_text(text)
+    (w / "getattr_raises.py").write_text(
+        "def __getattr__(name):\n    raise RuntimeError('no ' + name)\n")
     (w / "badsut.py").write_text(
         "import jax.numpy as jnp\n\n\ndef two_args(obs, state):\n    return 0.0, state\n\n\n"
         "def vector(obs, state, params, key):\n    return jnp.zeros(3), state\n\n\n"
@@ -376,6 +378,8 @@ CASES = [
     (["sweep", "--sut", "sensor-aeb", "--sut-param", "ttc_full=0.8,-1"], "ttc_full=-1"),
     # a user's SUT that cannot step: traced before it runs, before anything is written
     (["run", "--sut", "badsut.py:two_args"], "takes 2 positional arguments but 4"),
+    (["simulate", "--sut", "getattr_raises.py:mine"],
+     "looking up 'mine' in getattr_raises.py raised RuntimeError: no mine"),
     (["sweep", "--sut", "badsut.py:vector"], "expected a scalar"),
     # a SUT class or factory that cannot be built without arguments, a module that exits
     (["run", "--sut", "badsut.py:NeedsArgs"],
