@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import signal
 import sys
 from pathlib import Path
@@ -561,6 +562,8 @@ def main(argv=None, startup: float = 0.0) -> int:
     import os
 
     stop = StopFlag().install()
+    # a host callback that raises is reported in one line (sut.callback_error), not also logged
+    logging.getLogger("jax._src.callback").setLevel(logging.CRITICAL)
     try:
         args = parse(argv)
         if args.no_cache:
@@ -587,6 +590,13 @@ def main(argv=None, startup: float = 0.0) -> int:
         print("jaxfalsify: error: out of memory (lower --batch or --chunk)", file=sys.stderr)
         return 1
     except RuntimeError as e:
+        from jaxfalsify.sut import callback_error
+
+        raised = callback_error(e)
+        if raised is not None:
+            print(f"jaxfalsify: error: the SUT raised at run time (in a host callback): "
+                  f"{raised}", file=sys.stderr)
+            return 2
         if not str(e).startswith("Unable to initialize backend"):
             raise
         print(f"jaxfalsify: error: JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: "

@@ -587,7 +587,7 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
         try:  # status.json tells the truth: the search failed
             store.write_status(out, "run", "failed", evaluations_done=ckpt.evaluations_done(),
                                evaluations=b.plan.evaluations,
-                               error=f"{type(e).__name__}: {e}"[:300])
+                               error=_error_text(e))
         except OSError:
             pass
         raise
@@ -599,10 +599,16 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
     except BaseException as e:
         try:  # status.json tells the truth: the search is done, its outputs are not
             store.write_status(out, "run", "failed", evaluations_done=res.n,
-                               evaluations=res.n, error=f"{type(e).__name__}: {e}"[:300])
+                               evaluations=res.n, error=_error_text(e))
         except OSError:
             pass
         raise
+
+
+def _error_text(e: BaseException) -> str:
+    """What status.json says of a failure: a user's SUT's own exception when it raised in a
+    host callback, else the exception's type and message (at most 300 characters)."""
+    return (sut_lib.callback_error(e) or f"{type(e).__name__}: {e}")[:300]
 
 
 def _finish(b: Built, rc: RunConfig, out: Path, res: campaign.Result, ckpt, start_from: int,

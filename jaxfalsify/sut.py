@@ -658,3 +658,15 @@ def params_dict(params: Any) -> dict[str, float]:
         return {k: float(v) for k, v in params.items()}
     return {}
 
+
+def callback_error(e: BaseException) -> str | None:
+    """The user's exception (``Type: message``, one line) when ``e`` is JAX's runtime error
+    for a host callback (``jax.pure_callback`` / ``io_callback`` in a user's SUT) that raised;
+    None for any other error."""
+    if type(e).__name__ not in ("JaxRuntimeError", "XlaRuntimeError") or \
+            "callback" not in str(e).lower():
+        return None
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    found = next((ln for ln in reversed(lines) if ":" in ln and ln.split(":", 1)[0].isidentifier()
+                  and ln.split(":", 1)[0][0].isupper()), None)
+    return (found or lines[-1] if lines else type(e).__name__)[:300]

@@ -620,7 +620,8 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     except BaseException as e:
         if process_id == 0 and (out / "config.toml").exists():
             try:  # status.json tells the truth
-                store.write_status(out, "sweep", "failed", error=f"{type(e).__name__}: {e}"[:300])
+                store.write_status(out, "sweep", "failed", error=(
+                    sut_lib.callback_error(e) or f"{type(e).__name__}: {e}")[:300])
             except OSError:
                 pass
         raise

@@ -3,6 +3,7 @@ nothing written and nothing overwritten (every file under the working folder is 
 byte for byte before and after)."""
 
 import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -79,6 +80,11 @@ def world(tmp_path_factory):
     }
     for name, text in files.items():
         (w / name).write_text(text)
+    (w / "callback_raises.py").write_text(
+        "import jax\nimport jax.numpy as jnp\n\n\ndef _boom(x):\n"
+        "    raise RuntimeError('sensor driver crashed')\n\n\n"
+        "def act(obs, state, params, key):\n"
+        "    return jax.pure_callback(_boom, jax.ShapeDtypeStruct((), jnp.float32), 0.0), state\n")
     (w / "getattr_raises.py").write_text(
         "def __getattr__(name):\n    raise RuntimeError('no ' + name)\n")
     (w / "badsut.py").write_text(
@@ -378,6 +384,9 @@ CASES = [
     (["sweep", "--sut", "sensor-aeb", "--sut-param", "ttc_full=0.8,-1"], "ttc_full=-1"),
     # a user's SUT that cannot step: traced before it runs, before anything is written
     (["run", "--sut", "badsut.py:two_args"], "takes 2 positional arguments but 4"),
+    # a user's SUT that raises at run time, inside the compiled rollout (a host callback)
+    (["simulate", "--sut", "callback_raises.py:act"], "the SUT raised at run time (in a host "
+     "callback): RuntimeError: sensor driver crashed"),
     (["simulate", "--sut", "getattr_raises.py:mine"],
      "looking up 'mine' in getattr_raises.py raised RuntimeError: no mine"),
     (["sweep", "--sut", "badsut.py:vector"], "expected a scalar"),
@@ -530,3 +539,25 @@ def test_no_cache_writes_no_cache_folder(tmp_path):
                         "ego_offset=5"], env=env, capture_output=True, text=True, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert '"collision"' in r.stdout and not (tmp_path / "cache").exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["run", "--strategy", "random", "--evaluations", "20", "--batch", "10", "--out", "cb",
+     "--no-figures"],
+    ["sweep", "--out", "cb"]])
+def test_a_sut_raising_at_run_time_is_one_line_and_the_folder_says_failed(argv, world, capsys,
+                                                                          monkeypatch):
+    """A user's SUT that raises inside the compiled rollout (a host callback): one line naming
+    the exception, exit 2; the output folder holds its config.toml and a status.json that
+    says failed, with the error, and no results."""
+    monkeypatch.chdir(world)
+    assert main([*argv, "--sut", "callback_raises.py:act", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("jaxfalsify: error: the SUT raised at run time (in a host callback): "
+                   "RuntimeError: sensor driver crashed"), err
+    status = json.loads((world / "cb" / "status.json").read_text())
+    assert status["state"] == "failed" and "sensor driver crashed" in status["error"]
+    left = {p.name for p in (world / "cb").iterdir()}
+    assert "config.toml" in left and not left & {"summary.json", "evaluations.parquet",
+                                                 "sweep.parquet", "critical.csv"}, left
+    shutil.rmtree(world / "cb")
