@@ -243,8 +243,11 @@ def test_a_run_that_inherited_an_ignored_sigint_keeps_ignoring_it(tmp_path):
     reference = tmp_path / "reference"
     assert main([*args, "--out", str(reference)]) == 0
     out = tmp_path / "ignoring"
-    proc = _cli([*args, "--out", str(out)],
-                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    # started as a shell's background job is: SIGINT ignored, inherited across exec (no
+    # preexec_fn: forking a multithreaded JAX process can deadlock)
+    proc = subprocess.Popen(["bash", "-c", 'trap "" INT; exec "$0" "$@"', sys.executable, "-m",
+                             "jaxfalsify.cli", *args, "--out", str(out)], env=dict(os.environ),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     _wait_for_chunks(proc, out / "checkpoint" / "state.json", 2, "run")
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=600)
