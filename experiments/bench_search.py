@@ -234,7 +234,8 @@ def main(argv=None):
             per_up = np.median([r["search_seconds"] for r in rows]) / n_up
             ratio = f"{med / base:.3f}" if base else "-"
             print(f"{st:20s} {len(rows) - cens:>3d}/{len(rows):<2d} "
-                  f"{np.median(firsts):>20.0f} {('>' if cens * 2 >= len(rows) else '') + f'{med:.3f}':>18s} "
+                  f"{np.median(firsts):>20.0f} "
+                  f"{('>' if cens * 2 >= len(rows) else '') + f'{med:.3f}':>18s} "
                   f"{ratio:>9s} {np.median([r['distinct_collisions'] for r in rows]):>9.0f} "
                   f"{per_up * 1e3:>7.1f}ms {rows[0]['compile_seconds']:>9.1f}"
                   + (f"  truth clusters found: "

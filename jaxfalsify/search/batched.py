@@ -243,10 +243,11 @@ class BatchedReinforce(Strategy):
         return max(1, min(self.batch, round(self.elite * self.batch)))
 
     def _learn(self, key, state, indices, signal, params):
-        """``(state, elite (B,) bool)``: ``steps`` Adam steps on ``-sum_j w_j log pi(a_j)`` over the ``top`` best scenarios
-        of the batch (ties at random), ``w_j`` CMA-ES's log-rank weights summing to 1: REINFORCE
-        (Eq. 2) with non-negative rank utilities and baseline 0, which is unbiased for any
-        baseline; the scenarios below the top have utility 0 and drop out of the sum."""
+        """``(state, elite (B,) bool)``: ``steps`` Adam steps on ``-sum_j w_j log pi(a_j)``
+        over the ``top`` best scenarios of the batch (near ties broken at random), ``w_j``
+        CMA-ES's log-rank weights summing to 1: REINFORCE (Eq. 2) with non-negative rank
+        utilities and baseline 0 (unbiased for any constant baseline); the scenarios below the
+        top have utility 0 and drop out of the sum."""
         ok = jnp.isfinite(signal)
         noise = jax.random.uniform(key, signal.shape, maxval=1e-6)  # ties at random
         best, at = jax.lax.top_k(jnp.where(ok, signal + noise * jnp.abs(signal), -jnp.inf),

@@ -7,7 +7,8 @@ bins tile ``[-h_p, 1 + h_p]``. A component ``k`` puts on value ``v`` the mass of
 ``N(mu_kp, sigma_kp^2)`` over its bin, renormalised over the tiled interval:
 
     m_kp(v) = (Phi(b) - Phi(a)) / (Phi(B) - Phi(A)),
-    a, b = (r_v -+ h_p - mu_kp) / sigma_kp,   A, B = (-h_p - mu_kp) / sigma_kp, (1 + h_p - mu_kp) / sigma_kp.
+    a, b = (r_v -+ h_p - mu_kp) / sigma_kp,
+    A, B = (-h_p - mu_kp) / sigma_kp, (1 + h_p - mu_kp) / sigma_kp.
 
 A scenario's probability is a mixture over ``K`` components, each a product over parameters,
 with a uniform floor of weight ``eps`` that keeps every scenario reachable:
