@@ -8,6 +8,10 @@ compilation cache goes there.
 The compilation cache keys on the compiled program (its HLO), the jax/jaxlib versions and the
 backend, so a stale entry cannot be used by mistake; space values, SUT and strategy
 parameters are traced arguments, so another space seed or calibration hits the same entry.
+
+Every entry carries what it was built from: an exported program's seal is the SHA-256 of its
+key and its bytes, a ground truth stores its key beside its arrays. An entry that fails the
+check (damaged, or another configuration's file put under this name) is rebuilt, never used.
 """
 
 from __future__ import annotations
@@ -282,8 +286,10 @@ def exported_jit(fn, name: str, static: dict | None, key_args: tuple, example_ar
         try:
             blob = path.read_bytes()
             data = blob[len(SEAL) + 32:]
+            # the seal covers the key too: an entry of another configuration put under this
+            # name (each file intact) fails it like a damaged one, and is rebuilt
             if blob[:len(SEAL)] == SEAL and blob[len(SEAL):len(SEAL) + 32] == \
-                    hashlib.sha256(data).digest():  # else damaged or foreign: rebuilt
+                    hashlib.sha256(key.encode() + data).digest():
                 exp = export.deserialize(bytearray(data))
         except Exception:  # noqa: BLE001 - a damaged cache entry is rebuilt
             exp = None
@@ -298,7 +304,7 @@ def exported_jit(fn, name: str, static: dict | None, key_args: tuple, example_ar
 
             path.parent.mkdir(parents=True, exist_ok=True)
             data = bytes(data)
-            write_atomic(path, SEAL + hashlib.sha256(data).digest() + data)
+            write_atomic(path, SEAL + hashlib.sha256(key.encode() + data).digest() + data)
         except OSError:
             pass
     avals = jax.tree.unflatten(exp.in_tree, list(exp.in_avals))[0]
