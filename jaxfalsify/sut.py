@@ -509,6 +509,12 @@ def check_traceable(sut: SUT, params: Any) -> None:
                             "(m/s^2)")
         if jax.tree.structure(new_state) != jax.tree.structure(state):
             raise TypeError("act's new state differs in structure from init's")
+        for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(new_state)):
+            ta, tb = jnp.result_type(a), jnp.result_type(b)
+            sa, sb = jnp.shape(a), jnp.shape(b)
+            if ta != tb or sa != sb:  # the rollout's scan carries the state unchanged in type
+                raise TypeError(f"act changes the state from {ta}{list(sa)} to "
+                                f"{tb}{list(sb)} (init's dtype and shape must be kept)")
         return cmd
 
     try:

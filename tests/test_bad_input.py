@@ -85,6 +85,13 @@ def world(tmp_path_factory):
         "    raise RuntimeError('sensor driver crashed')\n\n\n"
         "def act(obs, state, params, key):\n"
         "    return jax.pure_callback(_boom, jax.ShapeDtypeStruct((), jnp.float32), 0.0), state\n")
+    (w / "state_change.py").write_text(
+        "import jax.numpy as jnp\nfrom jaxfalsify import SUT\n\n\ndef init(key, params):\n"
+        "    return jnp.int32(0)\n\n\ndef to_float(obs, state, params, key):\n"
+        "    return 0.0, state.astype(jnp.float32)\n\n\ndef grow(obs, state, params, key):\n"
+        "    return 0.0, jnp.zeros(3, jnp.int32)\n\n\n"
+        "dtype_change = SUT('dtype_change', to_float, init, None)\n"
+        "shape_change = SUT('shape_change', grow, init, None)\n")
     (w / "getattr_raises.py").write_text(
         "def __getattr__(name):\n    raise RuntimeError('no ' + name)\n")
     (w / "badsut.py").write_text(
@@ -387,6 +394,14 @@ CASES = [
     # a user's SUT that raises at run time, inside the compiled rollout (a host callback)
     (["simulate", "--sut", "callback_raises.py:act"], "the SUT raised at run time (in a host "
      "callback): RuntimeError: sensor driver crashed"),
+    # a user's SUT whose state changes dtype or shape between steps
+    (["run", "--sut", "state_change.py:dtype_change"],
+     "SUT 'state_change.py:dtype_change' fails on a step: TypeError: act changes the state "
+     "from int32[] to float32[]"),
+    (["sweep", "--sut", "state_change.py:shape_change"],
+     "act changes the state from int32[] to int32[3]"),
+    (["compare", "--sut", "state_change.py:dtype_change", "--strategies", "random"],
+     "act changes the state from int32[] to float32[]"),
     (["simulate", "--sut", "getattr_raises.py:mine"],
      "looking up 'mine' in getattr_raises.py raised RuntimeError: no mine"),
     (["sweep", "--sut", "badsut.py:vector"], "expected a scalar"),
