@@ -203,27 +203,30 @@ class BatchedReinforce(Strategy):
 
     def tell_outcome(self, key, state, indices, rewards, robustness, collision, params,
                      ttc=None):
-        signal = self.signal(state, indices, rewards, robustness, collision, params, ttc)
+        h = self._hash(indices)
+        signal = self._signal(state, h, rewards, robustness, collision, params, ttc)
         state, elite = self._learn(key, state, indices, signal, params)
         # remembered: this update's elite and its collisions (a later draw of one of them
         # counts less, see signal)
         keep = (collision & jnp.isfinite(rewards)) | elite
-        h = self._hash(indices)
         slot = (h & (self.table - 1)).astype(jnp.int32)
         new = jnp.where(keep, h, state.seen[slot])
         return dataclasses.replace(state, seen=state.seen.at[slot].set(new))
 
     def signal(self, state, indices, rewards, robustness, collision, params, ttc=None):
         """``(B,)`` what the update ranks: the shaped signal (near misses told apart by their
-        minimum TTC ``ttc (B,)`` [s] when given), less ``novelty`` for a scenario the seen
-        table holds (one that was in an earlier update's elite, or collided), as long as
-        fewer than ``novelty_until`` evaluations were told. A hash collision in the table can
-        make an unseen scenario count as seen: rare with a table much larger than the
-        scenarios it holds."""
+        minimum TTC ``ttc (B,)`` [s] when given), less ``novelty`` for a collision, and less
+        ``revisit`` for a non-collision, whose scenario the seen table holds (one that was in
+        an earlier update's elite, or collided), as long as fewer than ``novelty_until``
+        evaluations were told. A hash collision in the table can make an unseen scenario
+        count as seen: rare with a table much larger than the scenarios it holds."""
+        return self._signal(state, self._hash(indices), rewards, robustness, collision, params,
+                            ttc)
+
+    def _signal(self, state, h, rewards, robustness, collision, params, ttc):
         if ttc is not None:
             robustness = near_miss_ttc(robustness, ttc, params.ttc_weight, params.ttc_below)
         signal = shaped_signal(rewards, robustness, collision)
-        h = self._hash(indices)
         seen = state.seen[(h & (self.table - 1)).astype(jnp.int32)] == h
         seen &= state.told < params.novelty_until
         return jnp.where(seen, signal - jnp.where(collision, params.novelty, params.revisit),
