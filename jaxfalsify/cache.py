@@ -20,6 +20,7 @@ import functools
 import hashlib
 import json
 import os
+import sys
 from pathlib import Path
 
 MIN_COMPILE_SECONDS = 0.1  # cache every compilation longer than this
@@ -232,6 +233,13 @@ def source_hash(*objs) -> str:
     return h.hexdigest()[:16]
 
 
+def stale(path: Path) -> None:
+    """Say (one line on stderr) that the cache entry ``path`` was not used: it is damaged or
+    holds another configuration's entry, and is being rebuilt."""
+    print(f"jaxfalsify: cache entry {path} is damaged or was built for another configuration;"
+          " rebuilding it", file=sys.stderr, flush=True)
+
+
 class Program:
     """A compiled program: ``call(*args)`` and the shapes/dtypes of its arguments
     (``in_avals``, a pytree like the arguments)."""
@@ -293,6 +301,8 @@ def exported_jit(fn, name: str, static: dict | None, key_args: tuple, example_ar
                 exp = export.deserialize(bytearray(data))
         except Exception:  # noqa: BLE001 - a damaged cache entry is rebuilt
             exp = None
+        if exp is None:
+            stale(path)
     if exp is None:
         try:
             exp = export.export(jax.jit(fn))(*example_args())

@@ -564,6 +564,7 @@ def main(argv=None, startup: float = 0.0) -> int:
     stop = StopFlag().install()
     # a host callback that raises is reported in one line (sut.callback_error), not also logged
     logging.getLogger("jax._src.callback").setLevel(logging.CRITICAL)
+    args = None
     try:
         args = parse(argv)
         if args.no_cache:
@@ -594,8 +595,9 @@ def main(argv=None, startup: float = 0.0) -> int:
 
         raised = callback_error(e)
         if raised is not None:
-            print(f"jaxfalsify: error: the SUT raised at run time (in a host callback): "
-                  f"{raised}", file=sys.stderr)
+            sut = getattr(args, "sut", None)
+            print(f"jaxfalsify: error: the SUT{f' {sut}' if sut else ''} raised at run time "
+                  f"(in a host callback): {raised}", file=sys.stderr)
             return 2
         if not str(e).startswith("Unable to initialize backend"):
             raise

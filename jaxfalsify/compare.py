@@ -572,14 +572,20 @@ def execute(config: CompareConfig, out: Path | str | None, *, force: bool = Fals
         sort_keys=True, default=str).encode()))
     if out is None:
         out, lk = store.open_new_folder(Path("runs") / f"compare-{timestamp()}", "compare")
+        existed = False
     else:
         out = Path(out)
+        existed = out.exists()
         lk = store.open_folder(out, "compare", force=force,
                                name=".lock" if process_id == 0 else
                                f".lock-part-{process_id:05d}")
     try:
         lk.claim("compare")
         return _execute(config, out, base, progress, process_id, num_processes, clock, stop)
+    except BaseException as e:
+        if num_processes == 1 and sut_lib.callback_error(e) is not None:
+            store.discard(out, "compare", lk, existed)  # the SUT raised: nothing to keep
+        raise
     finally:
         lk.release()
 

@@ -527,11 +527,17 @@ def execute(config: RunConfig, out: Path | str | None, *, resume: bool = False,
     check_memory(b)
     if out is None:
         out, lk = store.open_new_folder(default_run_dir(rc.strategy), "run")
+        existed = False
     else:
         out = Path(out)
+        existed = out.exists()
         lk = store.open_folder(out, "run", force=force, resume=resume)
     try:
         return _execute(b, rc, out, lk, resume, force, progress, stop, figures, rerun, clock)
+    except BaseException as e:
+        if not resume and sut_lib.callback_error(e) is not None:  # the SUT raised: nothing
+            store.discard(out, "run", lk, existed)  # of this run is worth keeping
+        raise
     finally:
         lk.release()
 

@@ -646,6 +646,20 @@ def lock(out: Path, kind: str, name: str = ".lock") -> FolderLock:
     return FolderLock(out, name).acquire(kind)
 
 
+def discard(out: Path, kind: str, lk: "FolderLock", existed: bool) -> None:
+    """Remove what a failed command wrote to ``out`` (a user's SUT that raised: its results
+    mean nothing): results, status, config and checkpoints (:func:`clear`), the lock file, and
+    the folder itself if the command created it and nothing else is in it."""
+    out = Path(out)
+    clear(out, kind)
+    with contextlib.suppress(OSError):
+        lk.path.unlink()
+    lk.release()
+    if not existed:
+        with contextlib.suppress(OSError):
+            out.rmdir()
+
+
 def open_folder(out: Path, kind: str, *, force: bool = False, resume: bool = False,
                 name: str = ".lock") -> FolderLock:
     """Check ``out`` (:func:`check_out`), lock it, and check again under the lock (another

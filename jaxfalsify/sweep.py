@@ -608,6 +608,7 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
         [ln for ln in config.to_toml(space, num_processes).splitlines()
          if not ln.startswith("sut = ")]
         + [cache.source_hash(calib.sut.act, calib.sut.init)]).encode()))
+    existed = out.exists()
     lk = store.open_folder(out, "sweep", force=force, resume=resume,
                            name=".lock" if process_id == 0 else f".lock-part-{process_id:05d}")
     try:
@@ -618,7 +619,9 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     except (Interrupted, ValueError):
         raise
     except BaseException as e:
-        if process_id == 0 and (out / "config.toml").exists():
+        if num_processes == 1 and not resume and sut_lib.callback_error(e) is not None:
+            store.discard(out, "sweep", lk, existed)  # the SUT raised: nothing worth keeping
+        elif process_id == 0 and (out / "config.toml").exists():
             try:  # status.json tells the truth
                 store.write_status(out, "sweep", "failed", error=(
                     sut_lib.callback_error(e) or f"{type(e).__name__}: {e}")[:300])
@@ -899,6 +902,7 @@ def ground_truth(space: Space, sut="carla-tm", sut_params=None,
                 return got
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             pass  # a damaged entry (a flipped bit fails the zip's CRC) is swept again
+        cache.stale(path)
     got = sweep_arrays(space, s, None if params is None else
                        {k: v for k, v in sut_lib.params_dict(params).items()},
                        world, fields=TRUTH_FIELDS)

@@ -392,8 +392,8 @@ CASES = [
     # a user's SUT that cannot step: traced before it runs, before anything is written
     (["run", "--sut", "badsut.py:two_args"], "takes 2 positional arguments but 4"),
     # a user's SUT that raises at run time, inside the compiled rollout (a host callback)
-    (["simulate", "--sut", "callback_raises.py:act"], "the SUT raised at run time (in a host "
-     "callback): RuntimeError: sensor driver crashed"),
+    (["simulate", "--sut", "callback_raises.py:act"], "the SUT callback_raises.py:act raised at "
+     "run time (in a host callback): RuntimeError: sensor driver crashed"),
     # a user's SUT whose state changes dtype or shape between steps
     (["run", "--sut", "state_change.py:dtype_change"],
      "SUT 'state_change.py:dtype_change' fails on a step: TypeError: act changes the state "
@@ -559,20 +559,22 @@ def test_no_cache_writes_no_cache_folder(tmp_path):
 @pytest.mark.parametrize("argv", [
     ["run", "--strategy", "random", "--evaluations", "20", "--batch", "10", "--out", "cb",
      "--no-figures"],
-    ["sweep", "--out", "cb"]])
-def test_a_sut_raising_at_run_time_is_one_line_and_the_folder_says_failed(argv, world, capsys,
-                                                                          monkeypatch):
+    ["sweep", "--out", "cb"],
+    ["compare", "--seeds", "1", "--evaluations", "20", "--strategies", "random", "--out", "cb"]])
+def test_a_sut_raising_at_run_time_is_one_line_and_leaves_nothing(argv, world, capsys,
+                                                                   monkeypatch):
     """A user's SUT that raises inside the compiled rollout (a host callback): one line naming
-    the exception, exit 2; the output folder holds its config.toml and a status.json that
-    says failed, with the error, and no results."""
+    the SUT and its exception, exit 2, and the output folder this command created is gone; in
+    a folder that existed, only the user's own files are left."""
     monkeypatch.chdir(world)
     assert main([*argv, "--sut", "callback_raises.py:act", "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err == ("jaxfalsify: error: the SUT raised at run time (in a host callback): "
-                   "RuntimeError: sensor driver crashed"), err
-    status = json.loads((world / "cb" / "status.json").read_text())
-    assert status["state"] == "failed" and "sensor driver crashed" in status["error"]
-    left = {p.name for p in (world / "cb").iterdir()}
-    assert "config.toml" in left and not left & {"summary.json", "evaluations.parquet",
-                                                 "sweep.parquet", "critical.csv"}, left
+    assert err == ("jaxfalsify: error: the SUT callback_raises.py:act raised at run time (in a "
+                   "host callback): RuntimeError: sensor driver crashed"), err
+    assert not (world / "cb").exists()
+    (world / "cb").mkdir()
+    (world / "cb" / "notes.txt").write_text("mine")
+    assert main([*argv, "--sut", "callback_raises.py:act", "--quiet"]) == 2
+    assert "sensor driver crashed" in capsys.readouterr().err
+    assert [p.name for p in (world / "cb").iterdir()] == ["notes.txt"]
     shutil.rmtree(world / "cb")

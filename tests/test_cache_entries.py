@@ -26,7 +26,7 @@ def _program(fn, tag):
     return cache.exported_jit(fn, "swap", {"tag": tag}, (x,), lambda: (x,))
 
 
-def test_a_program_of_another_configuration_under_this_name_is_rebuilt(own_cache):
+def test_a_program_of_another_configuration_under_this_name_is_rebuilt(own_cache, capsys):
     def plus(x):
         return [x + 1.0]
 
@@ -48,8 +48,15 @@ def test_a_program_of_another_configuration_under_this_name_is_rebuilt(own_cache
     shutil.copy(b, a)
     shutil.copy(tmp, b)
     tmp.unlink()
+    capsys.readouterr()
     assert np.asarray(_program(plus, "plus")(x)[0]).tolist() == [1.0, 2.0, 3.0]
     assert np.asarray(_program(times, "times")(x)[0]).tolist() == [0.0, 2.0, 4.0]
+    said = capsys.readouterr().err.splitlines()  # one line per rebuilt entry, naming it
+    assert sorted(line.split()[3] for line in said) == sorted(str(p) for p in (a, b))
+    assert all("rebuilding" in line for line in said)
+    # a matching entry is used without a word
+    _program(plus, "plus")
+    assert capsys.readouterr().err == ""
 
 
 SPACE = {"name": "tiny-truth", "parameters": {
@@ -57,7 +64,7 @@ SPACE = {"name": "tiny-truth", "parameters": {
     "ped_speed": {"distribution": "uniform", "low": 0.8, "high": 2.0, "samples": 5}}}
 
 
-def test_a_ground_truth_of_another_space_under_this_name_is_swept_again(own_cache):
+def test_a_ground_truth_of_another_space_under_this_name_is_swept_again(own_cache, capsys):
     s0, s1 = space_from_dict(SPACE, seed=0), space_from_dict(SPACE, seed=1)
     assert not all(np.array_equal(a, b) for a, b in zip(s0.values, s1.values))
     sweep.ground_truth(s0)
@@ -68,6 +75,9 @@ def test_a_ground_truth_of_another_space_under_this_name_is_swept_again(own_cach
     want = sweep.sweep_arrays(s0, sweep.sut_lib.resolve("carla-tm"), None, sweep.sim.WORLD,
                               fields=sweep.TRUTH_FIELDS)
     assert any(not np.array_equal(other[k], want[k]) for k in sweep.TRUTH_FIELDS)  # power
+    capsys.readouterr()
     got = sweep.ground_truth(s0)
+    said = capsys.readouterr().err.splitlines()
+    assert len(said) == 1 and str(entries[0]) in said[0] and "rebuilding" in said[0]
     for k in sweep.TRUTH_FIELDS:
         np.testing.assert_array_equal(got[k], want[k], err_msg=k)
