@@ -93,6 +93,39 @@ def check_settings() -> None:
         raise ValueError(X64_ERROR)
 
 
+def check_xla_flags() -> None:
+    """Refuse (ValueError, one line) an ``XLA_FLAGS`` that XLA would end the process for (an
+    unknown flag is a fatal error inside XLA, which no Python code can catch): the flags are
+    tried once in a short child process, and a setting that passed is remembered in the cache
+    (keyed by the flags and the jaxlib version), so only a new setting costs that second."""
+    flags = os.environ.get("XLA_FLAGS", "").strip()
+    if not flags:
+        return
+    import subprocess
+
+    import jaxlib
+
+    mark = folder() / "xla_flags" / hashlib.sha256(
+        f"{jaxlib.__version__}\n{flags}".encode()).hexdigest()[:32] if enabled() else None
+    if mark is not None and mark.is_file():
+        return
+    probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices('cpu')"],
+                           env={**os.environ, "JAX_PLATFORMS": "cpu"},
+                           capture_output=True, text=True, timeout=300)
+    if probe.returncode != 0:
+        said = [ln for ln in probe.stderr.splitlines() if "XLA_FLAGS" in ln or "flag" in ln]
+        why = (said or probe.stderr.strip().splitlines()[-1:] or ["XLA refused them"])[-1]
+        why = why.split("] ", 1)[-1].strip()  # without the log line's prefix
+        raise ValueError(f"XLA_FLAGS={flags!r}: {why[:200]} (set in the environment: fix or "
+                         "unset it)")
+    if mark is not None:
+        try:
+            mark.parent.mkdir(parents=True, exist_ok=True)
+            mark.write_text(flags + "\n")
+        except OSError:
+            pass
+
+
 def key_of(doc) -> str:
     """A stable content hash of a JSON-able description (cache file names), and of the JAX
     settings that change traced programs (:func:`program_settings`): a program or ground

@@ -209,6 +209,8 @@ def test_startup_does_not_count_a_program_that_ran_before_in_the_same_process():
     ({"JAX_PLATFORMS": "tpu"}, "JAX_PLATFORMS='tpu': Unable to initialize backend 'tpu'"),
     ({"JAX_DEFAULT_MATMUL_PRECISION": "bogus"},
      'Invalid value "bogus" for JAX flag jax_default_matmul_precision'),
+    ({"XLA_FLAGS": "--xla_bogus_flag=1"},
+     "XLA_FLAGS='--xla_bogus_flag=1': Unknown flag in XLA_FLAGS: --xla_bogus_flag=1"),
 ])
 def test_jax_settings_jax_refuses_give_one_line_and_exit_2(tmp_path, env, says):
     """A JAX setting from the environment that JAX cannot use: one line naming it, exit 2,
