@@ -57,6 +57,18 @@ def _int(name, minimum=0):
     return parse
 
 
+def _float_positive(name):
+    def parse(text):
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a number (got {text!r})")
+        if not 0 < v < float("inf"):
+            raise argparse.ArgumentTypeError(f"{name} must be > 0 and finite (got {text})")
+        return v
+    return parse
+
+
 class StopFlag:
     """SIGINT / SIGTERM handlers that ask the running work to stop between chunks (a second
     signal interrupts at once)."""
@@ -120,6 +132,10 @@ def _distributed_flags(p) -> None:
                    help="(or JAX_NUM_PROCESSES)")
     g.add_argument("--process-id", type=_int("--process-id"), dest="process_id",
                    help="(or JAX_PROCESS_ID)")
+    g.add_argument("--coordinator-timeout", type=_float_positive("--coordinator-timeout"),
+                   dest="coordinator_timeout", metavar="SECONDS",
+                   help="how long to wait for the coordinator and the other processes "
+                   "(default 120)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -345,12 +361,19 @@ SWEEP_FLAGS = ("space", "space_seed", "sut", "seed", "chunk", "rows", "out", "fo
 
 def _start_distributed(args) -> tuple[int, int]:
     if not args.distributed:
-        if args.coordinator or args.num_processes or args.process_id is not None:
-            raise UsageError("--coordinator/--num-processes/--process-id need --distributed")
+        if args.coordinator or args.num_processes or args.process_id is not None or \
+                args.coordinator_timeout is not None:
+            raise UsageError("--coordinator/--num-processes/--process-id/--coordinator-timeout "
+                             "need --distributed")
         return 0, 1
-    from jaxfalsify.distributed import initialize
+    from jaxfalsify.distributed import TIMEOUT_S, initialize
 
-    return initialize(args.coordinator, args.num_processes, args.process_id)
+    def say(text):
+        if not args.quiet:
+            print(f"jaxfalsify: {text}", file=sys.stderr, flush=True)
+
+    return initialize(args.coordinator, args.num_processes, args.process_id,
+                      timeout=args.coordinator_timeout or TIMEOUT_S, say=say)
 
 
 def cmd_sweep(args, stop, startup) -> int:

@@ -10,6 +10,7 @@ environment variables ``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``, ``JAX_
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import time
@@ -17,12 +18,21 @@ import time
 import jax
 
 
+TIMEOUT_S = 120  # how long a process waits for the coordinator (and process 0 for its peers)
+
+
 def initialize(coordinator: str | None = None, num_processes: int | None = None,
-               process_id: int | None = None, timeout: int = 120) -> tuple[int, int]:
+               process_id: int | None = None, timeout: int = TIMEOUT_S,
+               say=None) -> tuple[int, int]:
     """Start ``jax.distributed``; returns ``(process_id, num_processes)``.
 
-    Raises ValueError (one line) naming what is missing or invalid.
+    ``timeout``: seconds to wait for the coordinator to answer (processes 1..n-1) and for the
+    runtime to start. ``say(text)``: told once when a process starts waiting for an
+    unreachable coordinator. Raises ValueError (one line) naming what is missing or invalid,
+    or the coordinator that did not answer within ``timeout``.
     """
+    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout > 0:
+        raise ValueError(f"coordinator timeout {timeout!r}: expected a number of seconds > 0")
     coordinator = coordinator or os.environ.get("JAX_COORDINATOR_ADDRESS")
     if num_processes is None and "JAX_NUM_PROCESSES" in os.environ:
         num_processes = _env_int("JAX_NUM_PROCESSES")
@@ -44,11 +54,11 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     except Exception:  # older jax without the option: CPU barriers may be unavailable
         pass
     if process_id != 0:
-        _probe(host, int(port), timeout)
+        _probe(host, int(port), timeout, say)
     try:
         jax.distributed.initialize(coordinator_address=coordinator,
                                    num_processes=num_processes, process_id=process_id,
-                                   initialization_timeout=timeout)
+                                   initialization_timeout=max(1, math.ceil(timeout)))
     except Exception as e:  # noqa: BLE001 - the runtime's errors are many and verbose
         raise ValueError(f"--coordinator {coordinator}: could not start the distributed "
                          f"runtime within {timeout} s ({type(e).__name__}: "
@@ -65,7 +75,7 @@ def _env_int(name: str) -> int:
         raise ValueError(f"{name}={text[:40]!r}: expected an integer") from None
 
 
-def _probe(host: str, port: int, timeout: float) -> None:
+def _probe(host: str, port: int, timeout: float, say=None) -> None:
     """Wait until the coordinator accepts connections, or raise a one-line ValueError: JAX's
     own runtime aborts the whole process (a fatal C++ error) when it cannot reach it."""
     import socket
@@ -77,6 +87,10 @@ def _probe(host: str, port: int, timeout: float) -> None:
             with socket.create_connection((host, port), timeout=1.0):
                 return
         except OSError as e:
+            if say is not None:
+                say(f"waiting up to {timeout:g} s for the coordinator {host}:{port} "
+                    f"({e.strerror or type(e).__name__}; --coordinator-timeout sets the wait)")
+                say = None
             if time.monotonic() > deadline:
                 raise ValueError(f"--coordinator {host}:{port}: not reachable within "
                                  f"{timeout:g} s ({e.strerror or type(e).__name__}); is "

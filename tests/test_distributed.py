@@ -206,6 +206,26 @@ def test_an_unreachable_coordinator_fails_in_time_with_one_line():
     assert "not reachable within 3 s" in out[-1]
 
 
+@pytest.mark.parametrize("command", ["sweep", "compare"])
+def test_the_cli_waits_for_an_unreachable_coordinator_as_long_as_it_is_told(tmp_path, command):
+    """``--coordinator-timeout 2``: a line saying what it waits for, then one error line
+    naming the coordinator, exit 2, and no output folder."""
+    port = _free_port()
+    out = tmp_path / "out"
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    r = subprocess.run([sys.executable, "-m", "jaxfalsify", command, "--distributed",
+                        "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2",
+                        "--process-id", "1", "--coordinator-timeout", "2", "--out", str(out)],
+                       capture_output=True, text=True, env=env, timeout=120)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 2, r.stderr[-800:]
+    assert lines[0].startswith(f"jaxfalsify: waiting up to 2 s for the coordinator "
+                               f"127.0.0.1:{port}")
+    assert lines[1].startswith(f"jaxfalsify: error: --coordinator 127.0.0.1:{port}: not "
+                               "reachable within 2 s")
+    assert not out.exists()
+
+
 def _two_processes(tmp_path, args_of) -> list:
     """Start 2 ``jaxfalsify`` processes (CPU, gloo) with ``args_of(i)``; returns
     ``[(returncode, stderr)]``."""
