@@ -132,6 +132,10 @@ class CompareConfig:
         # before a folder is locked or a ground truth swept
         builds = [self.run_config(s).build() for s in self.strategies]
         self.check_memory(builds[0].space, num_processes)
+        from jaxfalsify.runs import check_strategy_memory
+
+        for s, b in zip(self.strategies, builds):
+            check_strategy_memory(b, s, self.strategy_params.get(s, {}))
 
     def check_memory(self, sp, num_processes: int = 1) -> None:
         """Every evaluated scenario's record is kept until the end (this process's share of

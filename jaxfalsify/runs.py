@@ -398,8 +398,28 @@ SCENARIO_BYTES = 2048  # device memory per scenario of a batch in flight (rollou
                        # temporaries), measured generously
 
 
-def check_memory(b: Built) -> None:
-    """Refuse (one line) a batch whose memory estimate exceeds half the available memory."""
+STATE_COPIES = 3  # a strategy's state, its updated copy and the gradients of its weights
+
+
+def check_strategy_memory(b: Built, name: str, options: Mapping[str, Any]) -> None:
+    """Refuse (one line) a strategy whose state (its size found by tracing ``init`` alone,
+    without allocating it), counted three times (the state, its update, gradients), exceeds
+    half the available memory: e.g. ``hidden=1024, learners=1024`` of ``reinforce/screened``,
+    51 GiB of weights and Adam moments."""
+    import jax
+
+    state = jax.eval_shape(b.strategy.init, jax.random.key(0), b.strategy_params)
+    need = sum(int(np.prod(x.shape)) * x.dtype.itemsize for x in jax.tree.leaves(state))
+    given = ", ".join(f"{k}={v}" for k, v in sorted(options.items()))
+    cfg.check_memory(STATE_COPIES * need, f"the state of {name}"
+                     + (f" ({given})" if given else ""),
+                     "choose smaller strategy options")
+
+
+def check_memory(b: Built, config: RunConfig) -> None:
+    """Refuse (one line) a strategy's state or a batch whose memory estimate exceeds half the
+    available memory (``config``: the options as given, named in the message)."""
+    check_strategy_memory(b, config.strategy, config.strategy_params)
     P = len(b.space.shape)
     per_eval = (P + len(campaign.RECORD_FIELDS)) * 8
     records = b.plan.updates_per_chunk * b.plan.batch * per_eval
@@ -524,7 +544,7 @@ def execute(config: RunConfig, out: Path | str | None, *, resume: bool = False,
         raise ValueError("resume needs the run folder (out)")
     b = config.build()
     rc = config.resolved(b)
-    check_memory(b)
+    check_memory(b, config)
     if out is None:
         out, lk = store.open_new_folder(default_run_dir(rc.strategy), "run")
         existed = False
