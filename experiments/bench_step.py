@@ -2,6 +2,8 @@
 
     python experiments/bench_step.py              # all 100,000 scenarios of the paper space
     python experiments/bench_step.py --n 20000    # a strided sample (quicker)
+    python experiments/bench_step.py --check      # first: every outcome of 2.1e6 scenarios
+                                                  # bit-identical to the stored hashes
 
 Every figure is measured in this one process, side by side (best of ``--repeats`` warm calls
 of the compiled program; compilation excluded), on the same scenarios:
@@ -14,6 +16,8 @@ of the compiled program; compilation excluded), on the same scenarios:
 * **zero**: :func:`jaxfalsify.evaluate` with a SUT that commands 0 m/s^2 and has no state: the
   simulator core alone (kinematics, swept contact, box distance, RSS, TTC, reward bookkeeping).
 * **none**, **carla-tm**, **sensor-aeb**: the built-in SUTs (``none``: the autopilot's PID).
+* ``1/lane``: the same SUTs with every scenario of the batch on its own lane until the batch's
+  longest episode ends (``sim.LANES_PER = 1``), instead of lanes refilled as episodes end;
 * ablations of the core (timing only, outcomes change): ``-ttc`` (the TTC metric replaced by a
   constant), ``-rss`` (the RSS safe distance replaced by 0).
 
@@ -92,6 +96,39 @@ def zero_sut() -> sut_lib.SUT:
                        lambda key, params: jnp.float32(0.0), None, stochastic=False)
 
 
+HASHES = Path(__file__).parent / "results" / "outcome_hashes.json"
+
+
+def outcome_hash(space_name: str, sut: str, chunk: int = 250_000) -> str:
+    """SHA-256 of every outcome field of every scenario of a space (in scenario order)."""
+    import hashlib
+
+    sp = jf.load_space(space_name)
+    h = hashlib.sha256()
+    for b in range(0, sp.size, chunk):
+        flat = np.arange(b, min(b + chunk, sp.size))
+        idx = np.stack(np.unravel_index(flat, sp.shape), -1)
+        out = jf.evaluate({k: np.asarray(v, np.float32) for k, v in sp.scenario(idx).items()},
+                          sut=sut, chunk_size=chunk)
+        for k in sorted(vars(out)):
+            h.update(k.encode())
+            h.update(np.ascontiguousarray(getattr(out, k)).tobytes())
+    return h.hexdigest()
+
+
+def check_outcomes() -> bool:
+    """Every outcome of the paper space (each SUT) and of paper-extended (carla-tm, 2,000,000
+    scenarios) against the hashes stored from the simulator before its speed-ups."""
+    want = json.loads(HASHES.read_text())
+    ok = True
+    for key, digest in want.items():
+        space_name, sut = key.split("/")
+        same = outcome_hash(space_name, sut) == digest
+        ok &= same
+        print(f"{key}: {'identical' if same else 'DIFFERENT'}", flush=True)
+    return ok
+
+
 def best_of(fn, repeats: int) -> float:
     fn()  # compile and warm
     best = float("inf")
@@ -110,7 +147,11 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results"
                     / "bench_step.json")
+    ap.add_argument("--check", action="store_true", help="also check every outcome of the "
+                    "paper space and of paper-extended against the stored hashes")
     args = ap.parse_args()
+    if args.check and not check_outcomes():
+        raise SystemExit("outcomes differ from the stored ones")
 
     space = jf.load_space("paper")
     flat = (np.arange(args.n, dtype=np.int64) * 7919) % space.size if args.n < space.size \
@@ -136,6 +177,15 @@ def main() -> None:
     sim_row("zero", zero_sut())
     for name in ("none", "carla-tm", "sensor-aeb"):
         sim_row(name, name)
+    per = sim.LANES_PER
+    try:  # the same batch run one scenario per lane (no refilling): outcomes identical
+        sim.LANES_PER = 1
+        sim._batch_program.cache_clear()
+        for name in ("none", "carla-tm", "sensor-aeb"):
+            sim_row(f"{name} 1/lane", name)
+    finally:
+        sim.LANES_PER = per
+        sim._batch_program.cache_clear()
     ttc, rss = metrics.time_to_collision, metrics.rss_safe_distance
     try:  # ablations: the same program without one metric (outcomes change; timing only)
         metrics.time_to_collision = lambda *a, **k: jnp.float32(jnp.inf)
@@ -149,12 +199,12 @@ def main() -> None:
     base = steps_mini / rows[0][1]
     print(f"{n:,} scenarios of the paper space; {jax.devices()[0].device_kind}, "
           f"{jax.device_count()} device(s); best of {args.repeats}")
-    print(f"{'model':<14}{'seconds':>9}{'steps':>12}{'M steps/s':>11}{'ns/step':>9}"
+    print(f"{'model':<20}{'seconds':>9}{'steps':>12}{'M steps/s':>11}{'ns/step':>9}"
           f"{'x minimal':>11}")
     table = []
     for name, t, steps in rows:
         rate = steps / t
-        print(f"{name:<14}{t:>9.3f}{steps:>12,}{rate / 1e6:>11.1f}{t / steps * 1e9:>9.2f}"
+        print(f"{name:<20}{t:>9.3f}{steps:>12,}{rate / 1e6:>11.1f}{t / steps * 1e9:>9.2f}"
               f"{rate / base:>11.2f}")
         table.append({"model": name, "seconds": t, "episode_steps": steps,
                       "steps_per_second": rate, "ratio_to_minimal": rate / base})
