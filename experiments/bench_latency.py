@@ -14,7 +14,8 @@ cache and its own flags if it predates ``--evaluations``; each row runs for both
 turn, so load that drifts during the run hits both alike.
 Warm rows are the median of 3 runs (the versions alternating), so one noisy run does not
 decide a row; the rows that must not recompile use a new space seed or SUT parameter value in
-each run. Each row also lists where its time went (the command's own ``timing.json``: start-up, compile,
+each run. Each row also lists where its time went (the command's own ``timing.json``: start-up,
+compile,
 search, writing, figures), and two floor rows time a bare ``import jax`` and the CLI's imports
 (``import jaxfalsify.cli``) in a fresh interpreter.
 Writes ``experiments/results/bench_latency.json``.

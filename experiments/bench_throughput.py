@@ -32,11 +32,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxfalsify as jf
-from jaxfalsify import sim
+from jaxfalsify import sim, sweep
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.config import versions
 from jaxfalsify.reference import python_loop_evaluate, reference_evaluate
-from jaxfalsify import sweep
 from jaxfalsify.sweep import calibrations, plan_chunks
 
 SPACE = jf.load_space("paper-extended")

@@ -1,7 +1,8 @@
 """Reproduce the paper's experiment: the `paper` REINFORCE preset on the `paper` space with the
 `carla-tm` SUT, several seeds at once, 4000 episodes each.
 
-    python experiments/paper_reproduction.py [--seeds 5] [--out experiments/results/paper_reproduction]
+    python experiments/paper_reproduction.py [--seeds 5] [--out
+    experiments/results/paper_reproduction]
 
 Writes the data the paper's figures show (drawn by the figures issue):
 
@@ -46,7 +47,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--evaluations", type=int, default=4000, help="budget per seed (the paper: 4000 episodes)")
+    ap.add_argument("--evaluations", type=int, default=4000,
+                    help="budget per seed (the paper: 4000 episodes)")
     ap.add_argument("--out", type=Path,
                     default=Path(__file__).parent / "results" / "paper_reproduction")
     args = ap.parse_args()

@@ -118,9 +118,11 @@ def main(argv=None):
         fm = np.array([np.mean(t[np.isfinite(t)]) for t in tail])
         distinct = np.median([len(np.unique(i[c], axis=0)) for i, c in zip(idx, cc)])
         q = np.percentile(first, [25, 50, 75])
-        print(f"{name:18s} {str(kv):42s} b={strat.batch:4d} found {np.sum(first <= a.evaluations)}/{a.seeds}"
+        found = np.sum(first <= a.evaluations)
+        print(f"{name:18s} {str(kv):42s} b={strat.batch:4d} found {found}/{a.seeds}"
               f" first {q[1]:g} [{q[0]:g},{q[2]:g}] gmax {reached}/{a.seeds} distinct {distinct:g}"
-              f" corners {corners:.1e} last-q {np.median(fm):.4f} (>=.9gmax {np.sum(fm >= 0.9 * gmax)})"
+              f" corners {corners:.1e} last-q {np.median(fm):.4f}"
+              f" (>=.9gmax {np.sum(fm >= 0.9 * gmax)})"
               f" {dt:.1f}s", flush=True)
         if a.per_seed:
             for i in range(a.seeds):

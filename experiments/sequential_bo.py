@@ -28,11 +28,11 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from search_offline import load_table
 
 import jaxfalsify as jf
 from jaxfalsify.search import surrogate
 from jaxfalsify.search.base import shaped_signal
-from search_offline import load_table
 
 HISTORY = 256  # GP points: the best half and the latest half
 CANDIDATES = 2048  # per pick: half uniform, half moves of the best

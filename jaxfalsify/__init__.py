@@ -6,12 +6,10 @@ strategies (``jaxfalsify.search``) and host-side outputs are imported on first u
 (``jaxfalsify.search.make(...)`` works after a bare ``import jaxfalsify``: PEP 562).
 """
 
-import time as _time
-
-IMPORTED_AT = _time.perf_counter()  # when this package began to load (start-up accounting)
-
 import importlib as _importlib  # noqa: E402
 import sys as _sys  # noqa: E402
+
+from jaxfalsify.progress import IMPORTED_AT  # noqa: F401 - first: start-up accounting
 
 
 def _command_line() -> bool:

@@ -187,10 +187,13 @@ def chebyshev_components(points) -> np.ndarray:
     if np.prod([float(r) for r in radix]) < 2.0**62:  # one int64 per cell: a mixed radix
         stride = np.cumprod([1] + radix[:-1]).astype(np.int64)
         half = [(h0 * s, h1 * s) for (h0, h1), s in zip(half, stride)]
-        cell = lambda bits: sum((h[b] for h, b in zip(half, bits)), np.zeros(n, np.int64))
+
+        def cell(bits):
+            return sum((h[b] for h, b in zip(half, bits)), np.zeros(n, np.int64))
     else:  # too many cells for an int64: number the distinct ones
-        cell = lambda bits: np.unique(np.stack([h[b] for h, b in zip(half, bits)], 1), axis=0,
-                                      return_inverse=True)[1].reshape(-1)
+        def cell(bits):
+            return np.unique(np.stack([h[b] for h, b in zip(half, bits)], 1), axis=0,
+                             return_inverse=True)[1].reshape(-1)
     rest = np.stack(rest, 1) if rest else None
     parent = np.arange(n)
     for a in range(2 ** len(aligned)):
@@ -320,8 +323,11 @@ def format_value(space, p: int, v: float) -> str:
 
 def text_table(header: list[str], rows: list[list[str]]) -> str:
     widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
-    line = lambda r: (r[0].ljust(widths[0]) + "".join(c.rjust(w + 4) for c, w in
-                                                       zip(r[1:], widths[1:])))
+
+    def line(r):
+        return r[0].ljust(widths[0]) + "".join(c.rjust(w + 4)
+                                               for c, w in zip(r[1:], widths[1:]))
+
     return "\n".join([line(header)] + [line(r) for r in rows])
 
 

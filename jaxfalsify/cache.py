@@ -23,6 +23,8 @@ import os
 import sys
 from pathlib import Path
 
+from jaxfalsify.files import write_atomic
+
 MIN_COMPILE_SECONDS = 0.1  # cache every compilation longer than this
 
 
@@ -343,8 +345,6 @@ def exported_jit(fn, name: str, static: dict | None, key_args: tuple, example_ar
         except Exception:  # noqa: BLE001 - not exportable: compile it directly
             return plain()
         try:
-            from jaxfalsify.store import write_atomic
-
             path.parent.mkdir(parents=True, exist_ok=True)
             data = bytes(data)
             write_atomic(path, SEAL + hashlib.sha256(key.encode() + data).digest() + data)

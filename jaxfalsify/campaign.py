@@ -10,8 +10,8 @@ so progress can be shown, checkpoints committed and a stop request honoured betw
 and times each chunk (compilation done ahead and timed apart; :meth:`Result.search_seconds_at`).
 
 Many seeds run inside one compiled call (``lax.map`` over keys: each seed's batch is already
-hundreds of scenarios wide, and vmapping the LSTM controller over seeds deadlocked XLA:CPU in
-jax 0.10.2 during development).
+hundreds of scenarios wide, and vmapping the LSTM controller over seeds has deadlocked
+XLA:CPU).
 
 Evaluations are numbered from 1 in the order they were asked. A budget that is not a multiple
 of the batch is honoured by giving the overflow of the last batch a reward of -inf (it teaches

@@ -1,5 +1,6 @@
 """``jaxfalsify compare``: strategies on the same space and SUT, many seeds, against the
-exhaustive sweep as ground truth (from the per-user cache, see :func:`jaxfalsify.sweep.ground_truth`).
+exhaustive sweep as ground truth (from the per-user cache, see
+:func:`jaxfalsify.sweep.ground_truth`).
 
 Per strategy (one compiled program, its seeds run through it one after another), see
 :func:`seed_stats` and :func:`strategy_row`:
@@ -59,10 +60,14 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from jaxfalsify import analysis, campaign, config as cfg, search, sim, store
+from jaxfalsify import analysis, cache, campaign, search, sim, store
+from jaxfalsify import config as cfg
 from jaxfalsify import sut as sut_lib
+from jaxfalsify.distributed import agree, barrier, share
 from jaxfalsify.progress import Clock, Progress
-from jaxfalsify.runs import RunConfig, timestamp
+from jaxfalsify.runs import Interrupted, RunConfig, check_int, check_strategy_memory, timestamp
+from jaxfalsify.space import MAX_SIZE, check_name, load_space
+from jaxfalsify.sweep import ground_truth
 
 TOL = 1e-6  # reward equality with the global maximum (rewards are float32 sums)
 # the per-evaluation comparison at each strategy's own batch and the paper's budget: the
@@ -103,7 +108,6 @@ class CompareConfig:
     def check(self, num_processes: int = 1) -> None:
         """Everything validated and every strategy built; memory for this process's share
         of the seeds (``num_processes`` share them)."""
-        from jaxfalsify.runs import check_int
 
         check_int("seeds", self.seeds, 1, 10_000)
         check_int("jobs", self.jobs, 0, 256)
@@ -132,7 +136,6 @@ class CompareConfig:
         # before a folder is locked or a ground truth swept
         builds = [self.run_config(s).build() for s in self.strategies]
         self.check_memory(builds[0].space, num_processes)
-        from jaxfalsify.runs import check_strategy_memory
 
         for s, b in zip(self.strategies, builds):
             check_strategy_memory(b, s, self.strategy_params.get(s, {}))
@@ -141,7 +144,6 @@ class CompareConfig:
         """Every evaluated scenario's record is kept until the end (this process's share of
         the seeds), and the ground truth's arrays: refused (one line) above half the
         available memory."""
-        from jaxfalsify.space import MAX_SIZE
 
         per_eval = (len(sp.shape) + len(campaign.RECORD_FIELDS)) * 8 * 2
         n, seeds = len(self.strategies), -(-self.seeds // num_processes)
@@ -324,12 +326,10 @@ def sampled_truth(sp, b, budget: int | None = None, n: int | None = None,
     search's expectation from that estimate. No global maximum."""
     from scipy import stats as st
 
-    from jaxfalsify import sim
 
     n = TRUTH_SAMPLE if n is None else n
     import jax
 
-    from jaxfalsify import sut as sut_lib
 
     s = sut_lib.resolve(b.sut)
     params = sut_lib.with_params(s, b.sut_params)
@@ -370,9 +370,6 @@ def sampled_truth(sp, b, budget: int | None = None, n: int | None = None,
 
 
 def truth_summary(sp, b, budget: int | None = None) -> dict:
-    from jaxfalsify.space import MAX_SIZE
-    from jaxfalsify.sweep import ground_truth
-
     if sp.size > MAX_SIZE:
         return sampled_truth(sp, b, budget)
     t = ground_truth(sp, b.sut, b.sut_params)
@@ -410,7 +407,6 @@ def overhead_program(strategy, strategy_params, p: campaign.Plan, n_seeds: int):
     import jax
     import jax.numpy as jnp
 
-    from jaxfalsify import cache, sim
 
     B = strategy.batch
     f32 = [np.asarray(x, np.float32) for x in jax.tree.leaves(strategy_params)]
@@ -537,8 +533,6 @@ def _search_side_by_side(builds, seeds: list[int], jobs: int, progress: Progress
         ex.shutdown(wait=True)
         progress.close()
         if isinstance(e, (campaign.Stopped, KeyboardInterrupt)):
-            from jaxfalsify.runs import Interrupted
-
             raise Interrupted("compare", out, len(finished), len(builds), "strategies",
                               resumable=False) from None
         raise
@@ -563,8 +557,6 @@ def execute(config: CompareConfig, out: Path | str | None, *, force: bool = Fals
         raise ValueError("a comparison of several processes needs out (a shared folder)")
     config.check(num_processes)
     base = config.run_config(config.strategies[0]).build()
-    from jaxfalsify import cache
-    from jaxfalsify.distributed import agree
 
     agree("comparison configuration", store.sha256(json.dumps({  # not --jobs: per host
         "strategies": list(config.strategies), "seeds": config.seeds,
@@ -596,7 +588,6 @@ def execute(config: CompareConfig, out: Path | str | None, *, force: bool = Fals
 
 def _execute(config: CompareConfig, out: Path, base, progress: Progress, process_id: int,
              num_processes: int, clock: Clock, stop) -> dict:
-    from jaxfalsify.distributed import barrier, share
 
     sp = base.space
     progress.phase(f"ground truth: every scenario of {sp.name} ({sp.size:,}) x {config.sut}")
@@ -887,8 +878,6 @@ class SuiteConfig:
                              jobs=self.jobs, batch=self.batch)
 
     def check(self) -> None:
-        from jaxfalsify.runs import check_int
-
         if not self.entries:
             raise ValueError("suite: no [[entry]] given")
         for s in self.strategy_params:  # an entry excluding it drops its options there
@@ -927,7 +916,6 @@ def _same_strategy(a: str, b: str) -> bool:
 def entry_name(entry: SuiteEntry) -> str:
     """The name of a suite entry's space, as the suite's report heads its section (a TOML
     file's ``name``, e.g. ``aeb-9e6``, or a built-in space's name)."""
-    from jaxfalsify.space import load_space
 
     return load_space(entry.space, entry.space_seed).name
 
@@ -987,8 +975,6 @@ def load_suite(path: Path | str, seeds: int | None = None,
                 raise ValueError(f"--entries: no entry of space '{name}' in {where} "
                                  f"(entries: {', '.join(dict.fromkeys(known))})")
         out = [e for e, name in zip(out, known) if name in entries]
-    from jaxfalsify.runs import check_int
-    from jaxfalsify.space import check_name
 
     budgets = doc.get("budgets", [250, 1000, 4000])
     if not isinstance(budgets, list) or not budgets:

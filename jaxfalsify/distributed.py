@@ -17,7 +17,6 @@ import time
 
 import jax
 
-
 TIMEOUT_S = 120  # how long a process waits for the coordinator (and process 0 for its peers)
 
 

@@ -72,10 +72,12 @@ from pathlib import Path
 import numpy as np
 
 from jaxfalsify import analysis, store
+from jaxfalsify import sut as sut_lib
 from jaxfalsify import weather as weather_lib
-from jaxfalsify.figures import indices_of, load_run, resimulate
-from jaxfalsify.sim import STILL, WINDOW
-from jaxfalsify.space import KNOWN_PARAMETERS
+from jaxfalsify.rundir import indices_of, load_run, resimulate
+from jaxfalsify.sim import STILL, WINDOW, WORLD, start_positions
+from jaxfalsify.space import KNOWN_PARAMETERS, decimal_grid
+from jaxfalsify.store import folder_kind
 
 X_OFFSET = 60.0  # m: our x = -60 is the road's start (ego_offset <= 50 m starts on it)
 ROAD_LENGTH = 130.0  # m
@@ -85,6 +87,7 @@ SCENARIO_CHOICES = ("best", "critical")
 PED_PATH_BEYOND = 5.0  # m: the pedestrian's path ends this far past the far kerb
 OKTAS = ("zeroOktas", "oneOktas", "twoOktas", "threeOktas", "fourOktas", "fiveOktas",
          "sixOktas", "sevenOktas", "eightOktas")
+
 _EPS = "0.000000000001"  # keeps ped_accel = 0 finite in divisions (its products are then 0)
 
 
@@ -278,7 +281,6 @@ def ego_request(sut, sut_params, world, traj=None) -> dict[str, float]:
     ``ego_launch_accel`` [m/s^2] (its saturated launch, ``max_throttle * throttle_accel``,
     within the vehicle's limit). A SUT without those parameters: the top speed and the largest
     acceleration of its simulated trajectory ``traj`` (fields of one scenario)."""
-    from jaxfalsify import sut as sut_lib
 
     s = sut_lib.resolve(sut)
     p = sut_lib.params_dict(sut_lib.with_params(s, dict(sut_params or {})))
@@ -326,7 +328,6 @@ def write_scenario(path: Path, road_file: str, traj: dict, params: dict, world,
     referenced: the trajectories carry the values)."""
     from scenariogeneration import xosc
 
-    from jaxfalsify.sim import start_positions
 
     v = traj["valid"]
     x0, y0 = start_positions(params["ego_offset"], params["ped_offset"], world)
@@ -563,7 +564,6 @@ def integer_draws(par) -> list[tuple[int, float]] | None:
     v + 0.5)`` within the range; normal: that of ``N(mean, sd^2)``, truncated to the
     parameter's domain); values of probability 0 (below 1e-15) left out. None for every other
     parameter (it is drawn continuously)."""
-    from jaxfalsify.space import decimal_grid
 
     spec = KNOWN_PARAMETERS.get(par.name)
     if spec is None or not spec["integer"] or par.distribution not in ("uniform", "normal"):
@@ -691,7 +691,6 @@ def run_date(run_dir: Path) -> datetime.datetime:
 def _check_out(out: Path, force: bool) -> None:
     """``out`` can take an export: a folder (or a path to one that can be created) that is
     not a result folder and, without ``force``, holds no file an export writes."""
-    from jaxfalsify.store import folder_kind
 
     anc = next((a for a in (out, *out.parents) if a.exists() or a.is_symlink()), None)
     if anc is not None and not anc.is_dir():
@@ -762,9 +761,8 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
 
 def _write_export(out: Path, sp, rc, ep, rows, which: str, ego: str,
                   date: datetime.datetime | None = None) -> list[Path]:
-    import jaxfalsify as jf
 
-    world = jf.WORLD
+    world = WORLD
     road = write_road(out / "crossing.xodr", world, date)
     idx = indices_of(ep, sp, rows)
     full = sp.scenario(idx)

@@ -24,15 +24,15 @@ Host-side only (matplotlib, Agg backend); the jitted core never imports this mod
 
 from __future__ import annotations
 
-import dataclasses
 import io
 import itertools
-import json
 from pathlib import Path
 
 import numpy as np
 
-from jaxfalsify import analysis, store
+from jaxfalsify import analysis, sim, store
+from jaxfalsify.rundir import check_config_matches, indices_of, load_run, resimulate  # noqa: F401 - re-exported
+from jaxfalsify.sweep import ground_truth
 
 FIGSIZE = (8, 4.5)
 MAX_POINTS = 200_000  # evaluations drawn in the reward figure (evenly thinned beyond)
@@ -127,127 +127,9 @@ def _bottom_legend(fig, handles=None, labels=None, ncol=2):
                ncol=ncol, frameon=False, borderaxespad=0.0)
 
 
-def load_run(run_dir: Path):
-    """(space, resolved config, summary, evaluations columns) of a finished run folder."""
-    import pyarrow.parquet as pq
-
-    from jaxfalsify.runs import RunConfig
-
-    run_dir = Path(run_dir)
-    missing = [f for f in ("config.toml", "summary.json", "evaluations.parquet")
-               if not (run_dir / f).exists()]
-    if missing == ["evaluations.parquet"] and (run_dir / "episodes.parquet").exists():
-        raise ValueError(f"{run_dir} was written by an earlier jaxfalsify (episodes.parquet): "
-                         "rename it to evaluations.parquet, or run it again")
-    if missing:
-        raise ValueError(f"{run_dir} is not a finished run folder (missing "
-                         f"{', '.join(missing)})")
-    from jaxfalsify.campaign import RECORD_FIELDS
-
-    rc = RunConfig.from_toml(run_dir / "config.toml")
-    sp = rc.build().space
-    where = run_dir / "summary.json"
-    try:
-        summary = json.loads(where.read_text())
-    except (ValueError, UnicodeDecodeError) as e:
-        raise ValueError(f"{where} is damaged ({e})") from None
-    need = ("first_collision_evaluation", "n_collisions", "n_distinct_critical", "best",
-            "evaluations", "batch", "strategy", "space", "space_seed", "sut", "seed")
-    gone = [k for k in need if not isinstance(summary, dict) or k not in summary]
-    if gone:
-        raise ValueError(f"{where} is damaged (no '{gone[0]}')")
-    where = run_dir / "evaluations.parquet"
-    try:
-        table = pq.read_table(where)
-        ep = {k: table.column(k).to_numpy() for k in table.column_names}
-    except Exception as e:  # pyarrow raises several kinds for a damaged file
-        raise ValueError(f"{where} is damaged ({type(e).__name__}: {str(e)[:120]})") from None
-    cols = ["evaluation", *RECORD_FIELDS,
-            *(c for n in sp.names for c in (f"{n}_idx", n))]
-    gone = [c for c in cols if c not in ep]
-    if gone:
-        raise ValueError(f"{where} is damaged (no column '{gone[0]}')")
-    if len(ep["evaluation"]) == 0:
-        raise ValueError(f"{where} holds no evaluation")
-    for n, size in zip(sp.names, sp.shape):
-        i = ep[f"{n}_idx"]
-        if not np.issubdtype(i.dtype, np.integer) or i.min() < 0 or i.max() >= size:
-            raise ValueError(f"{where} is damaged: column '{n}_idx' outside 0..{size - 1}")
-    check_config_matches(run_dir, sp, rc, summary, ep)
-    return sp, rc, summary, ep
-
-
-def check_config_matches(run_dir: Path, sp, rc, summary: dict, ep: dict) -> None:
-    """ValueError (one line) where the folder's ``config.toml`` no longer describes its
-    results (edited after the run): the seeds, strategy and SUT that ``summary.json`` records,
-    and every evaluated scenario's values in ``evaluations.parquet`` against the space the config
-    builds at their recorded indices."""
-    for key in ("space_seed", "seed", "strategy", "sut"):
-        if summary[key] != getattr(rc, key):
-            raise ValueError(f"{run_dir}/config.toml does not match the run's results: {key} "
-                             f"= {getattr(rc, key)!r} there, {summary[key]!r} in summary.json "
-                             "(edited after the run?)")
-    for p, n in enumerate(sp.names):
-        want = np.asarray(sp.values[p], np.float64)[ep[f"{n}_idx"]]
-        got = np.asarray(ep[n], np.float64)
-        bad = ~np.isclose(got, want, rtol=1e-5, atol=1e-6)
-        if bad.any():
-            j = int(np.argmax(bad))
-            raise ValueError(f"{run_dir}/config.toml does not match the run's results: {n} of "
-                             f"evaluation {int(ep['evaluation'][j])} is {got[j]:g} in "
-                             f"evaluations.parquet but {want[j]:g} in the space config.toml "
-                             "builds (edited after the run?)")
-
-
 def pick(ep: dict) -> dict[str, int | None]:
     """Rows of the best evaluation and of a typical (median-reward) non-critical one."""
     return {"best": analysis.best(ep), "typical": analysis.typical_non_critical(ep)}
-
-
-def indices_of(ep: dict, space, rows) -> np.ndarray:
-    return np.stack([ep[f"{n}_idx"][rows] for n in space.names], -1)
-
-
-def resimulate(sp, rc, ep: dict, rows, world=None):
-    """Trajectories ``(len(rows), T)`` of a run's evaluated ``rows`` as the run simulated
-    them: its space, SUT and SUT parameters, and for a stochastic SUT each evaluation's own
-    draw (the campaign's key, offset by the evaluation number)."""
-    import jaxfalsify as jf
-    from jaxfalsify import sut as sut_lib
-
-    from jaxfalsify.space import is_sut_parameter
-
-    rows = np.asarray(rows)
-    key = 0
-    if sut_lib.resolve(rc.sut).stochastic:
-        from jaxfalsify.campaign import evaluation_key
-
-        key = evaluation_key(rc.seed)
-    scen = sp.scenario(indices_of(ep, sp, rows))
-    offsets = np.asarray(ep["evaluation"])[rows] - 1
-
-    def run(sel):
-        return jf.simulate({k: np.asarray(v)[sel] for k, v in scen.items()}, sut=rc.sut,
-                           sut_params=dict(rc.sut_params), world=world or jf.WORLD, key=key,
-                           offsets=offsets[sel])
-
-    calib = [k for k in scen if is_sut_parameter(k)]  # a space's sut.NAME dimensions
-    if not calib or rows.size == 0:
-        return run(np.arange(rows.size))
-    # one call per calibration (simulate takes one value of each SUT parameter), each padded
-    # to the full size so every call reuses one compiled program
-    values = np.stack([np.asarray(scen[k], np.float64) for k in calib], -1)
-    _, group = np.unique(values, axis=0, return_inverse=True)
-    group = group.reshape(-1)
-    out = None
-    for g in range(int(group.max()) + 1):
-        sel = np.nonzero(group == g)[0]
-        traj = run(np.concatenate([sel, np.full(rows.size - sel.size, sel[0])]))
-        if out is None:
-            out = {f.name: np.array(getattr(traj, f.name)) for f in dataclasses.fields(traj)}
-        for name, arr in out.items():
-            arr[sel] = np.asarray(getattr(traj, name))[:sel.size]
-    return jf.Trajectory(**out)
 
 
 def fig10_rows(ep: dict, n: int = 14, n_collisions: int = 3) -> list[int]:
@@ -297,14 +179,11 @@ def prepare(space, sut, sut_params, world) -> Prepared | None:
     background thread while the campaign compiles and searches): matplotlib, the ground truth
     of the space (per-user cache), the compiled trajectory program, and the critical-region
     map up to the run's own scenarios."""
-    import jaxfalsify as jf
-    from jaxfalsify.sweep import ground_truth
-
     plt = _plt()
     truth = None
     if space.size <= TRUTH_LIMIT:
         truth = ground_truth(space, sut, sut_params, world)
-    jf.simulate(space.scenario(np.zeros((N_TRAJECTORIES, len(space.shape)), np.int32)),
+    sim.simulate(space.scenario(np.zeros((N_TRAJECTORIES, len(space.shape)), np.int32)),
                 sut=sut, sut_params=sut_params, world=world)
     if truth is None or sum(n > 1 for n in space.shape) < 2:
         return None
@@ -316,10 +195,7 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
     shown are re-simulated in one call; the critical-region map uses the cached ground truth
     (:func:`jaxfalsify.sweep.ground_truth`) for spaces of up to 5e6 scenarios. ``prepared``:
     what :func:`prepare` built for this run (used only where it matches)."""
-    import jaxfalsify as jf
-    from jaxfalsify.sweep import ground_truth
-
-    world = world or jf.WORLD
+    world = world or sim.WORLD
     plt = _plt()
     run_dir = Path(run_dir)
     sp, rc, summary, ep = load_run(run_dir)

@@ -11,6 +11,9 @@ import os
 import sys
 import time
 
+IMPORTED_AT = time.perf_counter()  # when jaxfalsify began to load (its __init__ imports this
+# module first): start-up accounting
+
 
 class Progress:
     """Silent progress: the interface."""
@@ -90,9 +93,7 @@ def startup_seconds() -> float:
     ``pip install``); when the age exceeds the time since ``jaxfalsify`` began to load by more
     than ``EXEC_SLACK``, the latter is taken (interpreter start-up before it, ~0.05 s, is then
     left out)."""
-    import jaxfalsify
-
-    own = time.perf_counter() - jaxfalsify.IMPORTED_AT
+    own = time.perf_counter() - IMPORTED_AT
     age = process_age()
     return age if age <= own + EXEC_SLACK else own
 

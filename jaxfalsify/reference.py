@@ -2,7 +2,8 @@
 
 Independent of the JAX code path: float64, an explicit Python loop over time steps (vectorised
 over the batch only), its own implementation of the pedestrian profile (the original's loop),
-CARLA's PID and the Traffic Manager's collision stage, the metrics and the paper's reward. It shares only the constants (``World``,
+CARLA's PID and the Traffic Manager's collision stage, the metrics and the paper's reward. It
+shares only the constants (``World``,
 the SUT parameter tuples). Supports the ``carla-tm`` and ``none`` SUTs.
 """
 

@@ -39,9 +39,11 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfalsify import analysis
+from jaxfalsify import analysis, sim, store
+from jaxfalsify import sut as sut_lib
 from jaxfalsify.config import plain
-from jaxfalsify.figures import indices_of, load_run, resimulate
+from jaxfalsify.rundir import indices_of, load_run, resimulate
+from jaxfalsify.space import SUT_PREFIX, is_sut_parameter
 
 RED, GREEN, BLUE, GREY = (220, 40, 40), (40, 160, 60), (40, 90, 220), (150, 150, 150)
 
@@ -58,7 +60,8 @@ def resolve_scenario(spec: str, ep: dict, space) -> int:
         raise ValueError(f"--scenario {spec!r}: expected best, critical:K or eval:N") from None
     if kind == "eval":
         if not 1 <= n <= len(ep["evaluation"]):
-            raise ValueError(f"--scenario {spec}: the run has evaluations 1..{len(ep['evaluation'])}")
+            raise ValueError(f"--scenario {spec}: the run has evaluations "
+                             f"1..{len(ep['evaluation'])}")
         return n - 1
     if kind == "critical":
         crit = analysis.distinct_critical(*analysis.from_evaluations(ep, space))
@@ -75,7 +78,6 @@ def _writing(run_dir: Path, save: Path | None, what: str):
     for a file saved elsewhere."""
     import contextlib
 
-    from jaxfalsify import store
 
     return store.run_folder_lock(run_dir, what) if not save else contextlib.nullcontext()
 
@@ -97,7 +99,6 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
         return None
     path = Path(save) if save else Path(run_dir) / f"replay-{scenario.replace(':', '-')}.rrd"
     check_save_path(path)
-    from jaxfalsify import store
 
     with _writing(run_dir, save, "replay"), \
             store.atomic_path(path) as tmp:  # complete under its final name, or not at all
@@ -112,9 +113,8 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
     import rerun as rr
     import rerun.blueprint as rrb
 
-    import jaxfalsify as jf
 
-    w = jf.WORLD
+    w = sim.WORLD
     # rerun keeps a stream's time per recording id: a second recording of the same run and
     # scenario in one process would inherit the first one's last evaluation number
     rec.reset_time()
@@ -137,7 +137,7 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
     sc = sp.scenario(indices_of(ep, sp, [row]))
     corridor = _tm_polygons(rc, tr, w, sc) if rc.sut == "carla-tm" else None
     # the start (t = 0), then the state after each simulated step
-    ex0, py0 = jf.sim.start_positions(float(sc["ego_offset"][0]), float(sc["ped_offset"][0]), w)
+    ex0, py0 = sim.start_positions(float(sc["ego_offset"][0]), float(sc["ped_offset"][0]), w)
 
     def actors(t, ego_x, ego_y, ped_x, ped_y, braking):
         rec.set_time("sim_time", duration=float(t))
@@ -205,7 +205,8 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
         rrb.Vertical(rrb.Spatial2DView(origin="world", name="top view"),
                      rrb.TextDocumentView(origin="info", name="scenario")),
         rrb.Vertical(
-            rrb.TimeSeriesView(origin="metrics", name="distance vs RSS safe distance and epsilon (m)",
+            rrb.TimeSeriesView(origin="metrics",
+                               name="distance vs RSS safe distance and epsilon (m)",
                                contents=["metrics/distance", "metrics/rss_distance",
                                          "metrics/epsilon"]),
             rrb.TimeSeriesView(origin="metrics", name="speeds (m/s) and high risk",
@@ -236,7 +237,6 @@ def record_campaign(run_dir: Path, save: Path | None = None, spawn: bool = False
         return None
     path = Path(save) if save else Path(run_dir) / "campaign.rrd"
     check_save_path(path)
-    from jaxfalsify import store
 
     with _writing(run_dir, save, "replay"), store.atomic_path(path) as tmp:
         rec.save(tmp)
@@ -326,8 +326,6 @@ def _tm_polygons(rc, tr: dict, w, scenario: dict | None = None) -> tuple:
     SUT parameters the scenario ran with: the run's ``sut_params`` and the scenario's
     ``sut.NAME`` values (``scenario``: one scenario's parameters, scalars or arrays of one
     value), as ``figures.resimulate`` simulates it."""
-    from jaxfalsify import sut as sut_lib
-    from jaxfalsify.space import SUT_PREFIX, is_sut_parameter
 
     s = sut_lib.resolve(rc.sut)
     over = {k[len(SUT_PREFIX):]: float(np.asarray(v).reshape(-1)[0])

@@ -9,21 +9,10 @@ from pathlib import Path
 import numpy as np
 
 from jaxfalsify import analysis, store
-from jaxfalsify.figures import load_run
+from jaxfalsify import sut as sut_lib
 from jaxfalsify.progress import timing_line
-
-FIGURES = [("reward_per_evaluation.png", "Reward per evaluation (paper Fig. 6)"),
-           ("distance_challenging.png", "Distance over time, best critical vs typical "
-            "non-critical; red = high-risk (paper Fig. 7)"),
-           ("high_risk_second_half.png", "High-risk share in the second half (paper Fig. 8)"),
-           ("distance_14_scenarios.png", "14 evaluated scenarios, collisions red (paper Fig. 9)"),
-           ("critical_regions.png", "Critical regions from the exhaustive sweep, with a "
-            "subsample of the evaluated scenarios (collisions as red crosses)"),
-           ("search_distribution.png", "Where the search went: each parameter's values among "
-            "the evaluations of each stretch of the run"),
-           ("failure_clusters.png", "Failure clusters: their sizes, and the distinct critical "
-            "scenarios on the two parameters they vary most, coloured by cluster (stars: each "
-            "cluster's best-reward member)")]
+from jaxfalsify.rundir import load_run
+from jaxfalsify.store import FIGURES
 
 
 def simulate_command(sp, rc, ep: dict, row: int) -> list[str]:
@@ -31,7 +20,6 @@ def simulate_command(sp, rc, ep: dict, row: int) -> list[str]:
     and every SUT parameter that differs from the SUT's default (a space's ``sut.NAME``
     dimensions as ``--sut-param``); for a stochastic SUT a comment that ``simulate`` draws
     other noise than the run did."""
-    from jaxfalsify import sut as sut_lib
 
     scen = [f"{n}={ep[n][row]:.10g}" for n in sp.names if not n.startswith("sut.")]
     sut = sut_lib.resolve(rc.sut)

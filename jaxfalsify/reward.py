@@ -1,4 +1,5 @@
-"""The paper's episode reward (Section III-A 'Reward function', Eq. 5-6), as the original code computes it.
+"""The paper's episode reward (Section III-A 'Reward function', Eq. 5-6), as the original code
+computes it.
 
 Three terms, summed:
 

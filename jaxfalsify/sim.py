@@ -1,4 +1,5 @@
-"""The crossing world and its batched simulator (paper Fig. 1/2: a pedestrian crosses an urban road).
+"""The crossing world and its batched simulator (paper Fig. 1/2: a pedestrian crosses an urban
+road).
 
 Frame: x along the ego's lane (direction of travel), y to the left, origin at the ego's *base*
 start (its box centre), SI units. The road is straight with ``lanes_right`` lanes right of
@@ -39,10 +40,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfalsify import metrics, pytree, reward
+from jaxfalsify import cache, metrics, pytree, reward
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.space import KNOWN_PARAMETERS, SUT_PREFIX, is_sut_parameter
-
+from jaxfalsify.config import check_memory, jsonable, plain
+from jaxfalsify.space import (
+    KNOWN_PARAMETERS,
+    SUT_PREFIX,
+    check_scenario_values,
+    is_sut_parameter,
+)
 
 NON_NEGATIVE = ("lanes_left", "crosswalk_x", "end_x", "walker_base", "origin_dz")
 
@@ -59,7 +65,8 @@ class World:
     lanes_left: float = 1.0  # lanes left of it (4 lanes; the ego in the third from the walker)
     crosswalk_x: float = 6.0  # m ahead of the ego's base start (box centre), calibrated
     walker_base: float = 4.5  # m from the right kerb to the walker's base spawn point (a
-    # vehicle spawn point: here the second lane's centre, calibrated); the walker starts ped_offset + 1 m behind it
+    # vehicle spawn point: here the second lane's centre, calibrated); the walker starts ped_offset
+    # + 1 m behind it
     end_x: float = 30.0  # m: the ego has travelled 30 m + ego_offset
     ego_length: float = 4.6  # m, BMW Gran Tourer-class box incl. mirrors
     ego_width: float = 2.1  # m
@@ -87,7 +94,8 @@ class World:
             low_ok = np.all(a >= 0) if f in NON_NEGATIVE else \
                 np.all(a > 0)
             if isinstance(v, bool) or not np.all(np.isfinite(a)) or not low_ok:
-                raise ValueError(f"world.{f} must be a finite {'non-negative' if f in NON_NEGATIVE else 'positive'} number (got {v!r})")
+                kind = "non-negative" if f in NON_NEGATIVE else "positive"
+                raise ValueError(f"world.{f} must be a finite {kind} number (got {v!r})")
         return self
 
     @property
@@ -476,7 +484,8 @@ def split_sut_values(scenario: dict, sut_params, sut) -> tuple[dict, dict]:
 
 def _check_scenario(scenario: dict) -> dict:
     if not isinstance(scenario, dict):
-        raise ValueError(f"scenario must be a dict of parameter values (got {type(scenario).__name__})")
+        raise ValueError("scenario must be a dict of parameter values (got "
+                         f"{type(scenario).__name__})")
     unknown = set(scenario) - set(KNOWN_PARAMETERS)
     if unknown:
         raise ValueError(f"unknown scenario parameter '{sorted(unknown)[0]}' "
@@ -518,11 +527,18 @@ def _flat(full: dict):
 
 
 def batch_rollout(flat: dict, offsets: jax.Array, key: jax.Array, sut: sut_lib.SUT,
-                  params: Any, world: World = WORLD, record: bool = False):
+                  params: Any, world: World = WORLD, record: bool = False,
+                  lanes: int | None = None):
     """vmap of :func:`rollout` over a flat batch ``{name: (B,)}``; not jitted (jit at the edge).
 
     Rollout ``i`` draws from ``fold_in(key, offsets[i])``: pass scenario or evaluation numbers
     as ``offsets`` so a scenario's randomness does not depend on how batches are cut.
+    ``lanes`` (static; outcomes only, ``record`` False): run the batch on that many lanes
+    refilled as episodes end (:func:`lane_count`, :func:`_refilled`) instead of one lane per
+    scenario; :func:`evaluate` does on one device, and its outcomes are the same bit for bit
+    (checked on every scenario of the paper space and of ``paper-extended``). Other programs
+    (sweeps, campaigns) run one lane per scenario: compiled inside them, XLA fuses the refilled
+    loop differently and distances can differ in the last bits.
     """
     over = {k[len(SUT_PREFIX):]: v for k, v in flat.items() if is_sut_parameter(k)}
     flat = {k: v for k, v in flat.items() if not is_sut_parameter(k)}
@@ -532,8 +548,7 @@ def batch_rollout(flat: dict, offsets: jax.Array, key: jax.Array, sut: sut_lib.S
         return rollout(sc, sut, p, k, world, record)
 
     n = next(iter(flat.values())).shape[0]
-    lanes = n if record else lane_count(n)
-    if lanes < n:
+    if lanes is not None and not record and lanes < n:
         return _refilled(flat, over, offsets, key, sut, params, world, lanes), None
     if not sut.stochastic:  # the key is never used: no per-scenario keys to derive
         return jax.vmap(lambda sc, ov: one(sc, ov, key))(flat, over)
@@ -627,15 +642,17 @@ def _f32(tree):
 def _batch_program(sut: sut_lib.SUT, record: bool, n: int, params_tree, params_avals: tuple,
                    world_tree):
     """The compiled batch rollout for ``n`` scenarios (cached in-process and per machine)."""
-    from jaxfalsify import cache
 
     def fn(flat, offsets, key_data, params_leaves, world_leaves):
         params = jax.tree.unflatten(params_tree, params_leaves)
         world = jax.tree.unflatten(world_tree, world_leaves)
         out, traj = batch_rollout(flat, offsets, jax.random.wrap_key_data(key_data), sut,
-                                  params, world, record)
+                                  params, world, record, lanes)
         return vars(out), (vars(traj) if record else None)
 
+    # (on several devices a batch is split between them: lanes refilled from one queue would
+    # gather across devices every block)
+    lanes = None if record or jax.device_count() > 1 else lane_count(n)
     f32 = jax.ShapeDtypeStruct((n,), jnp.float32)
     key_args = ({k: f32 for k in KNOWN_PARAMETERS}, jax.ShapeDtypeStruct((n,), jnp.int32),
                 list(params_avals))
@@ -648,7 +665,7 @@ def _batch_program(sut: sut_lib.SUT, record: bool, n: int, params_tree, params_a
 
     key = sut_lib.cache_key(sut)
     static = None if key is None else {"sut": key, "record": record, "params": str(params_tree),
-                                       "world": str(world_tree)}
+                                       "world": str(world_tree), "lanes": lanes}
     return cache.exported_jit(fn, "rollout", static, key_args, example)
 
 
@@ -748,7 +765,6 @@ def simulate(scenario: dict, *, sut="carla-tm", sut_params=None, world: World = 
     full = _check_scenario(scenario)
     flat, shape = _flat(full)
     n = int(np.prod(shape, dtype=np.int64))
-    from jaxfalsify.config import check_memory
 
     check_memory(n * world.horizon * len(Trajectory.__dataclass_fields__) * 4 * 3,
                  f"trajectories of {n} scenarios", "simulate fewer at once (use evaluate for "
@@ -833,8 +849,6 @@ def describe(scenario: dict, *, sut="carla-tm", sut_params=None, seed: int = 0) 
     ``defaults_used``, ``sut`` and every ``sut_params`` value, and the ``outcome`` (each
     :class:`Outcome` field as a Python number, ``None`` for NaN and infinity). One-line
     ValueError for an unknown parameter or a value outside its domain."""
-    from jaxfalsify.config import jsonable, plain
-    from jaxfalsify.space import check_scenario_values
 
     full = check_scenario_values(scenario)
     s, params = sut_lib.make(sut, **dict(sut_params or {}))

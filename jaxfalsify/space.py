@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxfalsify import weather
-from jaxfalsify.config import check_keys
+from jaxfalsify.config import check_keys, read_toml
 from jaxfalsify.pytree import FLOAT32_MAX
 
 # Scenario parameters the simulator understands: unit, default, allowed domain, integer-valued.
@@ -35,7 +35,8 @@ KNOWN_PARAMETERS: dict[str, dict[str, Any]] = {
     "ego_offset": dict(unit="m", default=5.0, domain=(0.0, 50.0), integer=False,
                        doc="how far behind its base start the ego starts"),
     "ped_accel": dict(unit="m/s per step", default=0.0, domain=(0.0, 1.0), integer=False,
-                      doc="pedestrian speed increment per 0.1 s step (the original's 'acceleration')"),
+                      doc="pedestrian speed increment per 0.1 s step (the original's "
+                      "'acceleration')"),
     "ped_speed": dict(unit="m/s", default=1.46, domain=(0.0, 5.0), integer=False,
                       doc="pedestrian nominal walking speed"),
     "ped_offset": dict(unit="m", default=3.5, domain=(0.0, 20.0), integer=False,
@@ -451,7 +452,8 @@ def build(name: str, parameters: list[Parameter], seed: int) -> Space:
 
 
 def _paper_parameters() -> list[Parameter]:
-    # Table I of the paper, as the original code discretised it (facts.md).
+    # Table I of the paper, as the original code discretised it
+    # (dkarunakaran/scenario_based_falsification).
     return [
         integers("ego_offset", 1, 10, 10),
         uniform("ped_accel", 0.0, 0.1, 10),
@@ -573,7 +575,6 @@ def load_space(name_or_path: str | Path | Space, seed: int = 0) -> Space:
     if path.suffix != ".toml" or not path.exists():
         raise ValueError(f"unknown space '{key[:80]}': not a built-in ({', '.join(BUILTIN)}) "
                          f"nor an existing .toml file")
-    from jaxfalsify.config import read_toml
 
     doc = read_toml(path, "--space")
     try:

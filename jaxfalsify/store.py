@@ -27,9 +27,8 @@ writer is refused with the holder's pid (:class:`FolderLock`).
 
 from __future__ import annotations
 
-import fcntl
 import contextlib
-import hashlib
+import fcntl
 import io
 import itertools
 import json
@@ -44,167 +43,25 @@ from typing import Any
 
 import numpy as np
 
+from jaxfalsify.config import jsonable, read_toml
+from jaxfalsify.files import (  # noqa: F401 - atomic files, used here and re-exported
+    atomic_path,
+    npz_bytes,
+    parquet_bytes,
+    replace_files,
+    save_npz,
+    sha256,
+    write_all_atomic,
+    write_atomic,
+    write_json,
+    write_parquet,
+)
+
 FORMAT = 2
 
 
 class CheckpointError(ValueError):
     """A checkpoint that cannot be used (corrupt, missing files, another configuration)."""
-
-
-def sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
-def _tmp_in(folder: Path, name: str) -> Path:
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{name}.", suffix=".tmp")
-    os.close(fd)
-    return Path(tmp)
-
-
-_UMASK = os.umask(0)  # read once, at import: setting it is process-wide, and background
-os.umask(_UMASK)  # threads create files (ground truths, checkpoints) while others publish
-
-
-def _publish(tmp, path: Path) -> None:
-    """Rename a finished temporary file into place with the mode a plain ``open`` would give
-    it (``mkstemp`` creates 0600 files)."""
-    os.chmod(tmp, 0o666 & ~_UMASK)
-    os.replace(tmp, path)
-
-
-def write_atomic(path: Path, data: str | bytes) -> str:
-    """Write text or bytes to ``path`` via a temporary file in the same folder and a rename;
-    returns the SHA-256 of the bytes written."""
-    path = Path(path)
-    data = data.encode() if isinstance(data, str) else bytes(data)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with _naming(path):
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-            _publish(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return sha256(data)
-
-
-def write_all_atomic(files: dict[Path, bytes]) -> None:
-    """Write several files as one set: every one to a temporary file first, then all renamed
-    into place, so a failure while writing (a full disk) leaves every earlier file as it was
-    and no temporary file behind."""
-    staged = []
-    try:
-        for path, data in files.items():
-            tmp = _tmp_in(Path(path).parent, Path(path).name)
-            staged.append((tmp, Path(path)))
-            with _naming(Path(path)):
-                tmp.write_bytes(data)
-        for tmp, path in staged:
-            _publish(tmp, path)
-    finally:
-        for tmp, _ in staged:
-            if tmp.exists():
-                tmp.unlink()
-
-
-def replace_files(staged: list[Path], folder: Path, is_old) -> list[Path]:
-    """Publish a set of finished files ``staged`` (on ``folder``'s file system, e.g. in a
-    temporary folder inside it, so every move is a rename) into ``folder`` in place of an
-    earlier set (the files whose names ``is_old(name)`` accepts): the earlier files are moved
-    aside (into a hidden folder of ``folder``) first, then the new ones in; on a failure the
-    new ones are removed and every earlier one put back (where one cannot be, the hidden
-    folder is kept and the error names it). Returns the published paths."""
-    if not staged:
-        raise ValueError("replace_files: no files to publish (the earlier set would go)")
-    folder = Path(folder)
-    aside = Path(tempfile.mkdtemp(dir=folder, prefix=".replaced-"))
-    old, new = [], []
-    try:
-        for f in sorted(folder.iterdir()):
-            if f.is_file() and is_old(f.name):
-                os.replace(f, aside / f.name)
-                old.append(f.name)
-        for f in staged:
-            os.replace(f, folder / f.name)
-            new.append(f.name)
-    except BaseException as e:
-        for n in new:
-            (folder / n).unlink(missing_ok=True)
-        lost = []
-        for n in old:
-            try:
-                os.replace(aside / n, folder / n)
-            except OSError:
-                lost.append(n)
-        if lost:
-            raise OSError(f"{folder}: publishing failed ({e}) and {len(lost)} earlier "
-                          f"file(s) could not be put back; they are in {aside}") from e
-        aside.rmdir()
-        raise
-    shutil.rmtree(aside, ignore_errors=True)  # the earlier set, replaced
-    return [folder / f.name for f in staged]
-
-
-@contextlib.contextmanager
-def _naming(path: Path):
-    """An OSError without a file name (a write to an open file on a full disk) gets
-    ``path``'s, so its one-line error says which file could not be written."""
-    try:
-        yield
-    except OSError as e:
-        if e.filename or e.errno is None:
-            raise
-        raise OSError(e.errno, e.strerror, str(path)) from e
-
-
-@contextlib.contextmanager
-def atomic_path(path: Path):
-    """``with atomic_path(final) as tmp: write(tmp)``: whatever writes ``tmp`` (a library
-    that wants a file name: matplotlib, rerun, a Parquet writer), the result appears under
-    ``final`` only once complete (a rename in the same folder); on failure the temporary
-    file is removed and ``final`` is untouched."""
-    path = Path(path)
-    tmp = _tmp_in(path.parent, path.name)
-    try:
-        with _naming(path):
-            yield tmp
-            _publish(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    return buf.getvalue()
-
-
-def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> str:
-    """``np.savez``, atomically; returns the file's SHA-256."""
-    return write_atomic(path, npz_bytes(arrays))
-
-
-def parquet_bytes(columns: dict) -> bytes:
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    buf = io.BytesIO()
-    pq.write_table(pa.table(columns), buf)
-    return buf.getvalue()
-
-
-def write_parquet(path: Path, columns: dict) -> str:
-    """A Parquet table of ``{name: (N,) array}``, written atomically; returns its SHA-256."""
-    return write_atomic(path, parquet_bytes(columns))
-
-
-def write_json(path: Path, doc: dict, indent: int = 1) -> str:
-    from jaxfalsify.config import jsonable
-
-    return write_atomic(path, json.dumps(jsonable(doc), indent=indent) + "\n")
 
 
 def read_verified(path: Path, expected: dict | None) -> bytes:
@@ -247,7 +104,6 @@ def _seal(doc: dict) -> str:
 
 def write_commit(path: Path, doc: dict) -> None:
     """A commit record (``state.json``) sealed with the SHA-256 of its content."""
-    from jaxfalsify.config import jsonable
 
     doc = jsonable({**doc, "format": FORMAT})
     doc["sha256"] = _seal(doc)
@@ -398,6 +254,19 @@ class FolderError(ValueError):
     """An output folder that cannot be used as asked (one line naming it and what to do)."""
 
 
+FIGURES = [  # a run's figures under figures/, with their captions in report.md
+           ("reward_per_evaluation.png", "Reward per evaluation (paper Fig. 6)"),
+           ("distance_challenging.png", "Distance over time, best critical vs typical "
+            "non-critical; red = high-risk (paper Fig. 7)"),
+           ("high_risk_second_half.png", "High-risk share in the second half (paper Fig. 8)"),
+           ("distance_14_scenarios.png", "14 evaluated scenarios, collisions red (paper Fig. 9)"),
+           ("critical_regions.png", "Critical regions from the exhaustive sweep, with a "
+            "subsample of the evaluated scenarios (collisions as red crosses)"),
+           ("search_distribution.png", "Where the search went: each parameter's values among "
+            "the evaluations of each stretch of the run"),
+           ("failure_clusters.png", "Failure clusters: their sizes, and the distinct critical "
+            "scenarios on the two parameters they vary most, coloured by cluster (stars: each "
+            "cluster's best-reward member)")]
 RESULT_FILES = {
     "run": ("evaluations.parquet", "summary.json", "critical.csv", "timing.json", "report.md",
             "best.rrd", "episodes.parquet"),  # (the last: a run of an earlier version)
@@ -413,8 +282,6 @@ def _result_names(kind: str) -> list[str]:
     """Every file a finished ``kind`` writes, relative to its folder."""
     names = list(RESULT_FILES[kind]) + ["status.json"]
     if kind == "run":
-        from jaxfalsify.report import FIGURES
-
         names += [f"figures/{f}" for f, _ in FIGURES] + ["campaign.rrd"]
     return names
 
@@ -422,7 +289,6 @@ def _result_names(kind: str) -> list[str]:
 def folder_kind(out: Path) -> str | None:
     """``run``, ``sweep`` or ``compare`` from the folder's ``config.toml`` (None if absent);
     a FolderError if that file cannot be read."""
-    from jaxfalsify.config import read_toml
 
     path = Path(out) / "config.toml"
     if not path.exists():
@@ -551,8 +417,6 @@ def clear(out: Path, kind: str) -> None:
     for p in _checkpoints(out):
         shutil.rmtree(p, ignore_errors=True)
     if ours and kind == "run":  # the earlier run's figures and the recordings replay wrote
-        from jaxfalsify.report import FIGURES
-
         for p in [*(out / "figures" / f for f, _ in FIGURES), out / "campaign.rrd",
                   out / "figures" / "reward_per_episode.png",  # an earlier version's name
                   *out.glob("replay-*.rrd")]:
@@ -754,3 +618,16 @@ def check_out_plain(out: Path, patterns: tuple[str, ...], force: bool) -> None:
             pass
     except OSError as e:
         raise FolderError(f"--out {out}: cannot write in {parent} ({e.strerror})") from None
+
+class Interrupted(Exception):
+    """A run or sweep stopped on request (Ctrl-C, SIGTERM, ``stop()``); everything done is
+    committed and ``resume`` continues it."""
+
+    def __init__(self, kind: str, out: Path, done: int, total: int, unit: str,
+                 resumable: bool = True):
+        self.kind, self.out, self.done, self.total = kind, Path(out), done, total
+        self.resume = (f"jaxfalsify {kind} --resume {shell_path(out)}" if resumable
+                       else None)  # a command to paste into a shell
+        super().__init__(f"interrupted after {done} of {total} {unit}; " + (
+            f"{out} is resumable: {self.resume}" if resumable
+            else f"nothing was written to {out}; run the {kind} again"))

@@ -39,7 +39,7 @@ from typing import Any, Callable, Mapping, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxfalsify import metrics, pytree, weather
+from jaxfalsify import cache, metrics, pytree, weather
 
 G = 9.81  # m/s^2
 
@@ -177,7 +177,7 @@ def none_act(obs: Observation, state, p: AutopilotParams, key):
 @pytree.dataclass
 class CarlaTMParams(AutopilotParams):
     """CARLA 0.9.9-era Traffic Manager collision stage (``CollisionStage.cpp`` of the pipeline
-    era, ``CollisionStageConstants``; facts.md 'CARLA Traffic Manager collision stage').
+    era, ``CollisionStageConstants``).
 
     Boundary extension ahead of the vehicle at speed v [m/s]: ``ext_min`` below ``crawl_speed``;
     ``sqrt(ext_square_point * v) + time_horizon * v + ext_min`` up to ``highway_speed``;
@@ -305,9 +305,7 @@ class SensorAEBParams(AutopilotParams):
     ``latency`` counts from the first step a demand is perceived: with ``dt`` 0.1 s a latency
     of 0.1 s brakes one step after that, 0 on the same step. The weather's terms add to it
     (at least ``dark_latency * (1 - 0.965)`` = 0.014 s, the brightest preset's illuminance
-    being 0.965) and it is served in whole steps, so the default brakes two steps after. (Earlier the first perceived
-    step counted as 0.1 s already, so every latency acted 0.1 s early and 0 never let the car
-    drive; the default went from 0.2 to 0.1 s with the fix, which keeps the SUT's behaviour.)
+    being 0.965) and it is served in whole steps, so the default brakes two steps after.
     """
 
     range: float = 40.0  # m, clear day
@@ -572,7 +570,6 @@ def cache_key(sut: SUT) -> str | None:
     every loaded user module (:func:`jaxfalsify.cache.user_code_hash`: its own file and any
     helper it imports). None (never cached) for closures or functions without a source
     file."""
-    from jaxfalsify import cache
 
     fns = (sut.act, sut.init)
     if any(getattr(f, "__closure__", True) is not None for f in fns):

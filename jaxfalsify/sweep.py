@@ -37,10 +37,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfalsify import cache, config as cfg, sim, store
+from jaxfalsify import cache, sim, store
+from jaxfalsify import config as cfg
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.progress import Clock, Progress
-from jaxfalsify.space import Layout, Space
+from jaxfalsify.distributed import agree, barrier, share
+from jaxfalsify.problem import (
+    SEED_LIMIT,
+    build_space,
+    check_int,
+    check_mapping,
+    check_space_sut,
+    fixed_sut_params,
+)
+from jaxfalsify.progress import Clock, Progress, timing_line
+from jaxfalsify.space import MAX_SIZE, Layout, Space
 
 OUTCOME_FIELDS = tuple(f.name for f in dataclasses.fields(sim.Outcome))
 DEFAULT_CHUNK = sim.CPU_CHUNK  # library helpers' default; a sweep's: sim.default_chunk()
@@ -84,7 +94,8 @@ def reduce_chunk(start, n_valid, table, params, key, world, *, layout: Layout,
                  sut: sut_lib.SUT, chunk: int, sharding=None):
     """:func:`sweep_chunk` reduced on the device, for sweeps that keep no rows (on a GPU,
     moving every outcome to the host and reducing it there cost ~10x the simulation). Only
-    the first ``n_valid`` rows count. Per calibration ``(C,)``: ``collisions``, ``nonfinite`` (int32), ``top`` (the
+    the first ``n_valid`` rows count. Per calibration ``(C,)``: ``collisions``, ``nonfinite``
+    (int32), ``top`` (the
     largest reward, NaN counted as -inf; float32), ``ties`` (valid rows with reward == top),
     ``best`` (the first row reaching it), and that row's ``idx (C, P)`` and outcome fields
     ``(C,)``. Pure; jit it.
@@ -258,7 +269,6 @@ def check_columns(space: Space, calib: Calibrations) -> None:
 
 def check_sweepable(space: Space) -> None:
     """ValueError for a space too large to enumerate (int32 scenario numbers)."""
-    from jaxfalsify.space import MAX_SIZE
 
     if space.size > MAX_SIZE:
         raise ValueError(f"space '{space.name}' has {space.size:.3g} scenarios: too many to "
@@ -377,8 +387,6 @@ class SweepConfig:
     rows: str = "all"  # all, collisions or none (summary only)
 
     def build(self) -> tuple[Space, Calibrations]:
-        from jaxfalsify.runs import SEED_LIMIT, build_space, check_int, check_mapping
-
         check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
         check_int("seed", self.seed, 0, SEED_LIMIT - 1)
         if self.chunk is not None:
@@ -400,7 +408,6 @@ class SweepConfig:
     def full_sut_params(self, space: Space) -> dict[str, Any]:
         """Every SUT parameter: its default, or the value (list of values) given; without
         those ``space`` varies (its ``sut.NAME`` dimensions)."""
-        from jaxfalsify.runs import fixed_sut_params
 
         defaults = sut_lib.params_dict(sut_lib.resolve(self.sut).default_params)
         return fixed_sut_params({**defaults, **dict(self.sut_params)}, space)
@@ -433,7 +440,6 @@ def summary_lines(s: dict) -> list[str]:
     """What a finished sweep found, in words (``jaxfalsify sweep``'s closing lines), from
     :func:`execute`'s result ``s``: per calibration the collisions and the global maximum
     with its first scenario, the wall time and the files written."""
-    from jaxfalsify.progress import timing_line
 
     lines = []
     for r in s.get("calibrations") or [s]:
@@ -469,7 +475,6 @@ def checkpoint_name(process_id: int = 0, num_processes: int = 1) -> str:
 def _layout(config: SweepConfig, space: Space, calib: Calibrations, out: Path,
             process_id: int, num_processes: int, world: sim.World):
     """This process's range, compiled chunk size, checkpoint folder and its fingerprint."""
-    from jaxfalsify.distributed import share
 
     begin, end = share(space.size, process_id, num_processes)
     planned = plan_chunks(max(end - begin, 1), max(256, config.chunk // calib.count))
@@ -582,8 +587,6 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     """
     cfg.check_type(config, SweepConfig, "config")
 
-    from jaxfalsify.distributed import barrier
-    from jaxfalsify.runs import Interrupted
 
     clock = Clock(startup_seconds)
     progress = progress or Progress()
@@ -591,7 +594,6 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     out = Path(out) if out is not None else default_out(space, config.sut, config.space_seed)
     config = config.resolved()
     check_sweepable(space)
-    from jaxfalsify.runs import check_space_sut
 
     check_space_sut(space, calib.sut, dict(config.sut_params))
     check_columns(space, calib)
@@ -602,7 +604,6 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     work_bytes = rollouts * 2048 if jax.default_backend() == "cpu" else 0  # else on the GPU
     cfg.check_memory(rows_bytes + work_bytes, f"a sweep chunk of {rollouts} rollouts",
                      "lower --chunk")
-    from jaxfalsify.distributed import agree
 
     agree("sweep configuration", store.sha256("\n".join(  # the SUT by its code, not its path
         [ln for ln in config.to_toml(space, num_processes).splitlines()
@@ -616,7 +617,7 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
         return _execute(config, out, space, calib, lk, resume=resume, force=force,
                         progress=progress, stop=stop, process_id=process_id,
                         num_processes=num_processes, world=world, clock=clock)
-    except (Interrupted, ValueError):
+    except (store.Interrupted, ValueError):
         raise
     except BaseException as e:
         if num_processes == 1 and not resume and sut_lib.callback_error(e) is not None:
@@ -635,8 +636,6 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
 def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
              lk: store.FolderLock, *, resume: bool, force: bool, progress: Progress, stop,
              process_id: int, num_processes: int, world: sim.World, clock: Clock) -> dict:
-    from jaxfalsify.distributed import barrier
-    from jaxfalsify.runs import Interrupted
 
     if resume:
         on_disk, procs = SweepConfig.from_toml(out / "config.toml")
@@ -714,7 +713,7 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
         if process_id == 0:
             store.write_status(out, "sweep", "interrupted", scenarios_done=n_done,
                                scenarios=space.size)
-        raise Interrupted("sweep", out, n_done, end - begin, "scenarios") from None
+        raise store.Interrupted("sweep", out, n_done, end - begin, "scenarios") from None
     progress.close()
     search_s = time.perf_counter() - t0 - compile_s
     clock.add("compile", compile_s)
@@ -780,7 +779,6 @@ def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts
                                        if r == top),
                 "global_max_scenario": best["best"]}
 
-    from jaxfalsify.runs import fixed_sut_params
 
     def params(c):  # a parameter the space sets per scenario has no one value here
         return fixed_sut_params(sut_lib.params_dict(calib.instances[c]), space)
@@ -807,8 +805,6 @@ def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts
 
 
 def _nonempty_share(n: int, process_id: int, num_processes: int) -> bool:
-    from jaxfalsify.distributed import share
-
     begin, end = share(n, process_id, num_processes)
     return end > begin
 

@@ -1,9 +1,9 @@
 """CARLA weather presets, indexed as the original code did (presets sorted by name).
 
 The `weather` scenario parameter is an integer index 0..14 into this table. Values are the
-CARLA 0.9.10-era presets (see ``shared/reference/facts.md``); fog density and wetness are 0 in
-all of them. ``Default`` (index 4) takes the map's default; Town05's default is a clear noon, so
-we use ClearNoon's values for it.
+CARLA 0.9.10-era presets (CARLA's ``LibCarla/source/carla/rpc/WeatherParameters.cpp``); fog
+density and wetness are 0 in all of them. ``Default`` (index 4) takes the map's default;
+Town05's default is a clear noon, so we use ClearNoon's values for it.
 
 Weather is a *visual* setting in CARLA: the Traffic Manager does not see it and tyre friction is
 unchanged. Only perception-based systems under test (``sensor-aeb``) react to it.

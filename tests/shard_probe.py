@@ -12,9 +12,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 def probe(space_path: str) -> dict:
     import jax
+    from conftest import random_scenarios, run_campaign
 
     import jaxfalsify as jf
-    from conftest import random_scenarios, run_campaign
     from jaxfalsify.sweep import sweep_arrays
 
     out = {"devices": np.array(jax.local_device_count())}

@@ -3,7 +3,6 @@ nothing written and nothing overwritten (every file under the working folder is 
 byte for byte before and after)."""
 
 import hashlib
-import json
 import os
 import shutil
 import subprocess
@@ -11,10 +10,10 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import TINY_SPACE
 
 from jaxfalsify import runs, sweep
 from jaxfalsify.cli import main
-from conftest import TINY_SPACE
 
 
 def _stopper(n):
@@ -372,11 +371,14 @@ CASES = [
     (["simulate", "ped_change_step=-5"], "outside the allowed"),
     (["simulate", "ego_offset=1e30"], "ego_offset=1e+30 outside the allowed"),
     # strategy options of the wrong type or outside their declared interval
-    (["run", "--strategy", "reinforce/screened", "--strategy-param", "anchored=maybe"], "anchored='maybe' is not a boolean"),
+    (["run", "--strategy", "reinforce/screened", "--strategy-param", "anchored=maybe"],
+     "anchored='maybe' is not a boolean"),
     (["run", "--strategy-param", "hidden=1.5"], "hidden=1.5 is not a whole number"),
     (["run", "--strategy-param", "hidden=1e30"], "hidden=1e+30 is outside [1, 1024]"),
-    (["run", "--strategy", "reinforce/screened", "--strategy-param", "memory=99999999999"], "memory=99999999999 is outside"),
-    (["run", "--strategy", "reinforce/screened", "--strategy-param", "advantage=3"], "advantage=3 is not a string"),
+    (["run", "--strategy", "reinforce/screened", "--strategy-param", "memory=99999999999"],
+     "memory=99999999999 is outside"),
+    (["run", "--strategy", "reinforce/screened", "--strategy-param", "advantage=3"],
+     "advantage=3 is not a string"),
     (["run", "--strategy", "cem", "--strategy-param", "elite_frac=1.5"],
      "elite_frac=1.5 is outside (0, 1]"),
     (["run", "--strategy-param", "lr=-1"], "lr=-1.0 is outside [0, inf)"),
@@ -502,7 +504,7 @@ def test_library_misuse_gives_one_line_errors_naming_the_argument(tmp_path):
     from jaxfalsify import compare, search
     from jaxfalsify.sut import CarlaTMParams, SensorAEBParams
 
-    for fn, cls in ((runs.execute, "runs.RunConfig"), (sweep.execute, "sweep.SweepConfig"),
+    for fn, cls in ((runs.execute, "problem.RunConfig"), (sweep.execute, "sweep.SweepConfig"),
                     (compare.execute, "compare.CompareConfig")):
         with pytest.raises(ValueError, match=f"config must be a {cls} \\(got dict\\)"):
             fn({"strategy": "cem"}, tmp_path / "never")

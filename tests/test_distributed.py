@@ -10,9 +10,9 @@ from pathlib import Path
 
 import jax
 import numpy as np
-import pytest
 import pyarrow as pa
 import pyarrow.parquet as pq
+import pytest
 
 import jaxfalsify as jf
 from jaxfalsify.sweep import sweep_arrays

@@ -414,7 +414,8 @@ def test_a_failed_export_leaves_the_folder_as_it_was(sut_run, tmp_path, monkeypa
     import os
     from pathlib import Path
 
-    from jaxfalsify import export as ex, store
+    from jaxfalsify import export as ex
+    from jaxfalsify import store
 
     def broken(*a, **k):
         raise OSError(28, "No space left on device")

@@ -5,8 +5,8 @@ import re
 
 import numpy as np
 import pytest
-
 from conftest import grid_run
+
 from jaxfalsify.cli import main
 
 SIZES = {"reward_per_evaluation.png": (500, 800), "distance_challenging.png": (500, 1200),

@@ -7,7 +7,8 @@ each property is closed-form kinematics or a NumPy reduction of the per-step tra
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import jaxfalsify as jf
 from jaxfalsify import reward

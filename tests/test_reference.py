@@ -167,5 +167,6 @@ def test_a_grazed_corner_against_shapely():
 
     assert not boxes(0.0)[0].intersects(boxes(0.0)[1])
     assert not boxes(w.dt)[0].intersects(boxes(w.dt)[1])
-    inside = [t for t in np.linspace(0, w.dt, 101) if boxes(t)[0].intersection(boxes(t)[1]).area > 0]
+    inside = [t for t in np.linspace(0, w.dt, 101)
+              if boxes(t)[0].intersection(boxes(t)[1]).area > 0]
     assert inside and 0.0 < min(inside) < max(inside) < w.dt

@@ -14,13 +14,12 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from conftest import TINY_SPACE, run_campaign  # noqa: F401
 
 import jaxfalsify as jf
 from jaxfalsify import campaign, runs, search
 from jaxfalsify.cli import main
 from jaxfalsify.store import CampaignCheckpoint
-from conftest import TINY_SPACE, run_campaign  # noqa: F401
-
 
 FAST_RESUME = ("random",)  # the rest in the slow pass (test_trust resumes reinforce/default)
 

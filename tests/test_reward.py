@@ -7,7 +7,8 @@ from jaxfalsify import reward
 
 
 def original_reward(high_risk, timesteps, final_distance, collision):
-    """Python transcription of the original code's reward (facts.md), float64."""
+    """Python transcription of the original code's reward, float64
+    (dkarunakaran/scenario_based_falsification)."""
     rss_x = round((high_risk - 1) / (timesteps - 1), 2)
     dist_x = round((final_distance - 1) / (10 - 1), 2)
     return (0.02 * rss_x - 0.01) + (0.02 * (1 - dist_x) - 0.01) + (0.25 if collision else 0.0)

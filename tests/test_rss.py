@@ -1,4 +1,4 @@
-"""RSS safe distance against Intel ad-rss-lib's published unit-test vectors (facts.md)."""
+"""RSS safe distance against Intel ad-rss-lib's published unit-test vectors."""
 
 import jax
 import numpy as np
@@ -36,7 +36,7 @@ def test_negative_speed_is_invalid():
 
 def test_paper_defaults_closed_form_batched_and_jitted():
     v = np.linspace(0.0, 20.0, 41).astype(np.float32)
-    expected = v * 1.0 + 3.5 / 2 + (v + 3.5) ** 2 / 8.0  # facts.md: the original's call
+    expected = v * 1.0 + 3.5 / 2 + (v + 3.5) ** 2 / 8.0  # the original code's call
     got = jax.jit(jax.vmap(rss_safe_distance))(v, np.zeros_like(v))
     np.testing.assert_allclose(np.asarray(got), expected, rtol=1e-6)
     assert float(rss_safe_distance(0.0)) == pytest.approx(1.75 + 3.5**2 / 8)

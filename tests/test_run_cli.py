@@ -9,10 +9,10 @@ import tomllib
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from conftest import TINY_SPACE
 
 import jaxfalsify as jf
 from jaxfalsify.cli import main
-from conftest import TINY_SPACE
 
 SUMMARY_KEYS = {"strategy", "space", "sut", "seed", "evaluations",
                 "first_collision_evaluation", "best", "best_reached_evaluation", "n_nonfinite",
@@ -138,8 +138,10 @@ def test_closing_report_and_report_md_agree(tmp_path, capsys):
         assert m[0] == t[0]
         assert " ".join(m[1:]).split() == t[1:], (m, t)
     import pyarrow.parquet as pq
+
     from jaxfalsify import analysis
-    ep = {k: np.asarray(v) for k, v in pq.read_table(out / "evaluations.parquet").to_pydict().items()}
+    table = pq.read_table(out / "evaluations.parquet").to_pydict()
+    ep = {k: np.asarray(v) for k, v in table.items()}
     typ = analysis.typical_non_critical(ep)
     assert md_rows[0][2] == f"{ep['ego_offset'][typ]:.0f} m"  # integers: no decimals
     assert md_rows[1][2] == f"{ep['ped_accel'][typ]:.3f}"  # declared: 3 decimals

@@ -24,7 +24,8 @@ def test_paper_space_is_table_one(paper):
     np.testing.assert_array_equal(v["ped_offset"], [3.0, 3.5, 4.0, 4.5])
     assert np.all((v["ped_accel"] >= 0) & (v["ped_accel"] <= 0.1))
     w = v["weather"]
-    assert len(set(w.tolist())) == 10 and np.all(w == np.round(w)) and w.min() >= 0 and w.max() <= 14
+    assert len(set(w.tolist())) == 10 and np.all(w == np.round(w))
+    assert w.min() >= 0 and w.max() <= 14
     for name in ("ped_accel", "ped_speed"):  # rounded to 3 decimals as the original
         np.testing.assert_allclose(v[name], np.round(v[name].astype(np.float64), 3), atol=1e-6)
     # 25 draws of N(1.46, 0.24): a loose check that the distribution was used
@@ -38,7 +39,8 @@ def test_paper_extended_size():
 
 
 def test_seed_determinism_and_dependence():
-    a, b, c = jf.load_space("paper", seed=1), jf.load_space("paper", seed=1), jf.load_space("paper", seed=2)
+    a, b = jf.load_space("paper", seed=1), jf.load_space("paper", seed=1)
+    c = jf.load_space("paper", seed=2)
     assert a.table == b.table
     assert a.table != c.table
 

@@ -1,7 +1,8 @@
 """Every outcome of a fixed sample of 3,000 scenarios of ``paper-extended`` (each built-in
 SUT) is bit-for-bit the one stored in ``tests/data/reference_outcomes.npz``, whatever the batch
 is cut into: the simulator's speed-ups change no outcome (oracle: outcomes stored from the
-simulator as it was before them; NaN compared as NaN)."""
+simulator as it was before them; NaN compared as NaN). ``lanes``: the batch on one lane per
+scenario, or on refilled lanes (one per 8 scenarios, at least 64)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 
 import jaxfalsify as jf
+from jaxfalsify import sim
 
 STORED = Path(__file__).parent / "data" / "reference_outcomes.npz"
 
@@ -21,9 +23,21 @@ def stored():
         return {k: z[k] for k in z.files}
 
 
+@pytest.fixture(params=["one per scenario", "refilled"])
+def lanes(request, monkeypatch):
+    if request.param == "refilled":
+        monkeypatch.setattr(sim, "MIN_LANES", 64)
+    else:
+        monkeypatch.setattr(sim, "LANES_PER", 1)
+    sim._batch_program.cache_clear()
+    yield request.param
+    sim._batch_program.cache_clear()
+
+
 @pytest.mark.parametrize("sut", ["none", "carla-tm", "sensor-aeb"])
 @pytest.mark.parametrize("chunk", [3000, 1024])
-def test_outcomes_are_bit_identical_to_the_stored_ones(stored, sut, chunk):
+def test_outcomes_are_bit_identical_to_the_stored_ones(stored, sut, chunk, lanes):
+    assert (sim.lane_count(chunk) < chunk) == (lanes == "refilled")
     sp = jf.load_space("paper-extended")
     idx = np.stack(np.unravel_index(stored["index"], sp.shape), -1)
     sc = {k: np.asarray(v, np.float32) for k, v in sp.scenario(idx).items()}

@@ -12,10 +12,9 @@ import pytest
 from conftest import space_file_fixture
 
 import jaxfalsify as jf
-from jaxfalsify.cli import main
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.sweep import (Reducer, SweepConfig, calibrations, fold, iter_sweep,
-                              sweep_arrays)
+from jaxfalsify.cli import main
+from jaxfalsify.sweep import Reducer, SweepConfig, calibrations, fold, iter_sweep, sweep_arrays
 
 SMALL = """
 name = "small"
@@ -147,6 +146,7 @@ def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path, capsys)
         assert summary["calibrations"][c]["n_collisions"] == int(alone["collision"].sum())
     # config.toml holds every SUT parameter: the defaults, the given value and the list
     import tomllib
+
     from jaxfalsify import sut as sut_lib
     recorded = tomllib.loads((out / "config.toml").read_text())["sut_params"]
     defaults = sut_lib.params_dict(sut_lib.resolve("carla-tm").default_params)

@@ -29,12 +29,13 @@ import jax
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from conftest import TINY_SPACE
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import jaxfalsify as jf
 from jaxfalsify import runs, store, sweep
 from jaxfalsify.cli import main
-from conftest import TINY_SPACE
 
 FAST = settings(max_examples=25, deadline=None, derandomize=True,
                 suppress_health_check=list(HealthCheck))

@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from conftest import TINY_SPACE, space_file_fixture
 
 import jaxfalsify as jf
-from jaxfalsify import sut as sut_lib
 from jaxfalsify import report
+from jaxfalsify import sut as sut_lib
 from jaxfalsify.cli import main
 from jaxfalsify.sweep import sweep_arrays
-from conftest import TINY_SPACE, space_file_fixture
 
 EXAMPLE = Path(__file__).parent.parent / "experiments" / "example_aeb.py"
 SPEC = f"{EXAMPLE}:AEB"
@@ -237,8 +237,6 @@ def test_program_cache_keys_on_the_users_code(tmp_path, monkeypatch):
     called RandomSearch is not the built-in one)."""
     import dataclasses
     import importlib
-
-    import jax.numpy as jnp
 
     from jaxfalsify import campaign, search
     from jaxfalsify.search.base import Strategy

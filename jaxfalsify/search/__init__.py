@@ -25,7 +25,6 @@ from jaxfalsify.search.random_search import RandomSearch
 from jaxfalsify.search.reinforce import Reinforce
 from jaxfalsify.search.reinforce_ar import AutoregressiveReinforce
 
-
 PAPER_BUDGET = 4000  # the paper's evaluations (episodes)
 
 
@@ -149,7 +148,7 @@ register("reinforce/screened", AutoregressiveReinforce, batch=32, learners=1, qu
 register("reinforce/factorised", Reinforce, batch=50, chains=0, advantage="normalised",
          signal="shaped", entropy=0.1,
          doc="the paper's factorised LSTM controller + REINFORCE, 50 per update, normalised "
-         "advantages of the shaped signal, entropy bonus 0.1 (the former default)")
+         "advantages of the shaped signal, entropy bonus 0.1")
 register("reinforce/paper", Reinforce, batch=25, chains=1, advantage="reward", lr=0.01,
          alpha=1e-4, entropy=0.0, eps_start=1.0, eps_decay=0.995, eps_every=4.0,
          eps_floor=0.01, eps_off_after=2000.0, doc="the LSTM controller + REINFORCE as the "

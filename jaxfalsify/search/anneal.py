@@ -12,8 +12,13 @@ import jax
 import jax.numpy as jnp
 
 from jaxfalsify import pytree
-from jaxfalsify.search.base import (Strategy, check_signal, sample_uniform, uniform,
-                                    uniform_indices)
+from jaxfalsify.search.base import (
+    Strategy,
+    check_signal,
+    sample_uniform,
+    uniform,
+    uniform_indices,
+)
 
 
 @pytree.dataclass

@@ -32,12 +32,11 @@ many controllers stack along a leading axis and are vmapped.
 from __future__ import annotations
 
 import jax
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 
 from jaxfalsify.search.base import categorical_from_uniform, value_mask
 from jaxfalsify.search.controller import MASKED, _glorot, lstm_step, mm
-
 
 LOG_SIGMA_MIN = float(np.log(0.05))
 

@@ -44,8 +44,7 @@ import optax
 
 from jaxfalsify import pytree
 from jaxfalsify.search import discretised
-from jaxfalsify.search.base import (Strategy, near_miss_ttc, rank_order, shaped_signal,
-                                    uniform)
+from jaxfalsify.search.base import Strategy, near_miss_ttc, shaped_signal, uniform
 from jaxfalsify.search.controller import Linear, LSTMCell
 
 SIGMA_MIN_STEPS = 0.2  # narrowest component, in value steps (98.8 % of its mass on one value)

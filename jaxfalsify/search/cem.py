@@ -12,8 +12,13 @@ import jax
 import jax.numpy as jnp
 
 from jaxfalsify import pytree
-from jaxfalsify.search.base import (Strategy, check_signal, rank_order, sample_categorical,
-                                    value_mask)
+from jaxfalsify.search.base import (
+    Strategy,
+    check_signal,
+    rank_order,
+    sample_categorical,
+    value_mask,
+)
 
 
 @pytree.dataclass

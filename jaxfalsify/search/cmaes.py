@@ -21,7 +21,8 @@ evosax minimises and weights candidates by rank, so it sees each candidate's ord
 evosax's own ranking (``rankdata``) gives tied candidates one averaged, truncated rank, hence
 the same weight, where Hansen's algorithm uses every weight once; on a plateau of equal
 signals that shrank the step size towards 0. ``signal``: ``shaped`` (default;
-:func:`jaxfalsify.search.base.shaped_signal`, the robustness that falsification tools give CMA-ES, until a collision) or ``reward``.
+:func:`jaxfalsify.search.base.shaped_signal`, the robustness that falsification tools give CMA-ES,
+until a collision) or ``reward``.
 """
 
 import dataclasses

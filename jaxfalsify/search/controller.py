@@ -1,4 +1,5 @@
-"""The paper's controller (Section III-A 'Controller', Fig. 5): an LSTM policy over parameter values.
+"""The paper's controller (Section III-A 'Controller', Fig. 5): an LSTM policy over parameter
+values.
 
 Input: the previous action — each parameter's value given as its rank among the parameter's
 sorted values, scaled to [0, 1] (the original fed raw values) — as a length-1 sequence. Two

@@ -12,7 +12,6 @@ bins tile ``[-h_p, 1 + h_p]``. A component ``k`` puts on value ``v`` the mass of
 
 A scenario's probability is a mixture over ``K`` components, each a product over parameters,
 with a uniform floor of weight ``eps`` that keeps every scenario reachable:
-
     pi(a) = (1 - eps) sum_k w_k prod_p m_kp(a_p) + eps prod_p 1 / n_p.
 
 Its cost per scenario is ``O(K P)`` error functions whatever the number of values (a softmax

@@ -32,8 +32,14 @@ import optax
 
 from jaxfalsify import pytree
 from jaxfalsify.search import controller
-from jaxfalsify.search.base import (Strategy, categorical_from_uniform, check_signal,
-                                    sample_uniform, uniform, uniform_indices)
+from jaxfalsify.search.base import (
+    Strategy,
+    categorical_from_uniform,
+    check_signal,
+    sample_uniform,
+    uniform,
+    uniform_indices,
+)
 
 
 @pytree.dataclass

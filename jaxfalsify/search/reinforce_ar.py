@@ -87,9 +87,16 @@ import optax
 from jaxfalsify import pytree
 from jaxfalsify.search import autoregressive as ar
 from jaxfalsify.search import surrogate as gp
-from jaxfalsify.search.base import (Strategy, categorical_from_uniform, centred_ranks,
-                                    check_signal, near_miss_ttc, shaped_signal, uniform,
-                                    uniform_indices)
+from jaxfalsify.search.base import (
+    Strategy,
+    categorical_from_uniform,
+    centred_ranks,
+    check_signal,
+    near_miss_ttc,
+    shaped_signal,
+    uniform,
+    uniform_indices,
+)
 
 ADVANTAGES = ("rank", "normalised")
 
