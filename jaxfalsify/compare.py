@@ -326,10 +326,8 @@ def sampled_truth(sp, b, budget: int | None = None, n: int | None = None,
     search's expectation from that estimate. No global maximum."""
     from scipy import stats as st
 
-
     n = TRUTH_SAMPLE if n is None else n
     import jax
-
 
     s = sut_lib.resolve(b.sut)
     params = sut_lib.with_params(s, b.sut_params)
@@ -406,7 +404,6 @@ def overhead_program(strategy, strategy_params, p: campaign.Plan, n_seeds: int):
     other strategies search and the timing covers the loop alone."""
     import jax
     import jax.numpy as jnp
-
 
     B = strategy.batch
     f32 = [np.asarray(x, np.float32) for x in jax.tree.leaves(strategy_params)]

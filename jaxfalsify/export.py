@@ -328,7 +328,6 @@ def write_scenario(path: Path, road_file: str, traj: dict, params: dict, world,
     referenced: the trajectories carry the values)."""
     from scenariogeneration import xosc
 
-
     v = traj["valid"]
     x0, y0 = start_positions(params["ego_offset"], params["ped_offset"], world)
     # the start (t = 0) first, then the state after each simulated step

@@ -78,7 +78,6 @@ def _writing(run_dir: Path, save: Path | None, what: str):
     for a file saved elsewhere."""
     import contextlib
 
-
     return store.run_folder_lock(run_dir, what) if not save else contextlib.nullcontext()
 
 
@@ -112,7 +111,6 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
     """Everything a recording holds (see :func:`record`)."""
     import rerun as rr
     import rerun.blueprint as rrb
-
 
     w = sim.WORLD
     # rerun keeps a stream's time per recording id: a second recording of the same run and

@@ -587,7 +587,6 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     """
     cfg.check_type(config, SweepConfig, "config")
 
-
     clock = Clock(startup_seconds)
     progress = progress or Progress()
     space, calib = config.build()
@@ -778,7 +777,6 @@ def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts
                 "global_max_ties": sum(t["best_ties"] for (t, _), r in zip(ts, rewards)
                                        if r == top),
                 "global_max_scenario": best["best"]}
-
 
     def params(c):  # a parameter the space sets per scenario has no one value here
         return fixed_sut_params(sut_lib.params_dict(calib.instances[c]), space)

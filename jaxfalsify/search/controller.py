@@ -15,7 +15,7 @@ kernel, gates in order i, f, g, o, the forget gate's bias starting at 1).
 :func:`init` draws its weights in one Glorot-uniform draw (Keras uses an orthogonal recurrent
 kernel, which a zero initial state never multiplies, and whose QR decomposition costs seconds of
 XLA compilation); ``PaperController(...).init`` gives the same tree with Flax's own initialisers.
-``tests/test_search.py`` checks the cell against the LSTM equations in NumPy.
+``tests/search/test_strategy_contract.py`` checks the cell against the LSTM equations in NumPy.
 
 ``flax.linen`` rather than ``flax.nnx``: a linen module is a pure function of a parameter
 pytree, which is what a strategy's state holds, a campaign's ``lax.scan`` carries, checkpoints

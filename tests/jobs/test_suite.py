@@ -108,7 +108,7 @@ def test_a_suites_relative_paths_are_the_suite_files(tmp_path, monkeypatch):
     sub = (tmp_path / "sub").resolve()
     sub.mkdir()
     (sub / "tiny.toml").write_text(TINY_SPACE)
-    shutil.copy(Path(__file__).parent.parent / "experiments" / "example_aeb.py", sub / "mine.py")
+    shutil.copy(Path(__file__).parents[2] / "experiments" / "example_aeb.py", sub / "mine.py")
     (sub / "suite.toml").write_text('strategies = ["random"]\n[[entry]]\nspace = "tiny.toml"\n'
                                     'sut = "mine.py:AEB"\n')
     monkeypatch.chdir(tmp_path)
@@ -126,7 +126,7 @@ def test_the_shipped_suite_loads_with_every_space_and_sut():
 
     from jaxfalsify import sut as sut_lib
 
-    path = Path(__file__).parent.parent / "experiments" / "suite" / "suite.toml"
+    path = Path(__file__).parents[2] / "experiments" / "suite" / "suite.toml"
     suite = compare.load_suite(str(path))
     raw = tomllib.loads(path.read_text())["entry"]
     assert len(suite.entries) == len(raw) >= 6

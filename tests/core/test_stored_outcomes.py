@@ -14,7 +14,7 @@ import pytest
 import jaxfalsify as jf
 from jaxfalsify import sim
 
-STORED = Path(__file__).parent / "data" / "reference_outcomes.npz"
+STORED = Path(__file__).parents[1] / "data" / "reference_outcomes.npz"
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,5 @@
 """Evaluate, sweep and search on the devices this process has (XLA_FLAGS may force several
-host devices) and save the results: run as a subprocess by test_sharding.py, and imported by it
+host devices) and save the results: run as a subprocess by test_many_devices.py, and imported by it
 for the one-device reference."""
 
 import sys
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1]))  # conftest
 
 
 def probe(space_path: str) -> dict:

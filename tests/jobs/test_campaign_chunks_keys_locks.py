@@ -1,6 +1,6 @@
-"""Fixes to the campaign loop, its cache keys, fingerprints, progress and folder lock: each
-test compares against an independent oracle (another chunking, the summary, the lock holder's
-own pid, a fresh process)."""
+"""The campaign loop, its cache keys, fingerprints, progress and folder lock: each test
+compares against an independent oracle (another chunking, the summary, the lock holder's own
+pid, a fresh process)."""
 
 import os
 import subprocess

@@ -16,7 +16,7 @@ from jaxfalsify import sut as sut_lib
 from jaxfalsify.cli import main
 from jaxfalsify.sweep import sweep_arrays
 
-EXAMPLE = Path(__file__).parent.parent / "experiments" / "example_aeb.py"
+EXAMPLE = Path(__file__).parents[2] / "experiments" / "example_aeb.py"
 SPEC = f"{EXAMPLE}:AEB"
 
 

@@ -171,7 +171,7 @@ def test_config_with_flags_drops_what_the_flag_replaces(tmp_path, monkeypatch):
     mine = runs.RunConfig(sut=recorded_spec("my_aeb.py:AEB"), sut_params={"ttc_brake": 1.2})
     assert runs.configure(mine, sut="my_aeb.py:AEB").sut_params == {"ttc_brake": 1.2}
     assert runs.configure(mine, sut="sensor-aeb").sut_params == {}
-    huge = Path(__file__).parents[1] / "experiments" / "suite" / "huge-aeb.toml"
+    huge = Path(__file__).parents[2] / "experiments" / "suite" / "huge-aeb.toml"
     aeb = runs.RunConfig(sut="sensor-aeb", sut_params={"ttc_full": 2.0, "ttc_partial": 3.0,
                                                        "latency": 0.1})
     (tmp_path / "aeb.toml").write_text(aeb.to_toml())  # from a file, as --config reads it

@@ -1,4 +1,4 @@
-"""The default strategy (REINFORCE on the autoregressive LSTM controller) and what it learns
+"""reinforce/screened (REINFORCE on the autoregressive LSTM controller) and what it learns
 from: the controller's log-probabilities against a step-by-step NumPy computation, learning an
 interior island of a synthetic space, the shaped signal and rank baseline by hand, CMA-ES with
 margin's correction against the normal distribution (SciPy)."""

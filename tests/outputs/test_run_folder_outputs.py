@@ -1,5 +1,6 @@
-"""Figures and report of a run folder: files exist, are non-trivial images of the right size,
-and the report's links resolve."""
+"""The outputs of one run folder (a module-scoped run with figures): figures are non-trivial
+images of the right size, the report's links resolve, replay recordings and OpenSCENARIO
+exports read back with the simulated values (export helpers from test_openscenario_export)."""
 
 import re
 
@@ -263,7 +264,7 @@ def test_export_validates_against_the_xsd_and_matches_the_trajectory(run_with_fi
     import xml.etree.ElementTree as ET
 
     import pyarrow.parquet as pq
-    from test_export import schema
+    from test_openscenario_export import schema
 
     import jaxfalsify as jf
     from jaxfalsify.export import X_OFFSET
@@ -331,7 +332,7 @@ def test_export_controller_parameters_reproduce_the_run(run_with_figures, tmp_pa
     import xml.etree.ElementTree as ET
 
     import pyarrow.parquet as pq
-    from test_export import declarations, oracle_profile, schema, speed_events
+    from test_openscenario_export import declarations, oracle_profile, schema, speed_events
 
     import jaxfalsify as jf
     from jaxfalsify import analysis
@@ -396,7 +397,7 @@ def test_export_distribution_lists_the_space(run_with_figures, tmp_path):
     values, over the exported template; logical_stochastic.xosc: the declared distributions."""
     import xml.etree.ElementTree as ET
 
-    from test_export import schema
+    from test_openscenario_export import schema
 
     from jaxfalsify.export import write_distribution
     from jaxfalsify.figures import load_run

@@ -1,6 +1,6 @@
-"""Regressions of a review of spaces, calibration sweeps and their configs: calibration order on
-resume, rounding inside the declared range, NumPy SUT parameters in config.toml, a space's SUT
-parameters against the SUT's ranges, and one-line errors for malformed parameter tables."""
+"""Spaces, calibration sweeps and their configs: calibration order on resume, rounding inside
+the declared range, NumPy SUT parameters in config.toml, a space's SUT parameters against the
+SUT's ranges, and one-line errors for malformed parameter tables."""
 
 import json
 import math

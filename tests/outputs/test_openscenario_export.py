@@ -3,7 +3,7 @@ as parameter expressions and speed events reproduces the simulator's (checked ag
 closed-form oracle of the original's profile, against ``sim.ped_speed_profile`` and by
 integrating the file's events into positions). The run-level checks (the exported parameters
 reproduce the run's outcomes, the distributions list the space) are in
-``test_figures_report.py``, which has a run."""
+``test_run_folder_outputs.py``, which has a run."""
 
 import functools
 import math
