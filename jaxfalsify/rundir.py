@@ -25,9 +25,6 @@ def load_run(run_dir: Path):
     run_dir = Path(run_dir)
     missing = [f for f in ("config.toml", "summary.json", "evaluations.parquet")
                if not (run_dir / f).exists()]
-    if missing == ["evaluations.parquet"] and (run_dir / "episodes.parquet").exists():
-        raise ValueError(f"{run_dir} was written by an earlier jaxfalsify (episodes.parquet): "
-                         "rename it to evaluations.parquet, or run it again")
     if missing:
         raise ValueError(f"{run_dir} is not a finished run folder (missing "
                          f"{', '.join(missing)})")

@@ -269,7 +269,7 @@ FIGURES = [  # a run's figures under figures/, with their captions in report.md
             "cluster's best-reward member)")]
 RESULT_FILES = {
     "run": ("evaluations.parquet", "summary.json", "critical.csv", "timing.json", "report.md",
-            "best.rrd", "episodes.parquet"),  # (the last: a run of an earlier version)
+            "best.rrd"),
     "sweep": ("sweep.parquet", "summary.json", "timing.json"),
     "compare": ("compare.json", "compare.md", "timing.json"),
     "suite": ("suite.json", "suite.md", "timing.json"),
@@ -418,7 +418,6 @@ def clear(out: Path, kind: str) -> None:
         shutil.rmtree(p, ignore_errors=True)
     if ours and kind == "run":  # the earlier run's figures and the recordings replay wrote
         for p in [*(out / "figures" / f for f, _ in FIGURES), out / "campaign.rrd",
-                  out / "figures" / "reward_per_episode.png",  # an earlier version's name
                   *out.glob("replay-*.rrd")]:
             p.unlink(missing_ok=True)
         with contextlib.suppress(OSError):  # only if nothing else is in it

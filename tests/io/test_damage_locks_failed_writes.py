@@ -669,25 +669,6 @@ def test_replace_files_publishes_a_set_or_puts_the_earlier_one_back(tmp_path):
     assert (folder / "a.xosc").read_text() == "new a" and not (folder / "e.xosc").exists()
 
 
-def test_a_run_folder_of_an_earlier_version_is_named_and_cleared(tmp_path):
-    """A run written before evaluations.parquet had that name: reading it says so in one line
-    (not "missing evaluations.parquet"); --force's clear removes its old results by name."""
-    from jaxfalsify.figures import load_run
-
-    out = tmp_path / "old"
-    out.mkdir()
-    (out / "config.toml").write_text(runs.RunConfig().to_toml())
-    for name in ("summary.json", "episodes.parquet"):
-        (out / name).write_text("{}")
-    (out / "figures").mkdir()
-    (out / "figures" / "reward_per_episode.png").write_bytes(b"png")
-    (out / "figures" / "mine.png").write_bytes(b"mine")
-    with pytest.raises(ValueError, match="earlier jaxfalsify .episodes.parquet.: rename it"):
-        load_run(out)
-    store.clear(out, "run")
-    assert sorted(p.name for p in out.rglob("*")) == ["figures", "mine.png"]
-
-
 @pytest.mark.parametrize("what", ["run", "sweep"])
 def test_a_file_in_place_of_the_checkpoint_folder_is_refused_and_status_kept(checkpoints,
                                                                              what):
