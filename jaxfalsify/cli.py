@@ -113,6 +113,15 @@ def _folder(text: str) -> Path:
     return Path(text)
 
 
+def _add_requirement(p):
+    from jaxfalsify.requirements import DEFAULT, REGISTRY
+
+    p.add_argument("--requirement", help=f"what counts as a failure: {', '.join(REGISTRY)} or "
+                   f"an import path module:attr / file.py:attr (default {DEFAULT})")
+    p.add_argument("--requirement-param", action="append", dest="requirement_param",
+                   metavar="NAME=VALUE", help="set a requirement parameter (repeatable)")
+
+
 def _add_sut(p, many=False):
     from jaxfalsify.sut import REGISTRY
 
@@ -267,6 +276,30 @@ def build_parser() -> argparse.ArgumentParser:
                    "trajectory)")
     x.add_argument("--out", type=_folder, required=True, help="output folder")
     x.add_argument("--force", action="store_true", help="overwrite existing files in --out")
+
+    e = sub.add_parser("estimate", help="how often the SUT violates a requirement under the "
+                       "space's distribution, with a confidence interval")
+    e.add_argument("--space", help="built-in name or TOML file (default paper)")
+    e.add_argument("--space-seed", type=_int("--space-seed"), dest="space_seed",
+                   help="discretisation seed of the space (default 0)")
+    _add_sut(e)
+    _add_requirement(e)
+    e.add_argument("--method", choices=("is", "mc"), help="is: importance sampling with a "
+                   "cross-entropy proposal (default); mc: naive Monte Carlo")
+    e.add_argument("--target-rel-error", type=_float_positive("--target-rel-error"),
+                   dest="target_rel_error", help="stop when the interval's half-width is at "
+                   "most this share of the estimate (default 0.1)")
+    e.add_argument("--samples", type=_int("--samples", 1),
+                   help="most draws of the final stage (default 10,000,000)")
+    e.add_argument("--batch", type=_int("--batch", 1),
+                   help="draws per compiled call (default 65536)")
+    e.add_argument("--confidence", type=_float_positive("--confidence"),
+                   help="of the interval, in (0, 1) (default 0.95)")
+    e.add_argument("--seed", type=_int("--seed"), help="seed of the draws (default 0)")
+    e.add_argument("--out", type=_folder, help="output folder: config.toml, summary.json "
+                   "(default estimates/<space>-<sut>-<requirement>-<method>-s<seed>)")
+    e.add_argument("--force", action="store_true", help="overwrite an estimate in --out")
+    e.add_argument("--quiet", action="store_true", help="no progress")
 
     f = sub.add_parser("figures", help="(re)draw a run's figures and report.md")
     f.add_argument("run_dir", type=Path, metavar="RUN_DIR")
@@ -574,9 +607,33 @@ def cmd_figures(args, stop, startup) -> int:
     return 0
 
 
+def cmd_estimate(args, stop, startup) -> int:
+    from jaxfalsify import estimate
+    from jaxfalsify.sut import folder_name
+
+    config = estimate.EstimateConfig(
+        **{k: getattr(args, k) for k in ("space", "space_seed", "sut", "requirement", "method",
+                                         "target_rel_error", "samples", "batch", "confidence",
+                                         "seed") if getattr(args, k) is not None},
+        sut_params=_sut_values(args.sut_param),
+        requirement_params=_sut_values(args.requirement_param, "--requirement-param"))
+    if not 0 < config.confidence < 1:
+        raise UsageError(f"--confidence {config.confidence:g}: must be in (0, 1)")
+    space = config.build()[0]
+    out = args.out or Path("estimates") / (
+        f"{space.name}-{folder_name(config.sut)}-{folder_name(config.requirement)}-"
+        f"{config.method}-s{config.seed}")
+    s = estimate.execute(config, out, force=args.force, progress=_progress(args.quiet),
+                         stop=stop, startup_seconds=startup)
+    for line in estimate.summary_lines(s):
+        print(line)
+    print(f"wrote {out}/summary.json")
+    return _late_signal(stop)
+
+
 COMMANDS = {"run": cmd_run, "sweep": cmd_sweep, "compare": cmd_compare,
             "simulate": cmd_simulate, "replay": cmd_replay, "export": cmd_export,
-            "figures": cmd_figures}
+            "figures": cmd_figures, "estimate": cmd_estimate}
 
 
 def main(argv=None, startup: float = 0.0) -> int:

@@ -59,6 +59,7 @@ def reference_evaluate(scenario: dict, sut: str = "carla-tm", world: World = WOR
     min_d = _box_gap(x, py, w)
     last_c = np.full(B, np.nan)
     min_ttc = np.full(B, np.inf)
+    min_rss = np.full(B, np.inf)
     hist = {k: np.zeros((B, w.horizon)) for k in ("ego_x", "ego_speed", "ped_y", "valid")}
 
     # the original's pdf.py loop: s starts at speed - 5*accel; steps 0..5 at s; then s += accel
@@ -102,6 +103,7 @@ def reference_evaluate(scenario: dict, sut: str = "carla-tm", world: World = WOR
         valid = alive.copy()
         ahead = px + PL / 2 > x1 + L / 2
         hr_flags[:, k] = valid & ahead & (_rss(v1) > centre_after)
+        min_rss = np.where(valid & ahead, np.minimum(min_rss, centre_after - _rss(v1)), min_rss)
         n += valid
         # contact during the tick: the times the ego's centre enters and leaves the x band
         # (roots of its constant-acceleration motion) against the walker's y band times
@@ -136,7 +138,8 @@ def reference_evaluate(scenario: dict, sut: str = "carla-tm", world: World = WOR
         min_distance=min_d, final_distance=last_c, high_risk_steps=hr,
         high_risk_share=hr / np.maximum(n, 1),
         high_risk_share_second_half=second / np.maximum(n - n // 2, 1),
-        robustness=min_d - w.epsilon, steps=n, min_ttc=min_ttc, **(hist if record else {}))
+        robustness=min_d - w.epsilon, steps=n, min_ttc=min_ttc, min_rss_margin=min_rss,
+        **(hist if record else {}))
 
 
 def _reach_time(x, v, a, target):

@@ -160,6 +160,8 @@ class Outcome:
     steps: jax.Array  # int32, episode length in steps
     min_ttc: jax.Array  # s
     nonfinite: jax.Array  # bool, the rollout produced NaN/inf and was stopped
+    min_rss_margin: jax.Array  # m, smallest centre distance - RSS safe distance while the
+    # pedestrian is ahead (< 0 at the high-risk steps; inf if it never was ahead)
 
 
 UNROLL = 1
@@ -221,6 +223,7 @@ class _Carry(NamedTuple):
     collided: jax.Array
     coll_step: jax.Array
     min_ttc: jax.Array
+    min_rss: jax.Array
 
 
 def _scenario_scalars(scenario: dict) -> dict:
@@ -386,7 +389,8 @@ def _parts(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array, world:
             last_centre=jnp.where(move, centre(c.ego_x, c.ped_y), c.last_centre),
             collided=c.collided | collided_now,
             coll_step=jnp.where(collided_now, k + 1, c.coll_step),
-            min_ttc=jnp.minimum(c.min_ttc, ttc))
+            min_ttc=jnp.minimum(c.min_ttc, ttc),
+            min_rss=jnp.where(move & ahead, jnp.minimum(c.min_rss, d_centre - d_min), c.min_rss))
         rec = None
         if record:
             rec = Trajectory(
@@ -405,7 +409,8 @@ def _parts(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array, world:
         alive=jnp.bool_(True), nonfinite=jnp.bool_(False), n_valid=jnp.int32(0),
         hr_count=jnp.int32(0), hr_word=jnp.uint32(0),
         min_dist=metrics.box_distance(gx0, gy0), last_centre=jnp.float32(jnp.nan),
-        collided=jnp.bool_(False), coll_step=jnp.int32(-1), min_ttc=jnp.float32(jnp.inf))
+        collided=jnp.bool_(False), coll_step=jnp.int32(-1), min_ttc=jnp.float32(jnp.inf),
+        min_rss=jnp.float32(jnp.inf))
 
     def run_block(c: _Carry, b):
         """BLOCK steps from step b*BLOCK; returns the block's high-risk bits as one word."""
@@ -448,7 +453,7 @@ def _outcome(c: _Carry, hr_bits, w: World) -> Outcome:
         high_risk_share=(c.hr_count / jnp.maximum(n, 1)).astype(jnp.float32),
         high_risk_share_second_half=(hr2 / jnp.maximum(second, 1)).astype(jnp.float32),
         robustness=c.min_dist - w.epsilon,
-        steps=n, min_ttc=c.min_ttc, nonfinite=c.nonfinite)
+        steps=n, min_ttc=c.min_ttc, nonfinite=c.nonfinite, min_rss_margin=c.min_rss)
 
 
 # ---------------------------------------------------------------------------- batched API

@@ -273,9 +273,10 @@ RESULT_FILES = {
     "sweep": ("sweep.parquet", "summary.json", "timing.json"),
     "compare": ("compare.json", "compare.md", "timing.json"),
     "suite": ("suite.json", "suite.md", "timing.json"),
+    "estimate": ("summary.json", "timing.json"),
 }
 FINISHED = {"run": "summary.json", "sweep": "summary.json", "compare": "compare.json",
-            "suite": "suite.json"}
+            "suite": "suite.json", "estimate": "summary.json"}
 
 
 def _result_names(kind: str) -> list[str]:

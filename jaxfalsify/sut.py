@@ -400,23 +400,24 @@ register(SUT("sensor-aeb", sensor_aeb_act, _sensor_init, SensorAEBParams(), stoc
 register(SUT("none", none_act, _pid_init, AutopilotParams(), stochastic=False))
 
 
-def _error_line(e: BaseException) -> str:
+def error_line(e: BaseException) -> str:
     """``TypeName: first line of the message`` of a user's exception, for one-line errors."""
     text = str(e).strip()
     return f"{type(e).__name__}: {text.splitlines()[0] if text else ''}"
 
 
-def _load_attr(spec: str):
-    """``module:attr`` or ``path/file.py:attr`` -> the attribute (one-line ValueError)."""
+def load_attr(spec: str, what: str = "SUT"):
+    """``module:attr`` or ``path/file.py:attr`` -> the attribute (one-line ValueError naming
+    ``what`` it was to be: a SUT, a requirement)."""
     mod_name, _, attr = spec.rpartition(":")
     if not mod_name or not attr:
-        raise ValueError(f"SUT '{spec}': expected a registry name ({', '.join(REGISTRY)}) or "
-                         "an import path module:attr")
+        known = f"a registry name ({', '.join(REGISTRY)}) or " if what == "SUT" else ""
+        raise ValueError(f"{what} '{spec}': expected {known}an import path module:attr")
     try:
         if mod_name.endswith(".py"):
             path = Path(mod_name).resolve()
             if not path.is_file():
-                raise ValueError(f"SUT '{spec}': no such file {mod_name}")
+                raise ValueError(f"{what} '{spec}': no such file {mod_name}")
             import hashlib
 
             name = "jaxfalsify_user_sut_" + hashlib.sha256(str(path).encode()).hexdigest()[:12]
@@ -438,14 +439,14 @@ def _load_attr(spec: str):
         raise
     except (Exception, SystemExit) as e:  # noqa: BLE001 - a user module can raise anything
         # on import (sys.exit too)
-        raise ValueError(f"SUT '{spec}': cannot import {mod_name} ({_error_line(e)})") from None
+        raise ValueError(f"{what} '{spec}': cannot import {mod_name} ({error_line(e)})") from None
     try:
         return getattr(module, attr)
     except AttributeError:
-        raise ValueError(f"SUT '{spec}': {mod_name} has no attribute '{attr}'") from None
+        raise ValueError(f"{what} '{spec}': {mod_name} has no attribute '{attr}'") from None
     except (Exception, SystemExit) as e:  # noqa: BLE001 - a module __getattr__ can raise
-        raise ValueError(f"SUT '{spec}': looking up '{attr}' in {mod_name} raised "
-                         f"{_error_line(e)}") from None
+        raise ValueError(f"{what} '{spec}': looking up '{attr}' in {mod_name} raised "
+                         f"{error_line(e)}") from None
 
 
 def recorded_spec(spec: str, folder: Path | None = None) -> str:
@@ -520,7 +521,7 @@ def check_traceable(sut: SUT, params: Any) -> None:
     except Exception as e:  # noqa: BLE001 - a user's code can raise anything when traced
         hint = (" (a bare act function gets params=None; give the SUT default_params)"
                 if params is None and "NoneType" in str(e) else "")
-        raise ValueError(f"SUT '{sut.name}' fails on a step: {_error_line(e)}{hint}") from None
+        raise ValueError(f"SUT '{sut.name}' fails on a step: {error_line(e)}{hint}") from None
     try:
         _TRACEABLE.add(sut)
     except TypeError:
@@ -538,7 +539,7 @@ def resolve(spec: str | SUT | Callable) -> SUT:
         if ":" not in spec:
             raise ValueError(f"unknown SUT '{spec}' (one of {', '.join(REGISTRY)}, or an "
                              "import path module:attr)")
-        obj = _load_attr(spec)
+        obj = load_attr(spec)
         if isinstance(obj, type) or (callable(obj) and not isinstance(obj, SUT)
                                      and getattr(obj, "__code__", None) is not None
                                      and obj.__code__.co_argcount == 0):
@@ -546,7 +547,7 @@ def resolve(spec: str | SUT | Callable) -> SUT:
                 obj = obj()  # a factory returning a SUT
             except Exception as e:  # noqa: BLE001 - a user's code can raise anything
                 raise ValueError(f"SUT '{spec}' could not be built (called with no "
-                                 f"arguments): {_error_line(e)}") from None
+                                 f"arguments): {error_line(e)}") from None
         if isinstance(obj, SUT):
             return dataclasses.replace(obj, name=spec) if obj.name != spec else obj
         builtin = next((s for s in REGISTRY.values() if s.act is obj or s.init is obj), None)

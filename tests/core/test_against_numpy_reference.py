@@ -28,7 +28,7 @@ def test_parity_on_10000_random_scenarios(sut):
     r, rr = np.asarray(out.reward, np.float64)[same], ref["reward"][same]
     assert np.max(np.abs(r - rr)) <= 2.5e-4
     assert np.mean(np.abs(r - rr) <= 1e-6) >= 0.999
-    for f in ("min_distance", "final_distance", "robustness", "min_ttc"):
+    for f in ("min_distance", "final_distance", "robustness", "min_ttc", "min_rss_margin"):
         a, b = np.asarray(getattr(out, f), np.float64)[same], ref[f][same]
         fin = np.isfinite(b)
         np.testing.assert_array_equal(np.isfinite(a), fin, err_msg=f)

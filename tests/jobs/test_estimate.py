@@ -1,0 +1,135 @@
+"""Failure-rate estimates: the importance weights against a NumPy computation of the
+proposal's probabilities, the draws' distribution against the proposal, interval coverage
+against the exact rate of an exhaustively evaluated space (fixed seeds), and the command."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import jaxfalsify as jf
+from jaxfalsify import estimate as est
+from jaxfalsify import requirements as req_lib
+from jaxfalsify import sut as sut_lib
+from jaxfalsify.cli import main
+
+
+@pytest.fixture(scope="module")
+def paper():
+    return jf.load_space("paper")
+
+
+@pytest.fixture(scope="module")
+def exact(paper):
+    """Every scenario of the paper space evaluated one by one through ``jf.evaluate``."""
+    idx = np.stack(np.unravel_index(np.arange(paper.size), paper.shape), -1)
+    out = jf.evaluate(paper.scenario(idx))
+    return float(np.mean(np.asarray(out.collision) & ~np.asarray(out.nonfinite)))
+
+
+def _random_proposal(sp, k, rng):
+    shape = np.asarray(sp.shape)
+    width = int(shape.max())
+    probs = rng.dirichlet(np.full(width, 0.3), size=(k, len(shape)))
+    probs = np.where(np.arange(width)[None, None] < shape[None, :, None], probs, 0.0)
+    probs /= probs.sum(-1, keepdims=True)
+    with np.errstate(divide="ignore"):
+        return est.Proposal(np.log(rng.dirichlet(np.ones(k))).astype(np.float32),
+                            np.log(probs).astype(np.float32)), probs
+
+
+def test_exact_rate_is_the_share_of_evaluated_collisions(paper, exact):
+    got = est.exact_rate(paper, requirement="collision")
+    assert got["scenarios"] == paper.size and got["rate"] == pytest.approx(exact, abs=1e-12)
+
+
+def test_weights_and_draws_follow_the_defensive_mixture(paper):
+    rng = np.random.default_rng(5)
+    q, probs = _random_proposal(paper, 3, rng)
+    weights = np.exp(q.log_weight.astype(np.float64))
+    share = 0.2
+    sut = sut_lib.resolve("carla-tm")
+    req = req_lib.resolve("clash")
+    run = est._compile(paper, sut, req, 20000)
+    idx, rob, logw = (np.asarray(a) for a in run(
+        jf.sim.seed_key(3), q.log_weight, q.log_prob, np.float32(math.log(share)),
+        sut.default_params, req.default_params))
+    # NumPy: p = 1/size; q(x) = sum_k w_k prod_j probs[k, j, x_j]
+    n = len(idx)
+    qx = np.zeros(n)
+    for k in range(len(weights)):
+        qx += weights[k] * np.prod([probs[k, j, idx[:, j]] for j in range(idx.shape[1])], 0)
+    p = 1.0 / paper.size
+    want = np.log(p) - np.log(share * p + (1 - share) * qx)
+    np.testing.assert_allclose(logw, want, rtol=0, atol=2e-4)
+    # the draws: the first parameter's values against the mixture's marginal (4 sigma)
+    marginal = share / paper.shape[0] + (1 - share) * (weights[:, None] * probs[:, 0,
+                                                       :paper.shape[0]]).sum(0)
+    counts = np.bincount(idx[:, 0], minlength=paper.shape[0])
+    sigma = np.sqrt(n * marginal * (1 - marginal))
+    assert np.all(np.abs(counts - n * marginal) <= 4 * sigma + 1)
+    # the requirement's robustness of those draws, through the public evaluate
+    out = jf.evaluate(paper.scenario(idx[:2000]))
+    np.testing.assert_allclose(rob[:2000], np.asarray(out.min_distance) - 1.0, atol=1e-5)
+
+
+@pytest.mark.parametrize("method, draws", [("mc", 1500), ("is", 600)])
+def test_intervals_cover_the_exact_rate(paper, exact, method, draws):
+    """40 seeds of each estimator at a 95 % level: the interval holds the exact rate in at
+    least 34 (the chance of 33 or fewer with a true coverage of 95 % is below 0.2 %)."""
+    covered = []
+    for seed in range(40):
+        s = est.estimate(est.EstimateConfig(
+            requirement="collision", method=method, samples=draws, batch=draws,
+            target_rel_error=1e-9, seed=seed, ce_samples=2000, ce_levels=3))
+        lo, hi = s["interval"]
+        covered.append(lo <= exact <= hi)
+        assert s["samples"] == draws
+    assert sum(covered) >= 34, sum(covered)
+
+
+def test_importance_sampling_narrows_the_interval_at_equal_draws(paper, exact):
+    """At the same number of final draws the importance-sampling interval is narrower than
+    Monte Carlo's on the paper space's collisions (3.7 %; 2x narrower measured)."""
+    width = {}
+    for method in ("mc", "is"):
+        s = est.estimate(est.EstimateConfig(requirement="collision", method=method,
+                                            samples=4000, batch=4000, target_rel_error=1e-9,
+                                            seed=1, ce_samples=65536))
+        width[method] = s["interval"][1] - s["interval"][0]
+        assert s["interval"][0] <= exact <= s["interval"][1]
+    assert width["is"] < width["mc"] / 1.5
+
+
+def test_the_command_writes_config_and_summary(tmp_path, capsys):
+    out = tmp_path / "est"
+    assert main(["estimate", "--requirement", "ttc", "--requirement-param", "min_ttc=1",
+                 "--method", "mc", "--samples", "4096", "--batch", "4096", "--out", str(out),
+                 "--quiet"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["requirement"] == "ttc" and s["requirement_params"] == {"min_ttc": 1.0}
+    assert s["samples"] == 4096 and s["interval"][0] <= s["estimate"] <= s["interval"][1]
+    assert json.loads((out / "status.json").read_text())["state"] == "complete"
+    assert 'kind = "estimate"' in (out / "config.toml").read_text()
+    said = capsys.readouterr().out
+    assert f"ttc violated with probability {s['estimate']:.4g}" in said
+    assert main(["estimate", "--out", str(out), "--quiet"]) == 2  # finished: not overwritten
+    assert "already holds summary.json" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--requirement", "nope"], "unknown requirement 'nope'"),
+    (["--requirement-param", "eps=1"], "has no parameter 'eps'"),
+    (["--requirement", "collision", "--requirement-param", "epsilon=1"], "has no parameter"),
+    (["--confidence", "1.5"], "--confidence 1.5: must be in (0, 1)"),
+    (["--method", "bogus"], "invalid choice: 'bogus'"),
+])
+def test_bad_estimate_input_is_one_line_and_writes_nothing(tmp_path, capsys, argv, says):
+    out = tmp_path / "never"
+    assert main(["estimate", *argv, "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and says in err[0], err
+    assert not out.exists()
