@@ -58,7 +58,7 @@ if _command_line():  # refused before any command starts (library calls refuse i
 
 __all__ = ["rss_safe_distance", "simulate", "evaluate", "load_space", "Space", "World", "WORLD",
            "Outcome", "Trajectory", "SUT", "Observation"]
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 
 _SUBMODULES = frozenset({
     "analysis", "cache", "campaign", "cli", "compare", "config", "distributed", "export",

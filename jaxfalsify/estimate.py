@@ -17,9 +17,12 @@ this is the distribution the space defines). Two estimators:
   ``w * 1[violated]`` and its interval the normal one on its sample variance. The proposal's
   probabilities are exact (products of table entries), so the weights are too.
 
-Both stop once the interval's half-width is at most ``target_rel_error`` of the estimate (with
-at least ``MIN_VIOLATIONS`` violating draws) or after ``samples`` draws. Each batch is one
-compiled call (draw, simulate, requirement, weights); the host keeps the sums in float64.
+Both stop once the interval's half-width is at most ``target_rel_error`` of the estimate
+(with at least ``MIN_VIOLATIONS`` violating draws) or after ``samples`` draws beyond the
+proposal's fitting. The draws of the cross-entropy levels count in the estimate, each
+weighted by p/q of the proposal it came from (:class:`Tally`; the first level's are uniform,
+Monte Carlo's). Each batch is one compiled call (draw, simulate, requirement, weights); the
+host keeps the sums in float64.
 :func:`exact_rate` evaluates every scenario of a space small enough to sweep (the oracle).
 """
 
@@ -300,8 +303,40 @@ def _draw(run, key, q: Proposal, log_u: float, params, rparams, n: int, batch: i
     return key, [np.concatenate(a)[:n] for a in zip(*parts)]
 
 
+class Tally:
+    """The running estimate over every draw so far, each weighted by p/q of the proposal it
+    was drawn from (1 for uniform draws): draws of the cross-entropy levels count too, so an
+    estimate never takes more draws than Monte Carlo's where the first, uniform, level
+    already reaches the target."""
+
+    def __init__(self, method: str, confidence: float):
+        self.method, self.confidence = method, confidence
+        self.s1 = self.s2 = 0.0
+        self.n = self.bad = 0
+        self.estimate = self.low = self.high = float("nan")
+        self.rel = math.inf
+
+    def add(self, violated: np.ndarray, log_weight: np.ndarray) -> None:
+        w = np.exp(np.asarray(log_weight, np.float64)) * violated
+        self.s1 += float(w.sum())
+        self.s2 += float((w * w).sum())
+        self.n += len(violated)
+        self.bad += int(violated.sum())
+        if self.method == "mc":
+            self.estimate = self.bad / self.n
+            self.low, self.high = wilson(self.bad, self.n, self.confidence)
+        else:
+            self.estimate, self.low, self.high = normal_interval(self.s1, self.s2, self.n,
+                                                                 self.confidence)
+        self.rel = (self.high - self.low) / 2 / self.estimate if self.estimate > 0 \
+            else math.inf
+
+    def reached(self, target: float) -> bool:
+        return self.bad >= MIN_VIOLATIONS and self.rel <= target
+
+
 def cross_entropy(sp: Space, run, params, rparams, c: EstimateConfig, key,
-                  progress: Progress) -> tuple[Proposal, dict]:
+                  progress: Progress, tally: Tally | None = None) -> tuple[Proposal, dict]:
     """The multilevel cross-entropy proposal, a mixture of ``ce_components`` products of
     categoricals: ``(proposal, {"levels", "samples"})``. Each level draws ``ce_samples``
     from the defensive mixture of the current proposal (the first: uniform) and fits the
@@ -322,6 +357,12 @@ def cross_entropy(sp: Space, run, params, rparams, c: EstimateConfig, key,
             c.defensive), params, rparams, c.ce_samples, c.batch)
         used += len(rob)
         n_bad = int(np.sum(rob < 0))
+        if tally is not None:
+            tally.add(rob < 0, logw)
+            if tally.reached(c.target_rel_error):
+                progress.message(f"cross-entropy level {levels}: the estimate reached the "
+                                 "target")
+                break
         gamma = 0.0 if n_bad >= ELITE_MIN else max(float(np.quantile(rob, c.ce_quantile)),
                                                     0.0)
         elite = rob < 0 if n_bad >= ELITE_MIN else rob <= gamma
@@ -341,7 +382,8 @@ def cross_entropy(sp: Space, run, params, rparams, c: EstimateConfig, key,
 
 def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None) -> dict:
     """The failure rate of ``config``'s requirement under its space: a dict with
-    ``estimator``, ``samples`` (final stage), ``proposal_samples`` (cross-entropy stage),
+    ``estimator``, ``samples`` (every draw the estimate counts), ``proposal_samples`` (those
+    drawn while fitting the proposal, counted too; ``samples`` allows ``config.samples`` more),
     ``violations`` (violating draws), ``estimate``, ``interval`` [low, high] at
     ``confidence``, ``relative_half_width``, ``reached_target``, ``seconds``."""
     cfg.check_type(config, EstimateConfig, "config")
@@ -352,41 +394,26 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
     run = _program(sp, sut, req, c.batch)
     key = jax.random.key(c.seed)
     ce = {"levels": 0, "samples": 0}
+    t = Tally(c.method, c.confidence)
     if c.method == "is":
         key, k = jax.random.split(key)
-        q, ce = cross_entropy(sp, run, params, rparams, c, k, progress)
+        q, ce = cross_entropy(sp, run, params, rparams, c, k, progress, t)
         log_u = math.log(c.defensive)
     else:
         q, log_u = uniform_proposal(sp), 0.0
-    s1 = s2 = 0.0
-    n = k_bad = 0
-    low = high = est = float("nan")
-    rel = math.inf
-    progress.start(c.samples, unit="draw", desc=f"{c.method} estimate")
-    while n < c.samples:
+    total = ce["samples"] + c.samples
+    progress.start(total, done=t.n, unit="draw", desc=f"{c.method} estimate")
+    while t.n < total and not t.reached(c.target_rel_error):
         if stop is not None and stop():
             break
         key, k = jax.random.split(key)
         _, rob, logw = run(k, jnp.asarray(q.log_weight), jnp.asarray(q.log_prob),
                            jnp.float32(log_u), params, rparams)
-        bad = np.asarray(rob) < 0
-        m = min(c.batch, c.samples - n)
-        bad = bad[:m]
-        w = np.exp(np.asarray(logw, np.float64)[:m]) * bad
-        s1 += float(w.sum())
-        s2 += float((w * w).sum())
-        n += m
-        k_bad += int(bad.sum())
-        if c.method == "mc":
-            est = k_bad / n
-            low, high = wilson(k_bad, n, c.confidence)
-        else:
-            est, low, high = normal_interval(s1, s2, n, c.confidence)
-        rel = (high - low) / 2 / est if est > 0 else math.inf
-        progress.update(n, estimate=f"{est:.3g}", rel=f"{rel:.3f}")
-        if k_bad >= MIN_VIOLATIONS and rel <= c.target_rel_error:
-            break
+        m = min(c.batch, total - t.n)
+        t.add(np.asarray(rob)[:m] < 0, np.asarray(logw)[:m])
+        progress.update(t.n, estimate=f"{t.estimate:.3g}", rel=f"{t.rel:.3f}")
     progress.close()
+    est, low, high, rel, n, k_bad = t.estimate, t.low, t.high, t.rel, t.n, t.bad
     return {"estimator": {"mc": "monte-carlo", "is": "importance-sampling (cross-entropy "
                           "proposal, defensive mixture)"}[c.method],
             "method": c.method, "requirement": c.requirement,
@@ -445,8 +472,9 @@ def summary_lines(s: dict) -> list[str]:
              f"({s['confidence']:.0%} interval [{lo:.4g}, {hi:.4g}], relative half-width "
              f"{s['relative_half_width']:.3g})",
              f"{s['estimator']}: {s['samples']:,} draws ({s['violations']:,} violating)"
-             + (f" after {s['proposal_samples']:,} draws fitting the proposal in "
-                f"{s['proposal_levels']} levels" if s["proposal_samples"] else "")
+             + (f", {s['proposal_samples']:,} of them while fitting the proposal in "
+                f"{s['proposal_levels']} level{'s' if s['proposal_levels'] > 1 else ''}"
+                if s["proposal_samples"] else "")
              + f", {s['seconds']:.1f} s"]
     if not s["reached_target"]:
         lines.append(f"the target relative half-width {s['target_rel_error']:g} was not "
