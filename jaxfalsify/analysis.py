@@ -75,10 +75,14 @@ def learner_converged(fields: dict, window: int = 100, tol: float = 0.05) -> int
 
 
 def typical_non_critical(fields: dict) -> int | None:
-    """Row of the non-colliding evaluation with the median reward (paper Table II's
-    'non-challenging'); None if every evaluation collided or was non-finite."""
-    ok = np.nonzero(~np.asarray(fields["collision"], bool)
-                    & ~np.asarray(fields["nonfinite"], bool))[0]
+    """Row of the evaluation with the median reward among those that satisfy the paper's
+    requirement, always not clash (robustness >= 0: the box gap never below epsilon), paper
+    Table II's 'non-challenging'; among the non-colliding ones if every evaluation clashed;
+    None if every evaluation collided or was non-finite."""
+    fine = ~np.asarray(fields["collision"], bool) & ~np.asarray(fields["nonfinite"], bool)
+    ok = np.nonzero(fine & (np.asarray(fields["robustness"]) >= 0))[0]
+    if ok.size == 0:
+        ok = np.nonzero(fine)[0]
     if ok.size == 0:
         return None
     r = np.asarray(fields["reward"])[ok]

@@ -170,7 +170,9 @@ def check_strategy_memory(b: Built, name: str, options: Mapping[str, Any]) -> No
     51 GiB of weights and Adam moments."""
     import jax
 
-    state = jax.eval_shape(b.strategy.init, jax.random.key(0), b.strategy_params)
+    # the key made inside the trace: a concrete one would start the backend, which must wait
+    # for jax.distributed.initialize in a multi-process comparison
+    state = jax.eval_shape(lambda: b.strategy.init(jax.random.key(0), b.strategy_params))
     need = sum(int(np.prod(x.shape)) * x.dtype.itemsize for x in jax.tree.leaves(state))
     given = ", ".join(f"{k}={v}" for k, v in sorted(options.items()))
     cfg.check_memory(STATE_COPIES * need, f"the state of {name}"

@@ -187,7 +187,10 @@ def default_batch(name: str) -> int:
     if e.batch_accelerator is not None:
         import jax
 
-        if jax.default_backend() != "cpu":
+        # JAX limited to CPUs: known without starting the backend, which a multi-process
+        # comparison must leave to jax.distributed.initialize
+        if (jax.config.jax_platforms or "").strip().lower() != "cpu" \
+                and jax.default_backend() != "cpu":
             return e.batch_accelerator
     return e.batch
 

@@ -291,3 +291,19 @@ def test_a_non_integer_process_variable_is_named(monkeypatch, var):
     with pytest.raises(ValueError) as e:
         initialize()
     assert var in str(e.value) and "\n" not in str(e.value)
+
+
+def test_checking_a_comparison_leaves_the_backend_to_jax_distributed():
+    """A comparison is checked before ``jax.distributed.initialize`` (so a bad flag stops a
+    process before the others wait for it), and JAX refuses to initialise after its backend
+    started: checking every built-in strategy's configuration must not start it (with JAX
+    limited to CPUs, as a test's processes are)."""
+    code = ("from jax._src import xla_bridge as xb\n"
+            "from jaxfalsify import search\n"
+            "from jaxfalsify.compare import CompareConfig\n"
+            "CompareConfig(strategies=tuple(search.REGISTRY), evaluations=64, seeds=2).check()\n"
+            "print('started' if xb._backends else 'not started')\n")
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       timeout=300)
+    assert r.stdout.strip().splitlines()[-1:] == ["not started"], (r.stdout, r.stderr[-800:])
