@@ -284,8 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="discretisation seed of the space (default 0)")
     _add_sut(e)
     _add_requirement(e)
-    e.add_argument("--method", choices=("is", "mc"), help="is: importance sampling with a "
-                   "cross-entropy proposal (default); mc: naive Monte Carlo")
+    e.add_argument("--method", choices=("is", "mc", "exact"), help="is: importance sampling "
+                   "with a cross-entropy proposal (default); mc: naive Monte Carlo; exact: "
+                   "every scenario evaluated (spaces up to 2**31 - 1)")
     e.add_argument("--target-rel-error", type=_float_positive("--target-rel-error"),
                    dest="target_rel_error", help="stop when the interval's half-width is at "
                    "most this share of the estimate (default 0.1)")

@@ -6,6 +6,7 @@ space being equally likely (the space's values are drawn from its declared distr
 this is the distribution the space defines). Two estimators:
 
 * ``mc`` — naive Monte Carlo: uniform draws; the interval is Wilson's score interval.
+* ``exact`` — every scenario evaluated (:func:`exact_rate`; spaces up to 2**31 - 1).
 * ``is`` — importance sampling with a cross-entropy proposal (Rubinstein's multilevel
   cross-entropy method, as O'Kelly et al., NeurIPS 2018, use it for AV crash rates): a mixture
   of ``ce_components`` products of one categorical distribution per parameter (a product alone
@@ -53,7 +54,7 @@ from jaxfalsify.problem import (
 from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.space import MAX_SIZE, Space
 
-METHODS = ("mc", "is")
+METHODS = ("mc", "is", "exact")
 MIN_VIOLATIONS = 10  # violating draws before the stopping rule may stop
 PER_COMPONENT = 200  # elite draws per mixture component, at least
 ELITE_MIN = 100  # violating draws of a cross-entropy level that end the levels (fit to them)
@@ -105,6 +106,9 @@ class EstimateConfig:
         """``(space, sut, sut_params, requirement, requirement_params)``, checked."""
         self.check()
         sp = build_space(self.space, self.space_seed)
+        if self.method == "exact" and sp.size > MAX_SIZE:
+            raise ValueError(f"method exact: space {sp.name} has {sp.size:.3g} scenarios, more "
+                             f"than can be evaluated one by one ({MAX_SIZE:,}); use is or mc")
         sut = sut_lib.resolve(self.sut)
         given = check_mapping("sut_params", self.sut_params)
         check_space_sut(sp, sut, set(given))
@@ -391,6 +395,18 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
     sp, sut, params, req, rparams = config.build()
     c = config
     t0 = time.perf_counter()
+    if c.method == "exact":
+        progress.phase(f"every scenario of {sp.name} ({sp.size:,})")
+        ex = exact_rate(sp, sut, params, req, rparams)
+        return {"estimator": "exhaustive (every scenario evaluated)", "method": "exact",
+                "requirement": c.requirement,
+                "requirement_params": sut_lib.params_dict(rparams), "space": sp.name,
+                "space_size": float(sp.size), "sut": c.sut, "samples": ex["scenarios"],
+                "proposal_samples": 0, "proposal_levels": 0, "violations": ex["violations"],
+                "estimate": ex["rate"], "interval": [ex["rate"], ex["rate"]],
+                "confidence": 1.0, "relative_half_width": 0.0,
+                "target_rel_error": c.target_rel_error, "reached_target": True,
+                "seconds": time.perf_counter() - t0}
     run = _program(sp, sut, req, c.batch)
     key = jax.random.key(c.seed)
     ce = {"levels": 0, "samples": 0}
@@ -468,6 +484,9 @@ def execute(config: EstimateConfig, out: Path | str, *, force: bool = False,
 def summary_lines(s: dict) -> list[str]:
     """What ``jaxfalsify estimate`` prints."""
     lo, hi = s["interval"]
+    if s["method"] == "exact":
+        return [f"{s['requirement']} violated by {s['violations']:,} of the "
+                f"{s['samples']:,} scenarios: {s['estimate']:.4g} (exact), {s['seconds']:.1f} s"]
     lines = [f"{s['requirement']} violated with probability {s['estimate']:.4g} "
              f"({s['confidence']:.0%} interval [{lo:.4g}, {hi:.4g}], relative half-width "
              f"{s['relative_half_width']:.3g})",

@@ -154,6 +154,8 @@ def with_params(req: Requirement, given: Mapping[str, float] | None = None,
     (one-line ValueError naming a bad name or value)."""
     if not given:
         return req.default_params
+    if not isinstance(given, Mapping):  # a full parameter pytree
+        return given
     known = param_names(req)
     values = {}
     for name, value in dict(given).items():

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -133,3 +134,18 @@ def test_bad_estimate_input_is_one_line_and_writes_nothing(tmp_path, capsys, arg
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and says in err[0], err
     assert not out.exists()
+
+
+def test_the_exact_method_counts_every_scenario(tmp_path, paper, exact, capsys):
+    assert main(["estimate", "--method", "exact", "--requirement", "collision", "--out",
+                 str(tmp_path / "x"), "--quiet"]) == 0
+    s = json.loads((tmp_path / "x" / "summary.json").read_text())
+    assert s["samples"] == paper.size and s["estimate"] == pytest.approx(exact, abs=1e-12)
+    assert s["violations"] == round(exact * paper.size)
+    said = f"violated by {round(exact * paper.size):,} of the {paper.size:,} scenarios"
+    assert said in capsys.readouterr().out
+    huge = str(Path(__file__).parents[2] / "experiments" / "spaces" / "strong-aeb.toml")
+    assert main(["estimate", "--method", "exact", "--space", huge, "--out",
+                 str(tmp_path / "y"), "--quiet"]) == 2
+    assert "than can be evaluated one by one" in capsys.readouterr().err
+    assert not (tmp_path / "y").exists()
