@@ -22,7 +22,16 @@ def ranked_reward(fields: dict) -> np.ndarray:
 
 
 def collided(fields: dict) -> np.ndarray:
+    """Which evaluations collided (a finite rollout whose boxes touched)."""
     return np.asarray(fields["collision"], bool) & ~np.asarray(fields["nonfinite"], bool)
+
+
+def critical(fields: dict) -> np.ndarray:
+    """Which evaluations violated the run's requirement (``violated``; a run that names none,
+    or records of a run without the column: the collisions)."""
+    if "violated" not in fields:
+        return collided(fields)
+    return np.asarray(fields["violated"], bool) & ~np.asarray(fields["nonfinite"], bool)
 
 
 def best(fields: dict) -> int:
@@ -33,6 +42,12 @@ def best(fields: dict) -> int:
 def first_collision(fields: dict) -> int | None:
     """Evaluation number (1-based) of the first collision, None if there was none."""
     hits = np.nonzero(collided(fields))[0]
+    return int(hits[0]) + 1 if hits.size else None
+
+
+def first_critical(fields: dict) -> int | None:
+    """Evaluation number (1-based) of the first violation of the run's requirement."""
+    hits = np.nonzero(critical(fields))[0]
     return int(hits[0]) + 1 if hits.size else None
 
 
@@ -77,9 +92,10 @@ def learner_converged(fields: dict, window: int = 100, tol: float = 0.05) -> int
 def typical_non_critical(fields: dict) -> int | None:
     """Row of the evaluation with the median reward among those that satisfy the paper's
     requirement, always not clash (robustness >= 0: the box gap never below epsilon), paper
-    Table II's 'non-challenging'; among the non-colliding ones if every evaluation clashed;
-    None if every evaluation collided or was non-finite."""
-    fine = ~np.asarray(fields["collision"], bool) & ~np.asarray(fields["nonfinite"], bool)
+    Table II's 'non-challenging', that neither collided nor violated the run's requirement;
+    among those if every one clashed; None if every evaluation collided, violated the
+    requirement or was non-finite."""
+    fine = ~collided(fields) & ~critical(fields) & ~np.asarray(fields["nonfinite"], bool)
     ok = np.nonzero(fine & (np.asarray(fields["robustness"]) >= 0))[0]
     if ok.size == 0:
         ok = np.nonzero(fine)[0]
@@ -90,10 +106,10 @@ def typical_non_critical(fields: dict) -> int | None:
 
 
 def _distinct_critical_rows(indices: np.ndarray, fields: dict):
-    """The distinct collision scenarios in :func:`distinct_critical`'s order, as arrays:
+    """The distinct critical scenarios in :func:`distinct_critical`'s order, as arrays:
     ``(index vectors (n, P), first evaluation's row (n,), times evaluated (n,))``."""
     idx = np.asarray(indices)
-    rows = np.nonzero(collided(fields))[0]
+    rows = np.nonzero(critical(fields))[0]
     if rows.size == 0:
         return (np.zeros((0, idx.shape[1]), idx.dtype), np.zeros(0, np.int64),
                 np.zeros(0, np.int64))
@@ -295,7 +311,7 @@ def table_ii(space, indices: np.ndarray, fields: dict) -> tuple[list[str], list[
     ``(header, rows)`` of strings, shared by the closing report and ``report.md``."""
     b = best(fields)
     t = typical_non_critical(fields)
-    head_b = "Challenging (best)" if collided(fields)[b] else "Best (no collision)"
+    head_b = "Challenging (best)" if critical(fields)[b] else "Best (no violation)"
     header = ["parameter", head_b, "Non-challenging (typical)"]
     rows = []
     for p, (n, u) in enumerate(zip(space.names, space.units)):

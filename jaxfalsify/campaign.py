@@ -29,14 +29,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfalsify import cache, sim
+from jaxfalsify import cache, requirements, sim
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.search.base import Strategy, accepts_ttc
 from jaxfalsify.space import Layout, Space
 
 RECORD_FIELDS = ("reward", "reward_rss", "reward_distance", "reward_collision", "collision",
                  "min_distance", "final_distance", "high_risk_share",
-                 "high_risk_share_second_half", "robustness", "nonfinite")
+                 "high_risk_share_second_half", "robustness", "nonfinite", "violated")
+# violated: the run's requirement is violated (collision without one named; counted
+# evaluations only: a non-finite rollout or one past the budget is never "violated")
 
 
 class Plan(NamedTuple):
@@ -87,15 +89,16 @@ class Args(NamedTuple):
     strategy_params: Any  # the strategy's hyperparameter pytree
     world: sim.World
     evaluations: jax.Array  # () int32, the budget
+    requirement_params: Any = None  # the requirement's parameter pytree (None: none)
 
 
 def args_for(space: Space, sut_params, strategy_params, world: sim.World,
-             evaluations: int) -> Args:
+             evaluations: int, requirement_params=None) -> Args:
     """The traced inputs, as host arrays (float32 parameters, int32 budget)."""
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     return Args(space.table_array, jax.tree.map(f32, sut_params),
                 jax.tree.map(f32, strategy_params), jax.tree.map(f32, world),
-                np.int32(evaluations))
+                np.int32(evaluations), jax.tree.map(f32, requirement_params))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,6 +109,8 @@ class Campaign:
     sut: sut_lib.SUT
     strategy: Strategy
     updates_per_chunk: int
+    requirement: Any = None  # a requirements.Requirement the search looks for violations of
+    # (None: collisions, ranked by the shaped signal of the clash robustness)
 
     @property
     def batch(self) -> int:
@@ -144,11 +149,17 @@ def make_campaign(c: Campaign):
         in_budget = evaluation < args.evaluations
         r = jnp.where(jnp.isnan(out.reward) | ~in_budget, -jnp.inf, out.reward)
         counted = in_budget & ~out.nonfinite
-        rob = jnp.where(counted & jnp.isfinite(out.robustness), out.robustness, jnp.inf)
+        if c.requirement is None:
+            robustness, violated = out.robustness, out.collision & counted
+        else:
+            robustness = requirements.robustness(c.requirement, out, args.requirement_params)
+            violated = (robustness < 0) & counted
+        rob = jnp.where(counted & jnp.isfinite(robustness), robustness, jnp.inf)
         extra = {"ttc": jnp.where(counted, out.min_ttc, jnp.inf)} if takes_ttc else {}
-        state = strategy.tell_outcome(k_tell, state, idx, r, rob, out.collision & counted,
+        state = strategy.tell_outcome(k_tell, state, idx, r, rob, violated,
                                       args.strategy_params, **extra)
-        rec = {"indices": idx, **{f: getattr(out, f) for f in RECORD_FIELDS}}
+        rec = {"indices": idx, **{f: getattr(out, f) for f in RECORD_FIELDS
+                                  if f != "violated"}, "violated": violated}
         new = {**carry, "state": state, "key": key, "update": carry["update"] + 1}
         # an update past the budget (the last chunk's tail when the chunk length does not
         # divide the updates) leaves the carry as it was; its records are dropped (collect)
@@ -189,8 +200,12 @@ def static_key(c: Campaign) -> dict | None:
         if code is None:
             return None
         strategy += f":{code}"
+    req = None if c.requirement is None else requirements.cache_key(c.requirement)
+    if c.requirement is not None and req is None:
+        return None
     return {"layout": repr(c.layout), "sut": sut, "strategy": repr(c.strategy),
-            "strategy_code": strategy, "updates_per_chunk": c.updates_per_chunk}
+            "strategy_code": strategy, "updates_per_chunk": c.updates_per_chunk,
+            **({"requirement": req} if req is not None else {})}
 
 
 @functools.lru_cache(maxsize=64)
@@ -402,7 +417,7 @@ def drive(prog: cache.Program, seeds: list[int], args: Args, p: Plan, *, progres
 
 def run_seeds(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy,
               strategy_params, p: Plan, seeds: list[int], world: sim.World = sim.WORLD,
-              **drive_kw) -> list[Result]:
+              requirement=None, requirement_params=None, **drive_kw) -> list[Result]:
     """Campaigns for many seeds in one compiled function (mapped over the seeds), chunk by
     chunk on the host (see :func:`drive` for the keywords). A resumed campaign gives
     bit-identical results to an uninterrupted one: the carry (strategy and optimiser state,
@@ -410,27 +425,31 @@ def run_seeds(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy,
     Result carries the chunks' measured seconds (:meth:`Result.search_seconds_at`); the seeds
     of one call share them evenly, so a caller that wants each seed's own measured time calls
     this once per seed (the one-seed program is compiled once and reused)."""
-    args = args_for(space, sut_params, strategy_params, world, p.evaluations)
-    prog = program(Campaign(space.layout, sut, strategy, p.updates_per_chunk), args,
-                   len(seeds))
+    args = args_for(space, sut_params, strategy_params, world, p.evaluations,
+                    requirement_params)
+    prog = program(Campaign(space.layout, sut, strategy, p.updates_per_chunk, requirement),
+                   args, len(seeds))
     chunk_s: list[float] = []
     records, compile_s, search_s = drive(prog, list(seeds), args, p, timed=chunk_s, **drive_kw)
     return collect(records, space, p, compile_s, search_s, np.asarray(chunk_s, np.float64))
 
 
 def run(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy, strategy_params,
-        p: Plan, seed: int, world: sim.World = sim.WORLD, **drive_kw) -> Result:
+        p: Plan, seed: int, world: sim.World = sim.WORLD, requirement=None,
+        requirement_params=None, **drive_kw) -> Result:
     """One seed (see :func:`run_seeds`)."""
     return run_seeds(space, sut, sut_params, strategy, strategy_params, p, [seed], world,
-                     **drive_kw)[0]
+                     requirement, requirement_params, **drive_kw)[0]
 
 
 def carry_avals(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy,
-                strategy_params, p: Plan, world: sim.World = sim.WORLD, n_seeds: int = 1):
+                strategy_params, p: Plan, world: sim.World = sim.WORLD, n_seeds: int = 1,
+                requirement=None, requirement_params=None):
     """Shapes and dtypes of a campaign's carry leaves (what a checkpoint must hold)."""
-    args = args_for(space, sut_params, strategy_params, world, p.evaluations)
-    return program(Campaign(space.layout, sut, strategy, p.updates_per_chunk), args,
-                   n_seeds).in_avals[0]
+    args = args_for(space, sut_params, strategy_params, world, p.evaluations,
+                    requirement_params)
+    return program(Campaign(space.layout, sut, strategy, p.updates_per_chunk, requirement),
+                   args, n_seeds).in_avals[0]
 
 
 def record_shapes(space: Space, p: Plan, n_seeds: int = 1) -> dict[str, tuple[int, ...]]:

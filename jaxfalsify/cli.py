@@ -166,6 +166,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--space-seed", type=_int("--space-seed"), dest="space_seed",
                    help="discretisation seed of the space (default 0)")
     _add_sut(r)
+    r.add_argument("--requirement", help="what counts as critical: collision (default), clash, "
+                   "ttc, rss or an import path module:attr / file.py:attr; the search looks "
+                   "for its violations")
+    r.add_argument("--requirement-param", action="append", dest="requirement_param",
+                   metavar="NAME=VALUE", help="set a requirement parameter (repeatable)")
     r.add_argument("--strategy", help=f"{strategies} (default reinforce/default)")
     r.add_argument("--strategy-param", action="append", dest="strategy_param",
                    metavar="NAME=VALUE", help="set a strategy option (repeatable)")
@@ -359,12 +364,14 @@ def cmd_run(args, stop, startup) -> int:
 
     if args.resume is not None:
         _no_flags_with_resume(args, runs.SETTINGS + ("config", "out", "force", "sut_param",
-                                                 "strategy_param"))
+                                                 "strategy_param", "requirement_param"))
         rc, out = runs.resume_config(args.resume), args.resume
     else:
         rc = runs.configure(args.config, sut_params=_sut_values(args.sut_param),
                             strategy_params=_assignments(args.strategy_param,
                                                          "--strategy-param"),
+                            requirement_params=_sut_values(args.requirement_param,
+                                                           "--requirement-param"),
                             **{k: getattr(args, k) for k in runs.SETTINGS})
         out = args.out  # None: a new folder runs/<time>-<strategy>
     o = runs.execute(rc, out, resume=args.resume is not None, force=args.force,

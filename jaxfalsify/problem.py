@@ -12,7 +12,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from jaxfalsify import campaign, search
+from jaxfalsify import campaign, requirements, search
 from jaxfalsify import config as cfg
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.pytree import check_ranges
@@ -101,6 +101,8 @@ class Built:
     strategy: search.Strategy
     strategy_params: Any
     plan: campaign.Plan
+    requirement: Any = None  # the Requirement the search looks for (None: collisions)
+    requirement_params: Any = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,6 +122,8 @@ class RunConfig:
     batch: int | None = None  # scenarios per update (None: the strategy's default)
     seed: int = 0  # search seed
     checkpoint_every: int | None = None  # updates between checkpoints (None: ~1/20 of the run)
+    requirement: str = "collision"  # what is critical: a requirement's name or import path
+    requirement_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
     def build(self) -> Built:
         """Validate and build everything; ValueError (one line) on bad values."""
@@ -142,8 +146,17 @@ class RunConfig:
                                           **check_mapping("strategy_params",
                                                           self.strategy_params))
         evaluations = self.evaluations or search.default_evaluations(name)
+        if not isinstance(self.requirement, str):
+            raise ValueError("requirement must be a name or an import path")
+        req = requirements.resolve(self.requirement)
+        rparams = requirements.with_params(req, check_mapping("requirement_params",
+                                                              self.requirement_params))
+        requirements.check(req, rparams)
+        if req is requirements.REGISTRY["collision"]:
+            req = None  # the campaign's own collisions (the same flags, no extra work)
         return Built(sp, sut, sut_params, strat, strat_params,
-                     campaign.plan(evaluations, strat.batch, every=self.checkpoint_every))
+                     campaign.plan(evaluations, strat.batch, every=self.checkpoint_every),
+                     req, rparams)
 
     def resolved(self, built: Built | None = None) -> "RunConfig":
         """Every default filled in: the canonical strategy name, its batch and full options,
@@ -154,7 +167,9 @@ class RunConfig:
             sut=sut_lib.recorded_spec(self.sut), batch=b.strategy.batch,
             evaluations=b.plan.evaluations,
             sut_params=fixed_sut_params(sut_lib.params_dict(b.sut_params), b.space),
-            strategy_params=_strategy_options(b))
+            strategy_params=_strategy_options(b),
+            requirement=sut_lib.recorded_spec(self.requirement),
+            requirement_params=sut_lib.params_dict(b.requirement_params))
 
     def to_toml(self) -> str:
         """``config.toml`` text (call on a :meth:`resolved` config)."""
@@ -163,6 +178,8 @@ class RunConfig:
                "space_seed": self.space_seed, "checkpoint_every": self.checkpoint_every,
                "sut_params": dict(self.sut_params),
                "strategy_params": dict(self.strategy_params),
+               "requirement": self.requirement,
+               "requirement_params": dict(self.requirement_params),
                "space": self.space if isinstance(self.space, Mapping) else self.space}
         return cfg.dumps_toml(doc)
 
@@ -178,10 +195,10 @@ class RunConfig:
     @classmethod
     def from_dict(cls, doc: Mapping, where: str = "config") -> "RunConfig":
         cfg.check_keys(doc, CONFIG_KEYS, where)
-        for key in ("sut", "strategy"):
+        for key in ("sut", "strategy", "requirement"):
             if key in doc and not isinstance(doc[key], str):
                 raise ValueError(f"{where}: {key} must be a string (got {doc[key]!r})")
-        for key in ("sut_params", "strategy_params"):
+        for key in ("sut_params", "strategy_params", "requirement_params"):
             if key in doc and not isinstance(doc[key], dict):
                 raise ValueError(f"{where}: [{key}] must be a table (got {doc[key]!r})")
         if "space" in doc and not isinstance(doc["space"], (str, dict)):
@@ -208,12 +225,14 @@ class RunConfig:
 
 CONFIG_KEYS = {f.name for f in dataclasses.fields(RunConfig)}
 SETTINGS = ("space", "space_seed", "sut", "strategy", "evaluations", "batch", "seed",
-            "checkpoint_every")  # what configure's keywords (jaxfalsify run's flags) set
+            "checkpoint_every", "requirement")  # what configure's keywords (run's flags) set
 
 
 def configure(config: RunConfig | Path | str | None = None, /, *,
               sut_params: Mapping[str, float] | None = None,
-              strategy_params: Mapping[str, Any] | None = None, **settings) -> RunConfig:
+              strategy_params: Mapping[str, Any] | None = None,
+              requirement_params: Mapping[str, float] | None = None,
+              **settings) -> RunConfig:
     """The configuration ``jaxfalsify run [--config FILE] [flags]`` runs: ``config`` (a
     ``config.toml`` path, a :class:`RunConfig`, or None for the defaults) with ``settings``
     (any of :data:`SETTINGS`; None values ignored) in place of its own and ``sut_params`` /
@@ -226,7 +245,7 @@ def configure(config: RunConfig | Path | str | None = None, /, *,
     unknown = sorted(set(settings) - set(SETTINGS))
     if unknown:
         raise ValueError(f"no run setting '{unknown[0]}' (one of {', '.join(SETTINGS)}, "
-                         "sut_params, strategy_params)")
+                         "sut_params, strategy_params, requirement_params)")
     settings = {k: v for k, v in settings.items() if v is not None}
     if config is None:
         rc = RunConfig()
@@ -238,6 +257,9 @@ def configure(config: RunConfig | Path | str | None = None, /, *,
         rc = dataclasses.replace(rc, sut_params={**rc.sut_params, **sut_params})
     if strategy_params:
         rc = dataclasses.replace(rc, strategy_params={**rc.strategy_params, **strategy_params})
+    if requirement_params:
+        rc = dataclasses.replace(rc, requirement_params={**rc.requirement_params,
+                                                         **requirement_params})
     return rc
 
 
@@ -256,6 +278,9 @@ def _overridden(rc: RunConfig, settings: dict) -> RunConfig:
         # is applied after this
     if "sut" in settings and not same(settings["sut"], rc.sut, sut_lib.recorded_spec):
         rc = dataclasses.replace(rc, sut_params={})
+    if "requirement" in settings and not same(settings["requirement"], rc.requirement,
+                                              sut_lib.recorded_spec):
+        rc = dataclasses.replace(rc, requirement_params={})
     if "space" in settings or "space_seed" in settings:
         if rc.sut_params:
             sp = build_space(settings.get("space", rc.space),

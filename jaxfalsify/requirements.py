@@ -38,7 +38,7 @@ from typing import Any, Callable, Mapping
 import jax
 import jax.numpy as jnp
 
-from jaxfalsify import pytree
+from jaxfalsify import cache, pytree
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.sim import Outcome
 
@@ -171,6 +171,15 @@ def with_params(req: Requirement, given: Mapping[str, float] | None = None,
         pytree.check_ranges(p, values, f"{where}: requirement '{req.name}'")
         return dataclasses.replace(p, **values)
     return {**p, **values}
+
+
+def cache_key(req: Requirement) -> str | None:
+    """What identifies a requirement in a cached program: a built-in's name, a user's by its
+    source (None: no source file, not cacheable)."""
+    if REGISTRY.get(req.name) is req:
+        return req.name
+    code = cache.user_code_hash(req.robustness)
+    return None if code is None else f"{req.name}:{code}"
 
 
 def robustness(req: Requirement, outcome: Outcome, params: Any) -> jax.Array:

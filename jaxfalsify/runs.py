@@ -103,8 +103,12 @@ def summary_dict(res: campaign.Result, rc: RunConfig) -> dict:
                 "high_risk_share_second_half")}}
     return {"strategy": rc.strategy, "space": res.space.name, "space_seed": rc.space_seed,
             "sut": rc.sut, "seed": rc.seed, "evaluations": res.n, "batch": rc.batch,
+            "requirement": rc.requirement,
+            "requirement_params": dict(rc.requirement_params),
             "first_collision_evaluation": analysis.first_collision(res.fields),
             "n_collisions": int(np.sum(analysis.collided(res.fields))),
+            "first_violation_evaluation": analysis.first_critical(res.fields),
+            "n_violations": int(np.sum(analysis.critical(res.fields))),
             "n_distinct_critical": fc.n, "n_failure_clusters": fc.k,
             "n_nonfinite": int(np.sum(res.fields["nonfinite"])),
             "best": best, "best_reached_evaluation": analysis.best_reached(res.fields),
@@ -146,7 +150,8 @@ def restore(ckpt: store.CampaignCheckpoint, b: Built, seed: int):
     """``(carry, records)`` saved in ``ckpt`` for this run (``(None, [])`` if none yet);
     raises :class:`~jaxfalsify.store.CheckpointError` if unusable."""
     template = campaign.carry_avals(b.space, b.sut, b.sut_params, b.strategy,
-                                    b.strategy_params, b.plan)
+                                    b.strategy_params, b.plan, requirement=b.requirement,
+                                    requirement_params=b.requirement_params)
     carry, records = ckpt.load(template)
     want = campaign.record_shapes(b.space, b.plan)
     if len(records) > b.plan.n_chunks or any(
@@ -338,9 +343,10 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
         t0 = time.perf_counter()
         progress.phase(f"compiling {rc.strategy} x {rc.sut} on {b.space.name}")
         campaign.program(campaign.Campaign(b.space.layout, b.sut, b.strategy,
-                                           b.plan.updates_per_chunk),
+                                           b.plan.updates_per_chunk, b.requirement),
                          campaign.args_for(b.space, b.sut_params, b.strategy_params, WORLD,
-                                           b.plan.evaluations), 1)  # export (or load) the program
+                                           b.plan.evaluations, b.requirement_params),
+                         1)  # export (or load) the program
         clock.add("compile", time.perf_counter() - t0)
         # then, while XLA compiles it (without the GIL), prepare the figures in the background
         prep = _Preparing(b) if figures else None
@@ -348,6 +354,8 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
                            rc.seed, progress=_stats_progress(progress, b.plan.evaluations,
                                                              f"{rc.strategy} on {b.space.name}",
                                                              start_from),
+                           requirement=b.requirement,
+                           requirement_params=b.requirement_params,
                            checkpoint=ckpt, resumed=resumed, stop=stop)
         if stop is not None and stop():  # the signal came during the last chunk: commit
             raise campaign.Stopped(b.plan.n_chunks)
@@ -448,10 +456,19 @@ def closing_report(o: RunOutcome) -> str:
 
 def run_lines(s: dict) -> list[str]:
     """What a run found, in words (the closing report and report.md)."""
-    fc = s["first_collision_evaluation"]
-    found = (f"{s['n_collisions']} collisions, {s['n_distinct_critical']} distinct critical "
-             f"scenarios{cluster_words(s)}, the first at evaluation {fc}" if fc is not None else
-             "no collision found (the best scenario below is not critical)")
+    req = s.get("requirement", "collision")
+    if req == "collision":
+        fc = s["first_collision_evaluation"]
+        found = (f"{s['n_collisions']} collisions, {s['n_distinct_critical']} distinct critical "
+                 f"scenarios{cluster_words(s)}, the first at evaluation {fc}" if fc is not None
+                 else "no collision found (the best scenario below is not critical)")
+    else:
+        fv = s["first_violation_evaluation"]
+        found = (f"{s['n_violations']} violations of {req}, {s['n_distinct_critical']} distinct "
+                 f"critical scenarios{cluster_words(s)}, the first at evaluation {fv}; "
+                 f"{s['n_collisions']} collisions" if fv is not None else
+                 f"no violation of {req} found (the best scenario below is not critical); "
+                 f"{s['n_collisions']} collisions")
     conv = s.get("learner_converged_evaluation")
     best = (f"Best reward {s['best']['reward']:.4f}, first evaluated at "
             f"{s['best']['evaluation']}; the running best was within 1 % of it from evaluation "

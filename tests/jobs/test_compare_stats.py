@@ -16,6 +16,7 @@ def _result(indices, rewards, collision):
     n = len(rewards)
     fields = {f: np.zeros(n, np.float32) for f in campaign.RECORD_FIELDS}
     fields.update(reward=np.asarray(rewards, np.float32), collision=np.asarray(collision, bool),
+                  violated=np.asarray(collision, bool),  # a comparison's critical: collisions
                   nonfinite=np.isnan(np.asarray(rewards, np.float32)))
     return campaign.Result(_Space(), 2, np.asarray(indices, np.int32), fields)
 

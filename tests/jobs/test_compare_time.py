@@ -22,6 +22,7 @@ def _result(chunk_seconds, batch, per_chunk, n, collision_at=(), seeds_per_call=
     """A hand-built campaign Result of ``n`` evaluations with the given chunk times."""
     fields = {f: np.zeros(n, np.float32) for f in campaign.RECORD_FIELDS}
     fields["collision"] = np.isin(np.arange(1, n + 1), collision_at)
+    fields["violated"] = fields["collision"]  # a comparison's critical: collisions
     fields["nonfinite"] = np.zeros(n, bool)
 
     class _Space:

@@ -298,7 +298,7 @@ def test_analysis_by_hand():
     rew = np.array([-0.03, 0.1, 0.263, 0.05, 0.2648, np.nan], np.float32)
     col = np.array([False, False, True, False, True, False])
     fields = {f: np.zeros(6, np.float32) for f in campaign.RECORD_FIELDS}
-    fields.update(reward=rew, collision=col, nonfinite=np.isnan(rew))
+    fields.update(reward=rew, collision=col, violated=col, nonfinite=np.isnan(rew))
     idx = np.array([[0] * 5, [1] * 5, [2] * 5, [3] * 5, [2] * 5, [4] * 5], np.int32)
     assert analysis.first_collision(fields) == 3
     assert analysis.best_reached(fields) == 3  # 0.263 is within 1 % of 0.2648

@@ -1,0 +1,88 @@
+"""A run names its requirement: the search looks for its violations and every count of
+critical scenarios is of violations, with collisions reported beside (oracle: the recorded
+minimum box gap and collision flags of every evaluation)."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from conftest import TINY_SPACE
+
+from jaxfalsify import runs
+from jaxfalsify.cli import main
+
+
+def _table(out):
+    t = pq.read_table(out / "evaluations.parquet").to_pydict()
+    return {k: np.asarray(v) for k, v in t.items()}
+
+
+@pytest.fixture(scope="module")
+def space(tmp_path_factory):
+    p = tmp_path_factory.mktemp("req") / "tiny.toml"
+    p.write_text(TINY_SPACE)
+    return p
+
+
+def test_critical_is_a_violation_of_the_requirement(space, tmp_path):
+    rc = runs.RunConfig(space=str(space), strategy="random", evaluations=96, batch=16, seed=2,
+                        requirement="clash", requirement_params={"epsilon": 1.5})
+    o = runs.execute(rc, tmp_path / "r", figures=False)
+    ep = _table(tmp_path / "r")
+    want = (ep["min_distance"] - 1.5 < 0) & ~ep["nonfinite"]
+    np.testing.assert_array_equal(ep["violated"], want)
+    assert want.any() and (want & ~ep["collision"]).any()  # clashes that did not collide
+    s = o.summary
+    assert s["requirement"] == "clash" and s["requirement_params"] == {"epsilon": 1.5}
+    assert s["n_violations"] == int(want.sum())
+    assert s["first_violation_evaluation"] == int(np.argmax(want)) + 1
+    assert s["n_collisions"] == int(np.sum(ep["collision"] & ~ep["nonfinite"]))
+    names = [n[:-4] for n in ep if n.endswith("_idx")]
+    idx = np.stack([ep[f"{n}_idx"] for n in names], -1)
+    with open(tmp_path / "r" / "critical.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == s["n_distinct_critical"] == len(np.unique(idx[want], axis=0))
+    assert all(float(r["min_distance"]) < 1.5 for r in rows)
+    # the typical non-critical scenario satisfies it
+    typ = runs.analysis.typical_non_critical(ep)
+    assert ep["min_distance"][typ] >= 1.5
+    toml = (tmp_path / "r" / "config.toml").read_text()
+    assert 'requirement = "clash"' in toml and "epsilon = 1.5" in toml
+    again = runs.configure(tmp_path / "r" / "config.toml")
+    assert again.requirement == "clash" and dict(again.requirement_params) == {"epsilon": 1.5}
+
+
+def test_without_a_requirement_critical_means_collision(space, tmp_path):
+    o = runs.execute(runs.RunConfig(space=str(space), strategy="random", evaluations=64,
+                                    batch=16, seed=1), tmp_path / "d", figures=False)
+    ep = _table(tmp_path / "d")
+    np.testing.assert_array_equal(ep["violated"], ep["collision"] & ~ep["nonfinite"])
+    assert o.summary["n_violations"] == o.summary["n_collisions"]
+    assert o.summary["requirement"] == "collision"
+
+
+def test_a_bad_requirement_is_one_line_and_writes_nothing(space, tmp_path, capsys):
+    out = tmp_path / "never"
+    assert main(["run", "--space", str(space), "--requirement", "clash",
+                 "--requirement-param", "eps=1", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "has no parameter 'eps'" in err[0], err
+    assert not out.exists()
+    assert main(["run", "--space", str(space), "--requirement", "nope", "--out", str(out),
+                 "--quiet"]) == 2
+    assert "unknown requirement 'nope'" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_the_closing_lines_count_violations(space, tmp_path, capsys):
+    assert main(["run", "--space", str(space), "--strategy", "random", "--evaluations", "32",
+                 "--batch", "16", "--requirement", "ttc", "--out", str(tmp_path / "t"),
+                 "--no-figures"]) == 0
+    s = json.loads((tmp_path / "t" / "summary.json").read_text())
+    said = capsys.readouterr().out
+    assert f"{s['n_violations']} violations of ttc" in said
+    assert f"{s['n_collisions']} collisions" in said
