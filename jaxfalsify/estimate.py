@@ -58,7 +58,6 @@ METHODS = ("mc", "is", "exact")
 MIN_VIOLATIONS = 10  # violating draws before the stopping rule may stop
 PER_COMPONENT = 200  # elite draws per mixture component, at least
 ELITE_MIN = 100  # violating draws of a cross-entropy level that end the levels (fit to them)
-SEQUENTIAL_EVERY = 1  # batches between checks of the stopping rule
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,15 +146,6 @@ def uniform_proposal(sp: Space) -> Proposal:
     mask = np.arange(int(shape.max()))[None, :] < shape[:, None]
     table = np.where(mask, -np.log(shape)[:, None], -np.inf).astype(np.float32)
     return Proposal(np.zeros(1, np.float32), table[None])
-
-
-def proposal_log_prob(q: Proposal, idx: np.ndarray) -> np.ndarray:
-    """log q(x) of index vectors ``idx`` (N, P), in NumPy float64 (a reference)."""
-    lp = np.asarray(q.log_prob, np.float64)
-    per = lp[:, np.arange(idx.shape[1])[None, :], idx].sum(-1)  # (K, N)
-    lw = np.asarray(q.log_weight, np.float64)[:, None]
-    top = (per + lw).max(0)
-    return top + np.log(np.exp(per + lw - top).sum(0))
 
 
 _PROGRAMS: dict = {}  # compiled programs of this process, by space, SUT, requirement, batch

@@ -164,7 +164,6 @@ class Outcome:
     # pedestrian is ahead (< 0 at the high-risk steps; inf if it never was ahead)
 
 
-UNROLL = 1
 BLOCK = 32  # steps per block: one uint32 word of high-risk bits, early exit between blocks
 STILL = 6  # the original profile is constant for steps 0..5 (pdf.py, starting_speed_upto + 1)
 WINDOW = 6  # the original speed-change window covers steps T..T+5 (change_speed_timesteps + 1)
@@ -415,7 +414,7 @@ def _parts(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array, world:
     def run_block(c: _Carry, b):
         """BLOCK steps from step b*BLOCK; returns the block's high-risk bits as one word."""
         c, rec = jax.lax.scan(step, c._replace(hr_word=jnp.uint32(0)),
-                              b * BLOCK + jnp.arange(BLOCK, dtype=jnp.int32), unroll=UNROLL)
+                              b * BLOCK + jnp.arange(BLOCK, dtype=jnp.int32))
         return c, (c.hr_word, rec)
 
     return init, run_block, lambda c, words: _outcome(c, words, w)
