@@ -63,7 +63,9 @@ __version__ = "0.4.0"
 _SUBMODULES = frozenset({
     "analysis", "cache", "campaign", "cli", "compare", "config", "distributed", "export",
     "figures", "metrics", "progress", "pytree", "reference", "replay", "report", "reward",
-    "runs", "search", "sim", "space", "store", "sut", "sweep", "weather"})
+    "runs", "search", "sim", "space", "store", "sut", "sweep", "weather", "external",
+    "evaluators", "estimate", "requirements"})
+_LAZY = {"Falsifier": "external", "RunConfig": "problem"}  # names loaded with their module
 
 
 def __getattr__(name: str):
@@ -71,8 +73,10 @@ def __getattr__(name: str):
     first access, so ``import jaxfalsify`` stays cheap."""
     if name in _SUBMODULES:
         return _importlib.import_module(f"jaxfalsify.{name}")
+    if name in _LAZY:
+        return getattr(_importlib.import_module(f"jaxfalsify.{_LAZY[name]}"), name)
     raise AttributeError(f"module 'jaxfalsify' has no attribute {name!r}")
 
 
 def __dir__():
-    return sorted(set(globals()) | _SUBMODULES)
+    return sorted(set(globals()) | _SUBMODULES | set(_LAZY))

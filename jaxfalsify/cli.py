@@ -184,6 +184,20 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--checkpoint-every", type=_int("--checkpoint-every", 1),
                    dest="checkpoint_every", help="updates between checkpoints (default: "
                    "about 1/20 of the run)")
+    r.add_argument("--evaluator", metavar="MODULE:ATTR",
+                   help="evaluate the scenarios with this host function instead of the JAX "
+                   "simulator (a system outside JAX: module:attr or file.py:attr taking a dict "
+                   "of parameter arrays, returning robustness); default strategy then "
+                   "reinforce/screened")
+    r.add_argument("--workers", type=_int("--workers", 1),
+                   help="evaluator processes (default: the CPU cores)")
+    r.add_argument("--timeout", type=_float_positive("--timeout"),
+                   help="seconds an evaluator may take per scenario (default: no limit)")
+    r.add_argument("--retries", type=_int("--retries", 0),
+                   help="further tries of a scenario whose evaluation failed (default 1)")
+    r.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run the evaluator on a Dask cluster (tcp://host:8786) instead of local "
+                   "processes (pip install 'jaxfalsify[cluster]')")
     r.add_argument("--out", type=_folder, help="run folder (default runs/<timestamp>-<strategy>)")
     r.add_argument("--force", action="store_true", help="overwrite an existing run folder")
     r.add_argument("--resume", type=_folder, metavar="RUN_DIR",
@@ -374,9 +388,28 @@ def cmd_run(args, stop, startup) -> int:
                                                            "--requirement-param"),
                             **{k: getattr(args, k) for k in runs.SETTINGS})
         out = args.out  # None: a new folder runs/<time>-<strategy>
-    o = runs.execute(rc, out, resume=args.resume is not None, force=args.force,
-                     progress=_progress(args.quiet), stop=stop, figures=not args.no_figures,
-                     rerun=args.rerun, startup_seconds=startup)
+        if args.evaluator and args.strategy is None and args.config is None:
+            # an external system: the sample-efficient strategy (unless one is named)
+            rc = runs.configure(rc, strategy="reinforce/screened")
+    host = ("workers", "timeout", "retries", "scheduler")
+    if rc.evaluator:
+        if args.rerun:
+            raise UsageError("--rerun needs the JAX simulator (a run with an evaluator has no "
+                             "trajectories to record)")
+        from jaxfalsify import evaluators
+
+        o = evaluators.run(rc, out, workers=args.workers, timeout=args.timeout,
+                           retries=1 if args.retries is None else args.retries,
+                           scheduler=args.scheduler, resume=args.resume is not None,
+                           force=args.force, progress=_progress(args.quiet), stop=stop,
+                           figures=not args.no_figures)
+    else:
+        given = [n for n in host if getattr(args, n) is not None]
+        if given:
+            raise UsageError(f"--{given[0]} needs --evaluator")
+        o = runs.execute(rc, out, resume=args.resume is not None, force=args.force,
+                         progress=_progress(args.quiet), stop=stop, figures=not args.no_figures,
+                         rerun=args.rerun, startup_seconds=startup)
     if not args.quiet:
         print(runs.closing_report(o))
     print(f"wrote {o.out}/ (config.toml, evaluations.parquet, summary.json, critical.csv, "

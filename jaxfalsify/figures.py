@@ -238,6 +238,18 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
     place()
     save(fig, "reward_per_evaluation.png")
 
+    if not rc.evaluator:  # an evaluator's run has no JAX SUT to simulate its scenarios
+        _simulated_figures(plt, save, sp, rc, ep, world, prepared)
+    save(search_figure(plt, sp, ep, rc.strategy), "search_distribution.png")
+    save(cluster_figure(plt, sp, ep), "failure_clusters.png")
+    out.mkdir(exist_ok=True)
+    store.write_all_atomic(drawn)
+    return list(drawn)
+
+
+def _simulated_figures(plt, save, sp, rc, ep, world, prepared) -> None:
+    """The figures that simulate the run's scenarios again (Fig. 7-10) and the
+    critical-region map of the exhaustive sweep."""
     # every scenario shown below, simulated in one call
     rows = pick(ep)
     typical = rows["typical"] if rows["typical"] is not None else rows["best"]
@@ -313,11 +325,6 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
         truth = ground_truth(sp, rc.sut, dict(rc.sut_params), world)
         base = prepared and prepared.critical_base(sp, truth["collision"])
         save(critical_region_figure(plt, sp, truth, ep, base=base), "critical_regions.png")
-    save(search_figure(plt, sp, ep, rc.strategy), "search_distribution.png")
-    save(cluster_figure(plt, sp, ep), "failure_clusters.png")
-    out.mkdir(exist_ok=True)
-    store.write_all_atomic(drawn)
-    return list(drawn)
 
 
 def axis_label(sp, p: int) -> str:

@@ -124,9 +124,15 @@ class RunConfig:
     checkpoint_every: int | None = None  # updates between checkpoints (None: ~1/20 of the run)
     requirement: str = "collision"  # what is critical: a requirement's name or import path
     requirement_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    evaluator: str = ""  # "": the built-in JAX SUT; "python": a user's own ask/tell loop
+    # (jaxfalsify.Falsifier); "module:attr": a host function run by worker processes
+    # (jaxfalsify.evaluators). With an evaluator, sut is "external" and the evaluator's
+    # robustness says what is critical (robustness < 0)
 
     def build(self) -> Built:
         """Validate and build everything; ValueError (one line) on bad values."""
+        if self.evaluator:
+            return self._build_external()
         check_int("seed", self.seed, 0, SEED_LIMIT - 1)
         check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
         if self.evaluations is not None:
@@ -158,10 +164,51 @@ class RunConfig:
                      campaign.plan(evaluations, strat.batch, every=self.checkpoint_every),
                      req, rparams)
 
+    def _build_external(self) -> Built:
+        """An external evaluator's run: the space, the strategy and the plan (no SUT, no
+        requirement: the evaluator's robustness decides)."""
+        check_evaluator(self.evaluator)
+        for key in ("seed", "space_seed"):
+            check_int(key, getattr(self, key), 0, SEED_LIMIT - 1)
+        if self.evaluations is not None:
+            check_int("evaluations", self.evaluations, 1, 10**9)
+        if self.batch is not None:
+            check_int("batch", self.batch, 1, 10**6)
+        if self.checkpoint_every is not None:
+            check_int("checkpoint_every", self.checkpoint_every, 1)
+        if self.sut not in ("external", RunConfig.sut) or self.sut_params:
+            raise ValueError(f"sut = {self.sut!r}: a run with an evaluator has no JAX SUT "
+                             "(its evaluator is the system under test)")
+        if self.requirement not in (RunConfig.requirement, "evaluator") or \
+                self.requirement_params:
+            raise ValueError(f"requirement = {self.requirement!r}: with an evaluator, its "
+                             "results decide what is critical (its collision flags, or "
+                             "robustness < 0)")
+        if not isinstance(self.strategy, str):
+            raise ValueError("strategy must be a name")
+        sp = build_space(self.space, self.space_seed)
+        bad = [n for n in sp.names if is_sut_parameter(n)]
+        if bad:
+            raise ValueError(f"space parameter '{bad[0]}': sut.NAME parameters set a JAX SUT's "
+                             "parameters; an evaluator takes scenario parameters only")
+        name = search.canonical(self.strategy)
+        strat, strat_params = search.make(name, sp.shape, self.batch,
+                                          **check_mapping("strategy_params",
+                                                          self.strategy_params))
+        evaluations = self.evaluations or search.default_evaluations(name)
+        return Built(sp, None, None, strat, strat_params,
+                     campaign.plan(evaluations, strat.batch, every=self.checkpoint_every))
+
     def resolved(self, built: Built | None = None) -> "RunConfig":
         """Every default filled in: the canonical strategy name, its batch and full options,
         the SUT's full parameters, the space's full description."""
         b = built or self.build()
+        if self.evaluator:
+            return dataclasses.replace(
+                self, space=b.space.describe(), strategy=search.canonical(self.strategy),
+                sut="external", sut_params={}, batch=b.strategy.batch,
+                evaluations=b.plan.evaluations, strategy_params=_strategy_options(b),
+                requirement="evaluator", requirement_params={})
         return dataclasses.replace(
             self, space=b.space.describe(), strategy=search.canonical(self.strategy),
             sut=sut_lib.recorded_spec(self.sut), batch=b.strategy.batch,
@@ -180,6 +227,7 @@ class RunConfig:
                "strategy_params": dict(self.strategy_params),
                "requirement": self.requirement,
                "requirement_params": dict(self.requirement_params),
+               **({"evaluator": self.evaluator} if self.evaluator else {}),
                "space": self.space if isinstance(self.space, Mapping) else self.space}
         return cfg.dumps_toml(doc)
 
@@ -195,7 +243,7 @@ class RunConfig:
     @classmethod
     def from_dict(cls, doc: Mapping, where: str = "config") -> "RunConfig":
         cfg.check_keys(doc, CONFIG_KEYS, where)
-        for key in ("sut", "strategy", "requirement"):
+        for key in ("sut", "strategy", "requirement", "evaluator"):
             if key in doc and not isinstance(doc[key], str):
                 raise ValueError(f"{where}: {key} must be a string (got {doc[key]!r})")
         for key in ("sut_params", "strategy_params", "requirement_params"):
@@ -211,11 +259,15 @@ class RunConfig:
         # the file's SUT, strategy and their options named by the file (a flag may replace
         # them later, but the file itself is wrong)
         try:
-            sut = sut_lib.resolve(doc.get("sut", cls.sut))
+            if doc.get("evaluator"):
+                check_evaluator(doc["evaluator"])
+                sut = None
+            else:
+                sut = sut_lib.resolve(doc.get("sut", cls.sut))
             name = search.canonical(doc.get("strategy", cls.strategy))
         except ValueError as e:
             raise ValueError(f"{where}: {e}") from None
-        if doc.get("sut_params"):
+        if doc.get("sut_params") and sut is not None:
             sut_lib.with_params(sut, doc["sut_params"], f"{where}: [sut_params]")
         if doc.get("strategy_params"):
             search.check_options(name, doc["strategy_params"],
@@ -224,8 +276,24 @@ class RunConfig:
 
 
 CONFIG_KEYS = {f.name for f in dataclasses.fields(RunConfig)}
+
+
+def check_evaluator(spec) -> None:
+    """ValueError (one line) unless ``spec`` is ``"python"`` or an import path
+    ``module:attr`` (or ``path/to/file.py:attr``); the import itself is
+    :func:`jaxfalsify.evaluators.load`'s."""
+    if not isinstance(spec, str) or not spec:
+        raise ValueError(f"evaluator must be 'python' or an import path module:attr "
+                         f"(got {spec!r})")
+    if spec == "python":
+        return
+    mod, sep, attr = spec.rpartition(":")
+    if not sep or not mod or not attr.isidentifier():
+        raise ValueError(f"evaluator '{spec}' is not an import path module:attr")
+
+
 SETTINGS = ("space", "space_seed", "sut", "strategy", "evaluations", "batch", "seed",
-            "checkpoint_every", "requirement")  # what configure's keywords (run's flags) set
+            "checkpoint_every", "requirement", "evaluator")  # configure's keywords (run's flags)
 
 
 def configure(config: RunConfig | Path | str | None = None, /, *,

@@ -34,6 +34,20 @@ def simulate_command(sp, rc, ep: dict, row: int) -> list[str]:
             f"{int(ep['evaluation'][row])}'s; replay shows the run's own draw", cmd]
 
 
+def reproduce_lines(run_dir: Path, sp, rc, ep: dict, row: int) -> list[str]:
+    """report.md's commands that repeat the run and show its results."""
+    if rc.evaluator == "python":  # the user's own loop ran it: nothing to re-simulate
+        return [f"# an ask/tell run (jaxfalsify.Falsifier): repeat your loop with the settings "
+                f"of {run_dir}/config.toml", f"jaxfalsify figures {run_dir}"]
+    again = [f"jaxfalsify run --config {run_dir}/config.toml --out {run_dir}-again",
+             f"jaxfalsify figures {run_dir}"]
+    if rc.evaluator:
+        return again
+    return [*again, f"jaxfalsify replay {run_dir} --scenario best --scenarios 14",
+            f"jaxfalsify export {run_dir} --scenario best --out {run_dir}/openscenario",
+            *simulate_command(sp, rc, ep, row)]
+
+
 REPORT_CLUSTERS = 10  # failure clusters report.md tabulates (the largest)
 
 
@@ -89,7 +103,9 @@ def write_report(run_dir: Path, timing: dict | None = None) -> Path:
              "| | |", "|---|---|",
              f"| strategy | {s['strategy']} |",
              f"| space | {s['space']} (space seed {s['space_seed']}) |",
-             f"| system under test | {s['sut']} |",
+             f"| system under test | {s['sut']} |" if not rc.evaluator else
+             f"| system under test | evaluator `{rc.evaluator}` (critical: its collision flags, "
+             f"or robustness < 0; {s.get('n_failed', 0)} evaluations failed) |",
              f"| seed | {s['seed']} |",
              f"| evaluations | {s['evaluations']} (batch {s['batch']}) |",
              f"| collisions | {s['n_collisions']} ({s['n_distinct_critical']} distinct) |",
@@ -115,12 +131,8 @@ def write_report(run_dir: Path, timing: dict | None = None) -> Path:
         lines += ["", "## Figures", ""]
         for f, cap in figs:
             lines += [f"![{cap}](figures/{f})", "", f"*{cap}*", ""]
-    lines += ["", "## Reproduce", "", "```bash",
-              f"jaxfalsify run --config {run_dir}/config.toml --out {run_dir}-again",
-              f"jaxfalsify figures {run_dir}",
-              f"jaxfalsify replay {run_dir} --scenario best --scenarios 14",
-              f"jaxfalsify export {run_dir} --scenario best --out {run_dir}/openscenario",
-              *simulate_command(sp, rc, ep, b), "```", "",
+    lines += ["", "## Reproduce", "", "```bash", *reproduce_lines(run_dir, sp, rc, ep, b),
+              "```", "",
               f"Files: `config.toml` (resolved configuration), `evaluations.parquet` (every "
               f"evaluated scenario), `summary.json`, `critical.csv` "
               f"({int(np.sum(analysis.collided(fields)))} collisions, distinct ones ranked by "

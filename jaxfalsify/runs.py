@@ -457,7 +457,13 @@ def closing_report(o: RunOutcome) -> str:
 def run_lines(s: dict) -> list[str]:
     """What a run found, in words (the closing report and report.md)."""
     req = s.get("requirement", "collision")
-    if req == "collision":
+    if req == "evaluator":  # an external evaluator's failures: its flags or robustness < 0
+        fv = s["first_violation_evaluation"]
+        found = (f"{s['n_violations']} failures, {s['n_distinct_critical']} distinct critical "
+                 f"scenarios{cluster_words(s)}, the first at evaluation {fv}; "
+                 f"{s.get('n_failed', 0)} evaluations failed" if fv is not None else
+                 f"no failure found; {s.get('n_failed', 0)} evaluations failed")
+    elif req == "collision":
         fc = s["first_collision_evaluation"]
         found = (f"{s['n_collisions']} collisions, {s['n_distinct_critical']} distinct critical "
                  f"scenarios{cluster_words(s)}, the first at evaluation {fc}" if fc is not None

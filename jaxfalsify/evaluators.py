@@ -1,0 +1,348 @@
+"""Host evaluators: a user's function that evaluates concrete scenarios outside JAX (their own
+simulator, a co-simulation, hardware in the loop), run by a pool of worker processes or on a
+Dask cluster, with a search of this project steering it (``jaxfalsify run --evaluator``).
+
+**The evaluator** is ``module:attr`` (or ``path/to/file.py:attr``), a function of one batch::
+
+    def evaluate(scenarios: dict[str, np.ndarray]) -> np.ndarray | dict[str, np.ndarray]
+
+``scenarios`` maps each space parameter's name to its ``(n,)`` float64 values, in the space's
+units. It returns the requirement's robustness ``(n,)`` (negative: violated), or a dict with
+``robustness`` and any of ``collision`` (bool: the failures searched for; default
+``robustness < 0``) and the signals :data:`jaxfalsify.external.SIGNALS`. It runs in worker
+processes (fresh interpreters that import it, never the user's script), so it must be
+importable there: a module on the path, or a file.
+
+**The pool** (:class:`Pool`) hands each idle worker a chunk of the batch, waits at most
+``timeout`` seconds per scenario of the chunk, and on an exception, a timeout (the worker is
+killed) or a worker that died retries the chunk's scenarios one by one, ``retries`` times;
+a scenario that still fails is recorded as failed (``failed`` in ``evaluations.parquet``,
+listed in ``summary.json``), never dropped. :class:`DaskPool` does the same on a Dask cluster
+(``--scheduler tcp://host:8786``), whose workers may be on other machines.
+
+:func:`run` is the job: a :class:`jaxfalsify.external.Falsifier` asking, the pool
+evaluating, checkpointed after every update and resumable.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import socket
+import subprocess
+import sys
+import time
+from multiprocessing.connection import Connection, wait
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from jaxfalsify import store
+from jaxfalsify.external import Asked, Falsifier
+from jaxfalsify.problem import RunConfig
+from jaxfalsify.progress import Progress
+from jaxfalsify.worker import SIGNALS, EvaluatorError, call, load  # noqa: F401 - re-exported
+
+WORKER = str(Path(__file__).with_name("worker.py"))  # a worker process runs this file
+
+@dataclasses.dataclass
+class Results:
+    """One batch's results: ``outputs`` ``{name: (B,)}`` (NaN / False where failed),
+    ``failed (B,)`` bool and ``errors`` ``{row: reason}`` of the failed ones."""
+
+    outputs: dict[str, np.ndarray]
+    failed: np.ndarray
+    errors: dict[int, str]
+
+
+def _assemble(B: int, done: dict[int, dict], errors: dict[int, str]) -> Results:
+    keys = sorted({k for d in done.values() for k in d})
+    outputs = {k: np.full(B, False) if k == "collision" else np.full(B, np.nan)
+               for k in keys}
+    for row, d in done.items():
+        for k, v in d.items():
+            outputs[k][row] = v
+    failed = np.zeros(B, bool)
+    failed[list(errors)] = True
+    return Results(outputs, failed, errors)
+
+
+class Pool:
+    """Local worker processes evaluating batches (see the module's docstring).
+
+    Args:
+      spec: the evaluator's import path.
+      workers: processes (default: the CPU cores this process may use).
+      timeout: seconds allowed per scenario (None: no limit).
+      retries: further tries of a failed scenario (each alone).
+      chunk: scenarios per task (None: the batch split into about 4 tasks per worker).
+    """
+
+    def __init__(self, spec: str, workers: int | None = None, timeout: float | None = None,
+                 retries: int = 1, chunk: int | None = None):
+        self.spec, self.timeout, self.retries, self.chunk = spec, timeout, retries, chunk
+        self.n = workers or len(os.sched_getaffinity(0))
+        self.procs: list[Any] = [None] * self.n
+        self.conns: list[Any] = [None] * self.n
+        self.restarts = 0
+        for w in range(self.n):
+            self._start(w)
+        for w in range(self.n):
+            self._ready(w)
+
+    def _start(self, w: int) -> None:
+        parent, child = socket.socketpair()
+        p = subprocess.Popen([sys.executable, "-P", WORKER, str(child.fileno())],
+                             pass_fds=[child.fileno()], stdin=subprocess.DEVNULL)
+        child.close()
+        conn = Connection(parent.detach())
+        conn.send((self.spec, list(sys.path), os.getcwd()))
+        self.procs[w], self.conns[w] = p, conn
+
+    def _ready(self, w: int) -> None:
+        try:
+            tag, msg = self.conns[w].recv()
+        except EOFError:
+            code = self.procs[w].wait()
+            self.close()
+            raise EvaluatorError(f"evaluator '{self.spec}': its worker process ended while "
+                                 f"loading it (exit code {code})") from None
+        if tag == "load":
+            self.close()
+            raise EvaluatorError(msg)
+
+    def _restart(self, w: int) -> None:
+        p = self.procs[w]
+        if p.poll() is None:
+            p.kill()
+        p.wait()
+        self.conns[w].close()
+        self.restarts += 1
+        self._start(w)
+        self._ready(w)
+
+    def evaluate(self, values: dict[str, np.ndarray]) -> Results:
+        """Evaluate one batch ``{name: (B,)}``."""
+        B = len(next(iter(values.values())))
+        size = self.chunk or max(1, -(-B // (4 * self.n)))
+        queue = [(list(range(s, min(s + size, B))), 0) for s in range(0, B, size)]
+        done: dict[int, dict] = {}
+        errors: dict[int, str] = {}
+        busy: dict[int, tuple[list[int], int, float]] = {}  # worker -> (rows, tries, deadline)
+        tag = 0
+
+        def fail(rows, tries, reason):
+            if tries < self.retries or len(rows) > 1:  # a chunk: its scenarios one by one
+                queue.extend(([r], tries + (len(rows) == 1)) for r in rows)
+            else:
+                for r in rows:
+                    errors[r] = reason
+
+        while queue or busy:
+            for w in range(self.n):
+                if w not in busy and queue:
+                    rows, tries = queue.pop(0)
+                    tag += 1
+                    self.conns[w].send((tag, {k: v[rows] for k, v in values.items()}))
+                    limit = np.inf if self.timeout is None else self.timeout * len(rows)
+                    busy[w] = (rows, tries, time.monotonic() + limit)
+            now = time.monotonic()
+            wait_s = min(d for _, _, d in busy.values()) - now
+            ready = wait([self.conns[w] for w in busy],
+                         timeout=None if wait_s == np.inf else max(wait_s, 0.0))
+            for w in list(busy):
+                rows, tries, deadline = busy[w]
+                if self.conns[w] in ready:
+                    try:
+                        _, (status, payload) = self.conns[w].recv()
+                    except (EOFError, OSError):  # the worker died
+                        del busy[w]
+                        code = self.procs[w].wait()
+                        self._restart(w)
+                        fail(rows, tries, f"the worker process died (exit code {code})")
+                        continue
+                    del busy[w]
+                    if status == "ok":
+                        for j, r in enumerate(rows):
+                            done[r] = {k: v[j] for k, v in payload.items()}
+                    else:
+                        fail(rows, tries, payload)
+                elif time.monotonic() >= deadline:
+                    del busy[w]
+                    self._restart(w)
+                    fail(rows, tries, f"timed out after {self.timeout:g} s per scenario")
+        return _assemble(B, done, errors)
+
+    def close(self) -> None:
+        for c in self.conns:
+            if c is not None:
+                try:
+                    c.send(None)
+                except (OSError, ValueError):
+                    pass
+        for p, c in zip(self.procs, self.conns):
+            if p is None:
+                continue
+            try:
+                p.wait(timeout=2)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+            c.close()
+        self.procs = [None] * self.n
+        self.conns = [None] * self.n
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+def _dask_task(spec: str, values: dict[str, np.ndarray]):
+    """What a Dask worker runs: the evaluator (loaded once per worker process) on one
+    chunk; an exception comes back as ``("error", reason)``."""
+    fn = _LOADED.get(spec)
+    if fn is None:
+        fn = _LOADED[spec] = load(spec)
+    try:
+        return "ok", call(fn, values)
+    except Exception as e:  # noqa: BLE001
+        return "error", f"{type(e).__name__}: {e}"[:300]
+
+
+_LOADED: dict[str, Callable] = {}
+
+
+class DaskPool:
+    """The pool on a Dask cluster (``pip install "jaxfalsify[cluster]"``): each chunk a task
+    submitted to ``scheduler`` (an address, or a ``distributed.Client``); timeouts and retries
+    as :class:`Pool`'s. A timed-out task is cancelled and recorded as failed; Dask itself
+    reschedules the tasks of a worker that died."""
+
+    def __init__(self, spec: str, scheduler, timeout: float | None = None, retries: int = 1,
+                 chunk: int | None = None):
+        try:
+            import distributed
+        except ImportError:
+            raise EvaluatorError("the Dask backend needs the cluster extra: pip install "
+                                 "'jaxfalsify[cluster]'") from None
+        self.spec, self.timeout, self.retries, self.chunk = spec, timeout, retries, chunk
+        self._own = not isinstance(scheduler, distributed.Client)
+        try:
+            self.client = distributed.Client(scheduler, timeout=30) if self._own else scheduler
+        except (OSError, TimeoutError) as e:
+            raise EvaluatorError(f"scheduler {scheduler}: cannot connect ({e})") from None
+        self.n = max(1, sum(w.get("nthreads", 1) for w in
+                            self.client.scheduler_info()["workers"].values()))
+        self.restarts = 0
+
+    def evaluate(self, values: dict[str, np.ndarray]) -> Results:
+        import distributed
+
+        B = len(next(iter(values.values())))
+        size = self.chunk or max(1, -(-B // (4 * self.n)))
+        pending = [(list(range(s, min(s + size, B))), 0) for s in range(0, B, size)]
+        done: dict[int, dict] = {}
+        errors: dict[int, str] = {}
+        while pending:
+            futures = {self.client.submit(_dask_task, self.spec,
+                                          {k: v[rows] for k, v in values.items()},
+                                          pure=False): (rows, tries)
+                       for rows, tries in pending}
+            pending = []
+            limit = None if self.timeout is None else self.timeout * size * \
+                -(-len(futures) // self.n) + 30
+            try:
+                finished = distributed.wait(list(futures), timeout=limit).done
+            except TimeoutError:
+                finished = {f for f in futures if f.done()}
+            for f, (rows, tries) in futures.items():
+                if f in finished and f.status == "finished":
+                    status, payload = f.result()
+                else:
+                    f.cancel()
+                    status = "error"
+                    payload = (f"timed out after {self.timeout:g} s per scenario"
+                               if f not in finished else f"the task failed ({f.status})")
+                if status == "ok":
+                    for j, r in enumerate(rows):
+                        done[r] = {k: v[j] for k, v in payload.items()}
+                elif tries < self.retries or len(rows) > 1:
+                    pending.extend(([r], tries + (len(rows) == 1)) for r in rows)
+                else:
+                    for r in rows:
+                        errors[r] = payload
+        return _assemble(B, done, errors)
+
+    def close(self) -> None:
+        if self._own:
+            self.client.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+# ----------------------------------------------------------------------------- the job
+def run(config: RunConfig, out: Path | str | None = None, *, workers: int | None = None,
+        timeout: float | None = None, retries: int = 1, chunk: int | None = None,
+        scheduler=None, resume: bool = False, force: bool = False,
+        progress: Progress | None = None, stop: Callable[[], bool] | None = None,
+        figures: bool = True):
+    """``jaxfalsify run --evaluator``: a search steering the evaluator ``config.evaluator``
+    run by a :class:`Pool` of ``workers`` (or a :class:`DaskPool` on ``scheduler``) until the
+    budget is spent; returns the :class:`jaxfalsify.runs.RunOutcome`. Interrupted
+    (``stop()`` true between updates, Ctrl-C, or an error), the run folder stays resumable
+    (:class:`jaxfalsify.store.Interrupted` for a stop)."""
+    if not config.evaluator or config.evaluator == "python":
+        raise ValueError("run needs an evaluator module:attr (evaluator = 'python' is a "
+                         "user's own ask/tell loop: jaxfalsify.Falsifier)")
+    for name, v, lo in (("workers", workers, 1), ("retries", retries, 0), ("chunk", chunk, 1)):
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < lo):
+            raise ValueError(f"{name} must be an integer >= {lo} (got {v!r})")
+    if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0
+                                    and np.isfinite(timeout)):
+        raise ValueError(f"timeout must be a positive number of seconds (got {timeout!r})")
+    if scheduler is None:
+        load(config.evaluator)  # here, in one line, before a folder or a worker exists
+    progress = progress or Progress()
+    f = Falsifier.from_config(config, out, resume=resume, force=force, progress=progress)
+    try:
+        t = time.perf_counter()
+        pool = (Pool(config.evaluator, workers, timeout, retries, chunk) if scheduler is None
+                else DaskPool(config.evaluator, scheduler, timeout, retries, chunk))
+        f.clock.add("workers_start", time.perf_counter() - t)
+        with pool:
+            while not f.done:
+                if stop is not None and stop():
+                    raise KeyboardInterrupt
+                asked = f.ask()
+                t = time.perf_counter()
+                res = pool.evaluate(asked.values)
+                f.clock.add("evaluation", time.perf_counter() - t)
+                tell_results(f, asked, res)
+                for row, reason in sorted(res.errors.items())[:3]:
+                    progress.message(f"evaluation {int(asked.evaluation[row])} failed: "
+                                     f"{reason}")
+    except KeyboardInterrupt:
+        f.close()
+        raise store.Interrupted("run", f.out, f.told, f.budget, "evaluations") from None
+    except BaseException:
+        f.close()
+        raise
+    return f.finish(figures=figures)
+
+
+def tell_results(f: Falsifier, asked: Asked, res: Results) -> None:
+    """Tell a Falsifier a pool's results (failed scenarios as failed)."""
+    out = res.outputs
+    rob = np.where(res.failed, 0.0, out.get("robustness", np.zeros(len(asked))))
+    collision = out.get("collision")
+    sig = {k: np.where(res.failed, 0.0, out[k]) for k in SIGNALS if k in out}
+    f.tell(asked, rob, collision, signals=sig, failed=res.failed)

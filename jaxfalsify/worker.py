@@ -1,0 +1,134 @@
+"""The worker process of :class:`jaxfalsify.evaluators.Pool`, and the evaluator's loading and
+calling convention. Standard library and NumPy only: a worker is started as this file
+(``python worker.py FD``), so it imports neither JAX nor the user's script, only the
+evaluator's own module, and a restarted worker is ready in a fraction of a second."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import inspect
+import os
+import sys
+import traceback
+import zlib
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+SIGNALS = ("reward", "min_distance", "final_distance", "min_ttc")  # what a result may add to
+# the robustness, (B,) each: the reward the search ranks failures by (default: -robustness),
+# distances for the tables [m], the minimum time-to-collision [s] (tells near misses apart)
+
+OUTPUTS = ("robustness", "collision", *SIGNALS)  # what an evaluator may return
+
+
+class EvaluatorError(ValueError):
+    """An evaluator that cannot be loaded or used (one line)."""
+
+
+def load(spec: str) -> Callable:
+    """The evaluator ``module:attr`` or ``path/file.py:attr`` (one-line EvaluatorError:
+    no such module, file or attribute, not callable, not taking one argument)."""
+    mod_name, _, attr = spec.rpartition(":")
+    if not mod_name or not attr:
+        raise EvaluatorError(f"evaluator '{spec}': expected an import path module:attr")
+    try:
+        if mod_name.endswith(".py"):
+            path = Path(mod_name).resolve()
+            if not path.is_file():
+                raise EvaluatorError(f"evaluator '{spec}': no such file {mod_name}")
+            name = f"jaxfalsify_user_evaluator_{zlib.crc32(str(path).encode()):08x}"
+            module = sys.modules.get(name)
+            if module is None:
+                loader = importlib.util.spec_from_file_location(name, path)
+                module = importlib.util.module_from_spec(loader)
+                sys.modules[name] = module
+                try:
+                    loader.loader.exec_module(module)
+                except BaseException:
+                    del sys.modules[name]
+                    raise
+        else:
+            if "" not in sys.path and str(Path.cwd()) not in sys.path:
+                sys.path.insert(0, str(Path.cwd()))  # like `python -m`: the working folder
+            module = importlib.import_module(mod_name)
+    except EvaluatorError:
+        raise
+    except Exception as e:  # noqa: BLE001 - the user's module: any error, in one line
+        raise EvaluatorError(f"evaluator '{spec}': importing {mod_name} failed: "
+                             f"{type(e).__name__}: {e}") from None
+    fn = getattr(module, attr, None)
+    if fn is None:
+        raise EvaluatorError(f"evaluator '{spec}': {mod_name} has no attribute '{attr}'")
+    if not callable(fn):
+        raise EvaluatorError(f"evaluator '{spec}': {attr} is not callable")
+    try:
+        inspect.signature(fn).bind({})
+    except TypeError:
+        raise EvaluatorError(f"evaluator '{spec}': {attr} must take one argument (a dict of "
+                             "parameter arrays)") from None
+    except ValueError:  # no signature to read (a builtin): it is called as it is
+        pass
+    return fn
+
+
+def call(fn: Callable, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Call an evaluator on one batch and check what it returned: ``{output: (n,)}`` with
+    ``robustness`` float64, ``collision`` bool where given (ValueError, one line, otherwise)."""
+    n = len(next(iter(values.values())))
+    out = fn({k: np.array(v, np.float64) for k, v in values.items()})
+    if not isinstance(out, dict):
+        out = {"robustness": out}
+    unknown = sorted(set(out) - set(OUTPUTS))
+    if unknown or "robustness" not in out:
+        raise ValueError(f"returned {'key ' + repr(unknown[0]) if unknown else 'no robustness'}"
+                         f" (a robustness array, or a dict of {', '.join(OUTPUTS)})")
+    res = {}
+    for k, v in out.items():
+        try:
+            a = np.asarray(v, bool if k == "collision" else np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise ValueError(f"returned {k} that is not {n} numbers") from None
+        if a.shape != (n,):
+            raise ValueError(f"returned {k} of {a.size} values for {n} scenarios")
+        res[k] = a
+    return res
+
+
+def serve(fd: int) -> None:
+    """A worker process (this file run by the interpreter, so a user's script is never
+    imported again, as ``multiprocessing``'s spawn would): read the evaluator's spec, the
+    parent's ``sys.path`` and folder from the connection on ``fd``, load it, then evaluate
+    the chunks sent until None."""
+    from multiprocessing.connection import Connection
+
+    conn = Connection(fd)
+    spec, path, cwd = conn.recv()
+    sys.path[:] = path
+    os.chdir(cwd)
+    try:
+        fn = load(spec)
+    except Exception as e:  # noqa: BLE001
+        conn.send(("load", str(e)))
+        return
+    conn.send(("ready", None))
+    while True:
+        try:
+            job = conn.recv()
+        except EOFError:
+            return
+        if job is None:
+            return
+        tag, values = job
+        try:
+            conn.send((tag, ("ok", call(fn, values))))
+        except Exception as e:  # noqa: BLE001 - the user's evaluator: recorded per scenario
+            tb = traceback.extract_tb(e.__traceback__)
+            where = f" ({Path(tb[-1].filename).name}:{tb[-1].lineno})" if tb else ""
+            conn.send((tag, ("error", f"{type(e).__name__}: {e}"[:300] + where)))
+
+
+if __name__ == "__main__":
+    serve(int(sys.argv[1]))

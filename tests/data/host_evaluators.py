@@ -1,0 +1,64 @@
+"""Host evaluators for the tests of jaxfalsify.evaluators (loaded by file path in worker
+processes). Each returns the robustness ``ped_speed - 1.5`` (negative: violated), an oracle the
+tests compute themselves, and misbehaves on chosen scenarios."""
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def plain(s):
+    return np.asarray(s["ped_speed"]) - 1.5
+
+
+def with_signals(s):
+    rob = plain(s)
+    return {"robustness": rob, "collision": rob < -0.2, "reward": -2.0 * rob,
+            "min_distance": np.abs(rob)}
+
+
+def raises_fast(s):
+    """Raises for a batch holding a scenario with ped_speed > 1.8."""
+    if np.any(np.asarray(s["ped_speed"]) > 1.8):
+        raise RuntimeError("walker too fast for this simulator")
+    return plain(s)
+
+
+def hangs_fast(s):
+    """Hangs (60 s) on a batch holding a scenario with ped_speed > 1.8."""
+    if np.any(np.asarray(s["ped_speed"]) > 1.8):
+        time.sleep(60)
+    return plain(s)
+
+
+def dies_fast(s):
+    """Its process exits on a batch holding a scenario with ped_speed > 1.8."""
+    if np.any(np.asarray(s["ped_speed"]) > 1.8):
+        os._exit(3)
+    return plain(s)
+
+
+def flaky(s):
+    """Fails the first time it sees each scenario (a marker file per scenario in the folder
+    $FLAKY_DIR), then succeeds."""
+    d = Path(os.environ["FLAKY_DIR"])
+    keys = [f"{a:.6f}-{b:.6f}" for a, b in zip(s["ped_speed"], s["ego_offset"])]
+    fresh = [k for k in keys if not (d / k).exists()]
+    for k in fresh:
+        (d / k).touch()
+    if fresh:
+        raise RuntimeError("first try fails")
+    return plain(s)
+
+
+def wrong_length(s):
+    return plain(s)[:-1]
+
+
+def two_args(s, extra):
+    return plain(s)
+
+
+NOT_CALLABLE = 3

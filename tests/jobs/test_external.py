@@ -1,0 +1,242 @@
+"""A system outside JAX: ask / tell (jaxfalsify.Falsifier) and the worker pool
+(jaxfalsify.evaluators). Oracles: the built-in campaign's own scenarios and collisions (the
+evaluator returns the built-in simulator's or the NumPy reference's outcomes), the
+robustness ``ped_speed - 1.5`` of the test evaluators, and scenarios chosen to misbehave."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import jaxfalsify as jf
+from jaxfalsify import analysis, campaign, evaluators, runs
+from jaxfalsify.cli import main
+from jaxfalsify.rundir import load_run
+
+HERE = Path(__file__).resolve().parent
+HOST = HERE.parent / "data" / "host_evaluators.py"
+REFERENCE = HERE.parents[1] / "experiments" / "external" / "reference_evaluator.py"
+
+
+def builtin(strategy, evaluations, seed):
+    b = runs.RunConfig(strategy=strategy, evaluations=evaluations, seed=seed).build()
+    return b, campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params,
+                           b.plan, seed)
+
+
+def jax_outcomes(space, asked):
+    out = jf.evaluate({k: np.asarray(v) for k, v in space.scenario(asked.indices).items()},
+                      sut="carla-tm")
+    return out
+
+
+@pytest.mark.parametrize("strategy,evaluations", [("reinforce/screened", 96),
+                                                  ("cem", 300)])
+def test_ask_tell_round_trip_equals_run(tmp_path, strategy, evaluations):
+    b, res = builtin(strategy, evaluations, 3)
+    f = jf.Falsifier("paper", strategy=strategy, evaluations=evaluations, seed=3,
+                     out=tmp_path / "ext")
+    while not f.done:
+        a = f.ask()
+        assert f.ask() is a  # asking again before telling: the same batch
+        np.testing.assert_array_equal(a.evaluation, a.update * f.batch + 1 + np.arange(f.batch))
+        o = jax_outcomes(b.space, a)
+        f.tell(a, np.asarray(o.robustness), np.asarray(o.collision),
+               signals={"reward": np.asarray(o.reward), "min_ttc": np.asarray(o.min_ttc),
+                        "min_distance": np.asarray(o.min_distance)})
+    out = f.finish()
+    np.testing.assert_array_equal(out.result.indices, res.indices)
+    np.testing.assert_array_equal(out.result.fields["collision"], res.fields["collision"])
+    sp, rc, s, ep = load_run(out.out)  # the folder reads as a run's
+    assert rc.evaluator == "python" and s["sut"] == "external"
+    assert s["n_collisions"] == int(analysis.collided(res.fields).sum())
+    assert s["first_collision_evaluation"] == analysis.first_collision(res.fields)
+    assert (out.out / "critical.csv").read_text().count("\n") == s["n_distinct_critical"] + 1
+    assert json.loads((out.out / "status.json").read_text())["state"] == "complete"
+    assert not (out.out / "checkpoint").exists()
+    for fig in ("reward_per_evaluation.png", "search_distribution.png",
+                "failure_clusters.png"):
+        assert (out.out / "figures" / fig).stat().st_size > 1000
+
+
+def test_reference_through_worker_pool_equals_builtin_run(tmp_path):
+    _, res = builtin("reinforce/screened", 96, 5)
+    rc = runs.RunConfig(strategy="reinforce/screened", evaluations=96, seed=5,
+                        evaluator=f"{REFERENCE}:evaluate")
+    o = evaluators.run(rc, tmp_path / "ref", workers=2, figures=False)
+    np.testing.assert_array_equal(o.result.indices, res.indices)
+    np.testing.assert_array_equal(o.result.fields["collision"], res.fields["collision"])
+    np.testing.assert_allclose(o.result.fields["robustness"], res.fields["robustness"],
+                               atol=1e-4)
+    assert o.summary["n_failed"] == 0
+
+
+LOOP = """
+import sys, numpy as np, jaxfalsify as jf
+f = jf.Falsifier("paper", strategy="cem", batch=32, evaluations=160, seed=2, out=sys.argv[1],
+                 resume=sys.argv[2] == "resume")
+while not f.done:
+    a = f.ask()
+    if sys.argv[2] == "crash" and a.update == 3:
+        import os; os._exit(9)  # the user's loop dies mid-batch
+    f.tell(a, a.values["ped_speed"] - 1.5)
+f.finish(figures=False)
+"""
+
+
+def test_resume_after_the_loop_was_killed(tmp_path):
+    script = tmp_path / "loop.py"
+    script.write_text(LOOP)
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, str(script), str(out), "crash"], capture_output=True)
+    assert r.returncode == 9
+    status = json.loads((out / "status.json").read_text())
+    assert status["state"] == "running" and status["evaluations_done"] == 3 * 32
+    r = subprocess.run([sys.executable, str(script), str(out), "resume"], capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    whole = tmp_path / "whole"
+    r = subprocess.run([sys.executable, str(script), str(whole), "fresh"], capture_output=True)
+    assert r.returncode == 0
+    a, b = load_run(out)[3], load_run(whole)[3]
+    for k in ("ped_speed_idx", "ego_offset_idx", "robustness"):
+        np.testing.assert_array_equal(a[k], b[k])
+    np.testing.assert_allclose(a["robustness"], a["ped_speed"] - 1.5, atol=1e-6)
+
+
+def test_tell_refuses_bad_results_in_one_line(tmp_path):
+    f = jf.Falsifier("paper", strategy="random", batch=8, evaluations=16, out=tmp_path / "r")
+    a = f.ask()
+    rob = a.values["ped_speed"] - 1.5
+    bad = rob.copy()
+    bad[3] = np.nan
+    with pytest.raises(ValueError, match=r"robustness of evaluation 4 \(ego_offset=") as e:
+        f.tell(a, bad)
+    assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match=r"shape \(8,\)"):
+        f.tell(a, rob[:5])
+    with pytest.raises(ValueError, match="signal 'speed' is not one of"):
+        f.tell(a, rob, signals={"speed": rob})
+    with pytest.raises(ValueError, match="asks 8 scenarios"):
+        f.ask(5)
+    f.tell(a, bad, failed=np.isnan(bad))  # marked failed: accepted, recorded as failed
+    with pytest.raises(ValueError, match="the batch the last ask"):
+        f.tell(a, rob)
+    f.tell(f.ask(), rob)
+    with pytest.raises(ValueError, match="budget of 16 evaluations is spent"):
+        f.ask()
+    o = f.finish(figures=False)
+    assert o.summary["n_failed"] == 1 and o.summary["failed_evaluations"] == [4]
+    assert np.isnan(o.result.fields["robustness"][3])
+
+
+def values_of(result):
+    return result.space.exact_values[2][result.indices[:, 2]]  # ped_speed
+
+
+def pool_batch(n=24, seed=0):
+    rng = np.random.default_rng(seed)
+    return {"ped_speed": rng.uniform(1.0, 2.0, n), "ego_offset": rng.uniform(1, 9, n)}
+
+
+@pytest.mark.parametrize("fn,reason", [("raises_fast", "RuntimeError: walker too fast"),
+                                       ("hangs_fast", "timed out after 0.5 s"),
+                                       ("dies_fast", "died (exit code 3)")])
+def test_pool_records_each_failing_scenario(fn, reason):
+    batch = pool_batch()
+    bad = batch["ped_speed"] > 1.8
+    assert 0 < bad.sum() < len(bad)
+    with evaluators.Pool(f"{HOST}:{fn}", workers=2, timeout=0.5, retries=1) as pool:
+        res = pool.evaluate(batch)
+    np.testing.assert_array_equal(res.failed, bad)
+    assert set(res.errors) == set(np.nonzero(bad)[0])
+    assert all(reason in r for r in res.errors.values())
+    np.testing.assert_allclose(res.outputs["robustness"][~bad], batch["ped_speed"][~bad] - 1.5)
+
+
+def test_pool_retries_then_succeeds(tmp_path, monkeypatch):
+    monkeypatch.setenv("FLAKY_DIR", str(tmp_path))
+    batch = pool_batch(10)
+    with evaluators.Pool(f"{HOST}:flaky", workers=2, retries=1) as pool:
+        res = pool.evaluate(batch)
+    assert not res.failed.any()
+    np.testing.assert_allclose(res.outputs["robustness"], batch["ped_speed"] - 1.5)
+    with evaluators.Pool(f"{HOST}:flaky", workers=1, retries=0, chunk=1) as pool:
+        res = pool.evaluate(pool_batch(4, seed=9))  # unseen scenarios, no second try
+    assert res.failed.all()
+
+
+def test_signals_and_collision_flags_reach_the_run(tmp_path):
+    rc = runs.RunConfig(space="paper", strategy="random", batch=16, evaluations=48,
+                        evaluator=f"{HOST}:with_signals")
+    o = evaluators.run(rc, tmp_path / "sig", workers=2, figures=False)
+    speed = values_of(o.result)
+    np.testing.assert_array_equal(o.result.fields["collision"], speed - 1.5 < -0.2)
+    np.testing.assert_allclose(o.result.fields["reward"], -2.0 * (speed - 1.5), atol=1e-6)
+    np.testing.assert_allclose(o.result.fields["min_distance"], np.abs(speed - 1.5), atol=1e-6)
+    assert o.summary["n_collisions"] == int(np.sum(speed - 1.5 < -0.2))
+
+
+@pytest.mark.parametrize("spec,message", [
+    ("nosuchmodule_xyz:evaluate", "importing nosuchmodule_xyz failed"),
+    (f"{HOST}:missing", "has no attribute 'missing'"),
+    (f"{HOST}:two_args", "must take one argument"),
+    (f"{HOST}:NOT_CALLABLE", "is not callable"),
+    ("no_colon", "an import path module:attr"),
+])
+def test_cli_refuses_a_bad_evaluator_in_one_line(tmp_path, capsys, monkeypatch, spec, message):
+    monkeypatch.chdir(tmp_path)
+    code = main(["run", "--evaluator", spec, "--out", "r", "--quiet", "--evaluations", "8"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and message in err and "\n" not in err
+    assert not (tmp_path / "r").exists() and not (tmp_path / "runs").exists()
+
+
+def test_cli_refuses_a_wrong_length_result_naming_it(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code = main(["run", "--evaluator", f"{HOST}:wrong_length", "--out", "r", "--quiet",
+                 "--strategy", "random", "--batch", "4", "--evaluations", "8", "--retries",
+                 "0", "--workers", "1"])
+    assert code == 0  # every scenario failed, recorded as failed
+    s = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert s["n_failed"] == 8 and s["failed_evaluations"] == list(range(1, 9))
+
+
+def test_cli_run_with_an_evaluator(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code = main(["run", "--evaluator", f"{HOST}:plain", "--out", "r", "--evaluations", "64",
+                 "--workers", "2", "--no-figures"])
+    assert code == 0
+    s = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert s["strategy"] == "reinforce/screened" and s["evaluator"].endswith(":plain")
+    sp, rc, _, ep = load_run(tmp_path / "r")
+    np.testing.assert_array_equal(ep["violated"], ep["ped_speed"] - 1.5 < 0)
+    assert s["n_violations"] == int(np.sum(ep["ped_speed"] < 1.5))
+    assert main(["run", "--sut", "carla-tm", "--workers", "2", "--out", "x"]) == 2
+    assert "--workers needs --evaluator" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_dask_cluster_evaluates_as_the_local_pool(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    batch = pool_batch(30)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, \
+            evaluators.DaskPool(f"{HOST}:raises_fast", cluster.scheduler_address,
+                                retries=1) as pool:
+        res = pool.evaluate(batch)
+        bad = batch["ped_speed"] > 1.8
+        np.testing.assert_array_equal(res.failed, bad)
+        np.testing.assert_allclose(res.outputs["robustness"][~bad],
+                                   batch["ped_speed"][~bad] - 1.5)
+        rc = runs.RunConfig(strategy="reinforce/screened", evaluations=64, seed=5,
+                            evaluator=f"{REFERENCE}:evaluate")
+        o = evaluators.run(rc, tmp_path / "dask", scheduler=cluster.scheduler_address,
+                           figures=False)
+    _, res = builtin("reinforce/screened", 64, 5)
+    np.testing.assert_array_equal(o.result.indices, res.indices)
+
+
