@@ -133,14 +133,7 @@ class RunConfig:
         """Validate and build everything; ValueError (one line) on bad values."""
         if self.evaluator:
             return self._build_external()
-        check_int("seed", self.seed, 0, SEED_LIMIT - 1)
-        check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
-        if self.evaluations is not None:
-            check_int("evaluations", self.evaluations, 1, 10**9)
-        if self.batch is not None:
-            check_int("batch", self.batch, 1, 10**6)
-        if self.checkpoint_every is not None:
-            check_int("checkpoint_every", self.checkpoint_every, 1)
+        self._check_numbers()
         if not isinstance(self.sut, str) or not isinstance(self.strategy, str):
             raise ValueError("sut and strategy must be names")
         sp = build_space(self.space, self.space_seed)
@@ -164,18 +157,21 @@ class RunConfig:
                      campaign.plan(evaluations, strat.batch, every=self.checkpoint_every),
                      req, rparams)
 
-    def _build_external(self) -> Built:
-        """An external evaluator's run: the space, the strategy and the plan (no SUT, no
-        requirement: the evaluator's robustness decides)."""
-        check_evaluator(self.evaluator)
-        for key in ("seed", "space_seed"):
-            check_int(key, getattr(self, key), 0, SEED_LIMIT - 1)
+    def _check_numbers(self) -> None:
+        check_int("seed", self.seed, 0, SEED_LIMIT - 1)
+        check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
         if self.evaluations is not None:
             check_int("evaluations", self.evaluations, 1, 10**9)
         if self.batch is not None:
             check_int("batch", self.batch, 1, 10**6)
         if self.checkpoint_every is not None:
             check_int("checkpoint_every", self.checkpoint_every, 1)
+
+    def _build_external(self) -> Built:
+        """An external evaluator's run: the space, the strategy and the plan (no SUT, no
+        requirement: the evaluator's robustness decides)."""
+        check_evaluator(self.evaluator)
+        self._check_numbers()
         if self.sut not in ("external", RunConfig.sut) or self.sut_params:
             raise ValueError(f"sut = {self.sut!r}: a run with an evaluator has no JAX SUT "
                              "(its evaluator is the system under test)")
@@ -206,6 +202,7 @@ class RunConfig:
         if self.evaluator:
             return dataclasses.replace(
                 self, space=b.space.describe(), strategy=search.canonical(self.strategy),
+                evaluator=sut_lib.recorded_spec(self.evaluator),
                 sut="external", sut_params={}, batch=b.strategy.batch,
                 evaluations=b.plan.evaluations, strategy_params=_strategy_options(b),
                 requirement="evaluator", requirement_params={})

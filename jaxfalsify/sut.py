@@ -29,10 +29,7 @@ Built-ins:
 from __future__ import annotations
 
 import dataclasses
-import importlib
-import importlib.util
 import math
-import sys
 from pathlib import Path
 from typing import Any, Callable, Mapping, NamedTuple
 
@@ -40,6 +37,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxfalsify import cache, metrics, pytree, weather
+from jaxfalsify.worker import import_module
 
 G = 9.81  # m/s^2
 
@@ -414,27 +412,9 @@ def load_attr(spec: str, what: str = "SUT"):
         known = f"a registry name ({', '.join(REGISTRY)}) or " if what == "SUT" else ""
         raise ValueError(f"{what} '{spec}': expected {known}an import path module:attr")
     try:
-        if mod_name.endswith(".py"):
-            path = Path(mod_name).resolve()
-            if not path.is_file():
-                raise ValueError(f"{what} '{spec}': no such file {mod_name}")
-            import hashlib
-
-            name = "jaxfalsify_user_sut_" + hashlib.sha256(str(path).encode()).hexdigest()[:12]
-            module = sys.modules.get(name)
-            if module is None:
-                loader = importlib.util.spec_from_file_location(name, path)
-                module = importlib.util.module_from_spec(loader)
-                sys.modules[name] = module
-                try:
-                    loader.loader.exec_module(module)
-                except BaseException:
-                    del sys.modules[name]
-                    raise
-        else:
-            if "" not in sys.path and str(Path.cwd()) not in sys.path:
-                sys.path.insert(0, str(Path.cwd()))  # like `python -m`: the working folder
-            module = importlib.import_module(mod_name)
+        if mod_name.endswith(".py") and not Path(mod_name).resolve().is_file():
+            raise ValueError(f"{what} '{spec}': no such file {mod_name}")
+        module = import_module(mod_name, "jaxfalsify_user_sut_")
     except ValueError:
         raise
     except (Exception, SystemExit) as e:  # noqa: BLE001 - a user module can raise anything

@@ -5,13 +5,13 @@ evaluator's own module, and a restarted worker is ready in a fraction of a secon
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import importlib.util
 import inspect
 import os
 import sys
 import traceback
-import zlib
 from pathlib import Path
 from typing import Callable
 
@@ -28,6 +28,29 @@ class EvaluatorError(ValueError):
     """An evaluator that cannot be loaded or used (one line)."""
 
 
+def import_module(mod_name: str, prefix: str):
+    """A user's module: ``path/file.py`` (loaded once per path, as ``<prefix><hash of the
+    path>``) or an importable name (the working folder on the path, as ``python -m`` has it).
+    Raises what the import raises."""
+    if mod_name.endswith(".py"):
+        path = Path(mod_name).resolve()
+        name = prefix + hashlib.sha256(str(path).encode()).hexdigest()[:12]
+        module = sys.modules.get(name)
+        if module is None:
+            loader = importlib.util.spec_from_file_location(name, path)
+            module = importlib.util.module_from_spec(loader)
+            sys.modules[name] = module
+            try:
+                loader.loader.exec_module(module)
+            except BaseException:
+                del sys.modules[name]
+                raise
+        return module
+    if "" not in sys.path and str(Path.cwd()) not in sys.path:
+        sys.path.insert(0, str(Path.cwd()))
+    return importlib.import_module(mod_name)
+
+
 def load(spec: str) -> Callable:
     """The evaluator ``module:attr`` or ``path/file.py:attr`` (one-line EvaluatorError:
     no such module, file or attribute, not callable, not taking one argument)."""
@@ -35,25 +58,9 @@ def load(spec: str) -> Callable:
     if not mod_name or not attr:
         raise EvaluatorError(f"evaluator '{spec}': expected an import path module:attr")
     try:
-        if mod_name.endswith(".py"):
-            path = Path(mod_name).resolve()
-            if not path.is_file():
-                raise EvaluatorError(f"evaluator '{spec}': no such file {mod_name}")
-            name = f"jaxfalsify_user_evaluator_{zlib.crc32(str(path).encode()):08x}"
-            module = sys.modules.get(name)
-            if module is None:
-                loader = importlib.util.spec_from_file_location(name, path)
-                module = importlib.util.module_from_spec(loader)
-                sys.modules[name] = module
-                try:
-                    loader.loader.exec_module(module)
-                except BaseException:
-                    del sys.modules[name]
-                    raise
-        else:
-            if "" not in sys.path and str(Path.cwd()) not in sys.path:
-                sys.path.insert(0, str(Path.cwd()))  # like `python -m`: the working folder
-            module = importlib.import_module(mod_name)
+        if mod_name.endswith(".py") and not Path(mod_name).resolve().is_file():
+            raise EvaluatorError(f"evaluator '{spec}': no such file {mod_name}")
+        module = import_module(mod_name, "jaxfalsify_user_evaluator_")
     except EvaluatorError:
         raise
     except Exception as e:  # noqa: BLE001 - the user's module: any error, in one line
