@@ -184,20 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--checkpoint-every", type=_int("--checkpoint-every", 1),
                    dest="checkpoint_every", help="updates between checkpoints (default: "
                    "about 1/20 of the run)")
-    r.add_argument("--evaluator", metavar="MODULE:ATTR",
-                   help="evaluate the scenarios with this host function instead of the JAX "
-                   "simulator (a system outside JAX: module:attr or file.py:attr taking a dict "
-                   "of parameter arrays, returning robustness); default strategy then "
-                   "reinforce/screened")
-    r.add_argument("--workers", type=_int("--workers", 1),
-                   help="evaluator processes (default: the CPU cores)")
-    r.add_argument("--timeout", type=_float_positive("--timeout"),
-                   help="seconds an evaluator may take per scenario (default: no limit)")
-    r.add_argument("--retries", type=_int("--retries", 0),
-                   help="further tries of a scenario whose evaluation failed (default 1)")
-    r.add_argument("--scheduler", metavar="ADDRESS",
-                   help="run the evaluator on a Dask cluster (tcp://host:8786) instead of local "
-                   "processes (pip install 'jaxfalsify[cluster]')")
+    _evaluator_flags(r, "default strategy then reinforce/screened")
     r.add_argument("--out", type=_folder, help="run folder (default runs/<timestamp>-<strategy>)")
     r.add_argument("--force", action="store_true", help="overwrite an existing run folder")
     r.add_argument("--resume", type=_folder, metavar="RUN_DIR",
@@ -251,6 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="STRATEGY:NAME=VALUE",
                    help="an option of one strategy, e.g. cem:elite_frac=0.2 (repeatable)")
     _add_sut(c)
+    _evaluator_flags(c, "default strategies then reinforce/screened,random,cem; no ground "
+                     "truth: evaluations and seconds to the first failure")
     c.add_argument("--out", type=_folder, help="folder for compare.json/.md "
                    "(default runs/compare-<timestamp>)")
     c.add_argument("--jobs", type=_int("--jobs", 1),
@@ -350,6 +339,25 @@ def _sut_values(items, flag="--sut-param") -> dict:
     return out
 
 
+def _evaluator_flags(p, default_note: str) -> None:
+    p.add_argument("--evaluator", metavar="MODULE:ATTR",
+                   help="evaluate the scenarios with this host function instead of the JAX "
+                   "simulator (a system outside JAX: module:attr or file.py:attr taking a dict "
+                   f"of parameter arrays, returning robustness); {default_note}")
+    p.add_argument("--workers", type=_int("--workers", 1),
+                   help="evaluator processes (default: the CPU cores)")
+    p.add_argument("--timeout", type=_float_positive("--timeout"),
+                   help="seconds an evaluator may take per scenario (default: no limit)")
+    p.add_argument("--retries", type=_int("--retries", 0),
+                   help="further tries of a scenario whose evaluation failed (default 1)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run the evaluator on a Dask cluster (tcp://host:8786) instead of local "
+                   "processes (pip install 'jaxfalsify[cluster]')")
+
+
+EVALUATOR_FLAGS = ("workers", "timeout", "retries", "scheduler")
+
+
 def _per_strategy(items) -> dict:
     """``["cem:elite_frac=0.2", ...]`` -> ``{"cem": {"elite_frac": 0.2}}``."""
     out: dict = {}
@@ -391,7 +399,6 @@ def cmd_run(args, stop, startup) -> int:
         if args.evaluator and args.strategy is None and args.config is None:
             # an external system: the sample-efficient strategy (unless one is named)
             rc = runs.configure(rc, strategy="reinforce/screened")
-    host = ("workers", "timeout", "retries", "scheduler")
     if rc.evaluator:
         if args.rerun:
             raise UsageError("--rerun needs the JAX simulator (a run with an evaluator has no "
@@ -404,9 +411,7 @@ def cmd_run(args, stop, startup) -> int:
                            force=args.force, progress=_progress(args.quiet), stop=stop,
                            figures=not args.no_figures)
     else:
-        given = [n for n in host if getattr(args, n) is not None]
-        if given:
-            raise UsageError(f"--{given[0]} needs --evaluator")
+        _no_evaluator_flags(args)
         o = runs.execute(rc, out, resume=args.resume is not None, force=args.force,
                          progress=_progress(args.quiet), stop=stop, figures=not args.no_figures,
                          rerun=args.rerun, startup_seconds=startup)
@@ -415,6 +420,31 @@ def cmd_run(args, stop, startup) -> int:
     print(f"wrote {o.out}/ (config.toml, evaluations.parquet, summary.json, critical.csv, "
           f"timing.json{'' if args.no_figures else ', figures/, report.md'}"
           f"{', best.rrd' if args.rerun else ''})")
+    return _late_signal(stop)
+
+
+def _no_evaluator_flags(args) -> None:
+    given = [n for n in EVALUATOR_FLAGS if getattr(args, n) is not None]
+    if given:
+        raise UsageError(f"--{given[0]} needs --evaluator")
+
+
+def _compare_evaluator(args, names, stop) -> int:
+    from jaxfalsify import evaluators
+
+    bad = [f for f in ("suite", "entries", "budgets", "sut", "sut_param", "jobs")
+           if getattr(args, f, None) is not None] + (["distributed"] if args.distributed else [])
+    if bad:
+        raise UsageError(f"--{bad[0].replace('_', '-')} cannot be combined with --evaluator "
+                         "(an external system has no JAX SUT or ground truth)")
+    result = evaluators.compare(
+        args.evaluator, args.out, strategies=names or evaluators.COMPARE_STRATEGIES,
+        seeds=args.seeds or 10, space=args.space or "paper", space_seed=args.space_seed or 0,
+        evaluations=args.evaluations, batch=args.batch,
+        strategy_params=_per_strategy(args.strategy_param), workers=args.workers,
+        timeout=args.timeout, retries=1 if args.retries is None else args.retries,
+        scheduler=args.scheduler, force=args.force, progress=_progress(args.quiet), stop=stop)
+    print(evaluators.compare_markdown(result))
     return _late_signal(stop)
 
 
@@ -495,6 +525,9 @@ def cmd_compare(args, stop, startup) -> int:
     from jaxfalsify.progress import timing_line
 
     names = _names("--strategies", args.strategies, "strategy", "reinforce/default,cmaes")
+    if args.evaluator:
+        return _compare_evaluator(args, names, stop)
+    _no_evaluator_flags(args)
     if args.suite is not None:
         return _compare_suite(args, names, stop, startup)
     if args.entries is not None:

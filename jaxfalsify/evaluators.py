@@ -38,10 +38,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from jaxfalsify import store
+from jaxfalsify import runs, store
 from jaxfalsify.external import Asked, Falsifier
 from jaxfalsify.problem import RunConfig
-from jaxfalsify.progress import Progress
+from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.worker import SIGNALS, EvaluatorError, call, load  # noqa: F401 - re-exported
 
 WORKER = str(Path(__file__).with_name("worker.py"))  # a worker process runs this file
@@ -303,33 +303,17 @@ def run(config: RunConfig, out: Path | str | None = None, *, workers: int | None
     if not config.evaluator or config.evaluator == "python":
         raise ValueError("run needs an evaluator module:attr (evaluator = 'python' is a "
                          "user's own ask/tell loop: jaxfalsify.Falsifier)")
-    for name, v, lo in (("workers", workers, 1), ("retries", retries, 0), ("chunk", chunk, 1)):
-        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < lo):
-            raise ValueError(f"{name} must be an integer >= {lo} (got {v!r})")
-    if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0
-                                    and np.isfinite(timeout)):
-        raise ValueError(f"timeout must be a positive number of seconds (got {timeout!r})")
+    check_settings(workers, timeout, retries, chunk)
     if scheduler is None:
         load(config.evaluator)  # here, in one line, before a folder or a worker exists
     progress = progress or Progress()
     f = Falsifier.from_config(config, out, resume=resume, force=force, progress=progress)
     try:
         t = time.perf_counter()
-        pool = (Pool(config.evaluator, workers, timeout, retries, chunk) if scheduler is None
-                else DaskPool(config.evaluator, scheduler, timeout, retries, chunk))
+        pool = make_pool(config.evaluator, workers, timeout, retries, chunk, scheduler)
         f.clock.add("workers_start", time.perf_counter() - t)
         with pool:
-            while not f.done:
-                if stop is not None and stop():
-                    raise KeyboardInterrupt
-                asked = f.ask()
-                t = time.perf_counter()
-                res = pool.evaluate(asked.values)
-                f.clock.add("evaluation", time.perf_counter() - t)
-                tell_results(f, asked, res)
-                for row, reason in sorted(res.errors.items())[:3]:
-                    progress.message(f"evaluation {int(asked.evaluation[row])} failed: "
-                                     f"{reason}")
+            drive(f, pool, progress, stop)
     except KeyboardInterrupt:
         f.close()
         raise store.Interrupted("run", f.out, f.told, f.budget, "evaluations") from None
@@ -337,6 +321,175 @@ def run(config: RunConfig, out: Path | str | None = None, *, workers: int | None
         f.close()
         raise
     return f.finish(figures=figures)
+
+
+def make_pool(spec: str, workers=None, timeout=None, retries: int = 1, chunk=None,
+              scheduler=None):
+    """A :class:`Pool` of local workers, or a :class:`DaskPool` on ``scheduler``."""
+    if scheduler is None:
+        return Pool(spec, workers, timeout, retries, chunk)
+    return DaskPool(spec, scheduler, timeout, retries, chunk)
+
+
+def drive(f: Falsifier, pool, progress: Progress, stop=None) -> None:
+    """Ask, evaluate on ``pool``, tell, until the budget is spent (KeyboardInterrupt when
+    ``stop()`` is true between updates)."""
+    while not f.done:
+        if stop is not None and stop():
+            raise KeyboardInterrupt
+        asked = f.ask()
+        t = time.perf_counter()
+        res = pool.evaluate(asked.values)
+        f.clock.add("evaluation", time.perf_counter() - t)
+        tell_results(f, asked, res)
+        for row, reason in sorted(res.errors.items())[:3]:
+            progress.message(f"evaluation {int(asked.evaluation[row])} failed: {reason}")
+
+
+def check_settings(workers, timeout, retries, chunk) -> None:
+    """One-line ValueError for a bad pool setting."""
+    for name, v, lo in (("workers", workers, 1), ("retries", retries, 0), ("chunk", chunk, 1)):
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < lo):
+            raise ValueError(f"{name} must be an integer >= {lo} (got {v!r})")
+    if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0
+                                    and np.isfinite(timeout)):
+        raise ValueError(f"timeout must be a positive number of seconds (got {timeout!r})")
+
+
+COMPARE_STRATEGIES = ("reinforce/screened", "random", "cem")  # compare's default with an
+# evaluator: the sample-efficient search against two cheap ones
+
+
+def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE_STRATEGIES,
+            seeds: int = 10, space: Any = "paper", space_seed: int = 0,
+            evaluations: int | None = None, batch: int | None = None,
+            strategy_params: dict | None = None, workers: int | None = None,
+            timeout: float | None = None, retries: int = 1, scheduler=None,
+            force: bool = False, progress: Progress | None = None, stop=None) -> dict:
+    """``jaxfalsify compare --evaluator``: strategies x seeds against an external evaluator,
+    one pool for all. There is no ground truth (the evaluator's space is not swept): per
+    strategy the seeds that found a failure, evaluations, search seconds (ask + tell) and
+    evaluation seconds to the first failure, distinct failures, failed evaluations. Each seed
+    is a run folder ``OUT/runs/<strategy>-s<seed>/``; ``OUT/compare.json`` and ``compare.md``
+    hold the table. Returns what ``compare.json`` holds."""
+    from jaxfalsify import config as cfg
+    from jaxfalsify.compare import _median
+
+    check_settings(workers, timeout, retries, None)
+    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
+        raise ValueError(f"seeds must be an integer >= 1 (got {seeds!r})")
+    strategy_params = dict(strategy_params or {})
+    configs = {name: RunConfig(space=space, space_seed=space_seed, strategy=name,
+                               strategy_params=strategy_params.get(name, {}),
+                               evaluations=evaluations, batch=batch, evaluator=evaluator)
+               for name in strategies}
+    for rc in configs.values():
+        rc.build()  # every setting checked before anything is written
+    if scheduler is None:
+        load(evaluator)
+    progress = progress or Progress()
+    out = Path(out) if out is not None else Path("runs") / f"compare-{runs.timestamp()}"
+    lk = store.open_folder(out, "compare", force=force)
+    rows = {}
+    try:
+        lk.claim("compare")
+        if force:
+            store.clear(out, "compare")
+        out.mkdir(parents=True, exist_ok=True)
+        doc = {"kind": "compare", "evaluator": sut_recorded(evaluator),
+               "strategies": list(strategies), "seeds": seeds,
+               "evaluations": evaluations or 0, "batch": batch or 0,
+               "space": configs[strategies[0]].resolved().space}
+        store.write_atomic(out / "config.toml", cfg.dumps_toml(doc))
+        store.write_status(out, "compare", "running")
+        clock = Clock(0.0)
+        with make_pool(evaluator, workers, timeout, retries, None, scheduler) as pool:
+            for name, rc in configs.items():
+                per_seed = []
+                for seed in range(seeds):
+                    rcs = dataclasses.replace(rc, seed=seed)
+                    f = Falsifier.from_config(rcs, out / "runs" / f"{name.replace('/', '-')}"
+                                              f"-s{seed}", force=force)
+                    try:
+                        progress.phase(f"{name}, seed {seed}")
+                        drive(f, pool, progress, stop)
+                    except BaseException:
+                        f.close()
+                        raise
+                    o = f.finish(figures=False)
+                    per_seed.append(seed_row(seed, o, f))
+                found = [r for r in per_seed if r["first_failure"] is not None]
+                rows[name] = {
+                    "batch": configs[name].build().strategy.batch,
+                    "found": len(found), "seeds": seeds,
+                    "first_failure_median": _median(
+                        [r["first_failure"] or r["evaluations"] + 1 for r in per_seed]),
+                    "search_seconds_to_first_median": _median(
+                        [r["search_seconds_to_first"] for r in found]) if found else None,
+                    "evaluation_seconds_to_first_median": _median(
+                        [r["evaluation_seconds_to_first"] for r in found]) if found else None,
+                    "distinct_failures_median": _median([r["distinct_failures"]
+                                                         for r in per_seed]),
+                    "failed_evaluations": sum(r["n_failed"] for r in per_seed),
+                    "per_seed": per_seed}
+        result = {"evaluator": doc["evaluator"], "space": configs[strategies[0]].build()
+                  .space.name, "seeds": seeds, "strategies": rows}
+        store.write_json(out / "compare.json", result, indent=2)
+        store.write_atomic(out / "compare.md", compare_markdown(result))
+        store.write_json(out / "timing.json", clock.summary(), indent=2)
+        store.write_status(out, "compare", "complete")
+    except KeyboardInterrupt:
+        store.write_status(out, "compare", "interrupted")
+        raise store.Interrupted("compare", out, len(rows), len(configs), "strategies",
+                                resumable=False) from None
+    finally:
+        lk.release()
+    return result
+
+
+def sut_recorded(spec: str) -> str:
+    from jaxfalsify import sut as sut_lib
+
+    return sut_lib.recorded_spec(spec)
+
+
+def seed_row(seed: int, o, f: Falsifier) -> dict:
+    """One seed of :func:`compare`: its first failure (evaluation, search and evaluation
+    seconds to the end of its update), distinct failures and failed evaluations."""
+    s = o.summary
+    first = s["first_violation_evaluation"]
+    u = None if first is None else (first - 1) // f.batch
+    return {"seed": seed, "evaluations": s["evaluations"], "first_failure": first,
+            "search_seconds_to_first": None if u is None
+            else float(np.sum(f.search_seconds[:u + 1])),
+            "evaluation_seconds_to_first": None if u is None
+            else float(np.sum(f.evaluation_seconds[:u + 1])),
+            "search_seconds": float(np.sum(f.search_seconds)),
+            "evaluation_seconds": float(np.sum(f.evaluation_seconds)),
+            "distinct_failures": s["n_distinct_critical"], "n_failed": s["n_failed"]}
+
+
+def compare_markdown(result: dict) -> str:
+    """``compare.md``: one row per strategy."""
+    from jaxfalsify.analysis import markdown_table
+
+    def num(x, fmt):
+        return "-" if x is None else format(x, fmt)
+
+    head = ["strategy", "batch", "found a failure", "evaluations to the first (median)",
+            "search s to the first", "evaluation s to the first", "distinct failures (median)",
+            "failed evaluations"]
+    rows = [[name, str(r["batch"]), f"{r['found']}/{r['seeds']}",
+             num(r["first_failure_median"], ".0f"),
+             num(r["search_seconds_to_first_median"], ".3f"),
+             num(r["evaluation_seconds_to_first_median"], ".3f"),
+             num(r["distinct_failures_median"], ".0f"), str(r["failed_evaluations"])]
+            for name, r in result["strategies"].items()]
+    return "\n".join([f"# Strategies against the evaluator `{result['evaluator']}`", "",
+                      f"Space {result['space']}, {result['seeds']} seeds; a seed without a "
+                      "failure counts its budget + 1 in the median of evaluations; seconds "
+                      "are medians over the seeds that found one.", "",
+                      markdown_table(head, rows), ""])
 
 
 def tell_results(f: Falsifier, asked: Asked, res: Results) -> None:

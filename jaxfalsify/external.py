@@ -188,6 +188,10 @@ class Falsifier:
             self.out.mkdir(parents=True, exist_ok=True)
             store.write_atomic(self.out / "config.toml", rc.to_toml())
         self.start_from = min(len(self.records) * self.batch, self.budget)
+        # per update: the search's seconds (ask + tell) and the host's between ask and tell
+        # (NaN for the updates a resumed run restored)
+        self.search_seconds = [float("nan")] * len(self.records)
+        self.evaluation_seconds = [float("nan")] * len(self.records)
         with self.clock("compile"):  # ask and tell compiled here, so search time is theirs
             self._carry = carry if carry is not None else jax.jit(init)(key_data)
             idx, after, k_tell = self._ask(self._carry)
@@ -232,7 +236,9 @@ class Falsifier:
 
     def ask(self, n: int | None = None) -> Asked:
         """The next batch of concrete scenarios (``n``, if given, must be the batch). Asking
-        again before telling returns the same batch."""
+        again before telling returns the same batch. The last batch holds only the budget's
+        rest (the search asked a whole batch; the scenarios past the budget are not
+        evaluated)."""
         if n is not None and n != self.batch:
             raise ValueError(f"ask({n!r}): this search asks {self.batch} scenarios per update "
                              "(set batch= when creating the Falsifier)")
@@ -243,14 +249,17 @@ class Falsifier:
             t = time.perf_counter()
             idx, carry, k_tell = self._ask(self._carry)
             idx = np.asarray(idx, np.int32)
-            self.clock.add("search", time.perf_counter() - t)
+            self._asked_at = time.perf_counter()
+            self._ask_s = self._asked_at - t
+            self.clock.add("search", self._ask_s)
             u = len(self.records)
             evaluation = u * self.batch + np.arange(1, self.batch + 1, dtype=np.int64)
-            values = {n: np.asarray(self.space.exact_values[p], np.float64)[idx[:, p]]
-                      for p, n in enumerate(self.space.names)}
-            asked = Asked(u, evaluation, idx, values, dict(zip(self.space.names,
-                                                               self.space.units)))
-            self._pending = (asked, carry, k_tell)
+            n = int(np.sum(evaluation <= self.budget))  # the last batch: the budget's rest
+            values = {name: np.asarray(self.space.exact_values[p], np.float64)[idx[:n, p]]
+                      for p, name in enumerate(self.space.names)}
+            asked = Asked(u, evaluation[:n], idx[:n], values, dict(zip(self.space.names,
+                                                                       self.space.units)))
+            self._pending = (asked, carry, k_tell, idx)
         return self._pending[0]
 
     def tell(self, asked: Asked, robustness, collision=None,
@@ -270,15 +279,16 @@ class Falsifier:
         self._check_open()
         if self._pending is None or asked is not self._pending[0]:
             raise ValueError("tell() takes the batch the last ask() returned")
-        B = self.batch
-        failed = np.zeros(B, bool) if failed is None else self._column("failed", failed, bool)
-        rob = self._column("robustness", robustness, np.float64)
+        n, B = len(asked), self.batch
+        failed = np.zeros(n, bool) if failed is None else self._column("failed", failed, bool,
+                                                                       n)
+        rob = self._column("robustness", robustness, np.float64, n)
         signals = dict(signals or {})
         unknown = sorted(set(signals) - set(SIGNALS))
         if unknown:
             raise ValueError(f"signal '{unknown[0]}' is not one of {', '.join(SIGNALS)}")
-        sig = {k: self._column(k, v, np.float64) for k, v in signals.items()}
-        coll = rob < 0 if collision is None else self._column("collision", collision, bool)
+        sig = {k: self._column(k, v, np.float64, n) for k, v in signals.items()}
+        coll = rob < 0 if collision is None else self._column("collision", collision, bool, n)
         for name, col in (("robustness", rob), *sig.items()):
             bad = ~np.isfinite(col) & ~failed
             if name == "min_ttc":  # no approach at all: an infinite TTC is an answer
@@ -288,19 +298,26 @@ class Falsifier:
                 raise ValueError(f"{name} of evaluation {int(asked.evaluation[i])} "
                                  f"({self._describe(asked, i)}) is {col[i]}: pass a finite "
                                  "value, or mark it failed")
-        in_budget = asked.evaluation <= self.budget
-        counted = in_budget & ~failed
+        counted = ~failed
         reward = sig.get("reward", -rob)
         violated = coll & counted
-        r = np.where(counted, reward, -np.inf).astype(np.float32)
-        rob32 = np.where(counted, rob, np.inf).astype(np.float32)
-        ttc = np.where(counted, sig.get("min_ttc", np.inf), np.inf).astype(np.float32)
-        _, carry, k_tell = self._pending
+
+        def full(x, fill, dtype):  # (n,) -> (B,): the rows past the budget count nothing
+            return np.concatenate([np.asarray(x), np.full(B - n, fill)]).astype(dtype)
+
+        r = full(np.where(counted, reward, -np.inf), -np.inf, np.float32)
+        rob32 = full(np.where(counted, rob, np.inf), np.inf, np.float32)
+        ttc = full(np.where(counted, sig.get("min_ttc", np.inf), np.inf), np.inf, np.float32)
+        _, carry, k_tell, idx = self._pending
         t = time.perf_counter()
-        self._carry = jax.block_until_ready(self._tell(carry, k_tell, jnp.asarray(asked.indices),
-                                                       r, rob32, violated, ttc))
-        self.clock.add("search", time.perf_counter() - t)
-        nan = np.full(B, np.nan, np.float32)
+        self._carry = jax.block_until_ready(self._tell(carry, k_tell, jnp.asarray(idx), r,
+                                                       rob32, full(violated, False, bool),
+                                                       ttc))
+        tell_s = time.perf_counter() - t
+        self.clock.add("search", tell_s)
+        self.search_seconds.append(self._ask_s + tell_s)
+        self.evaluation_seconds.append(t - self._asked_at)
+        nan = np.full(n, np.nan, np.float32)
         record = {"indices": asked.indices,
                   "reward": np.where(failed, np.nan, reward).astype(np.float32),
                   "reward_rss": nan, "reward_distance": nan, "reward_collision": nan,
@@ -319,14 +336,13 @@ class Falsifier:
         self.progress.update(self.told, collisions=int(sum(np.sum(x["violated"])
                                                            for x in self.records)))
 
-    def _column(self, name, x, dtype) -> np.ndarray:
+    def _column(self, name, x, dtype, n: int) -> np.ndarray:
         try:
             a = np.asarray(x, dtype)
         except (TypeError, ValueError):
-            raise ValueError(f"{name} must be {self.batch} numbers (got {type(x).__name__})") \
-                from None
-        if a.shape != (self.batch,):
-            raise ValueError(f"{name} must have shape ({self.batch},), one per asked scenario "
+            raise ValueError(f"{name} must be {n} numbers (got {type(x).__name__})") from None
+        if a.shape != (n,):
+            raise ValueError(f"{name} must have shape ({n},), one per asked scenario "
                              f"(got {a.shape})")
         return a
 
@@ -340,13 +356,15 @@ class Falsifier:
     # ------------------------------------------------------------------ results
     def result(self) -> campaign.Result:
         """Every evaluation told so far, as a :class:`jaxfalsify.campaign.Result` (fields
-        ``RECORD_FIELDS`` and ``failed``)."""
+        ``RECORD_FIELDS`` and ``failed``; its search seconds are the ask and tell calls', one
+        "chunk" per update: :meth:`~jaxfalsify.campaign.Result.search_seconds_at`)."""
         if not self.records:
             raise ValueError("nothing told yet")
-        n = self.told
-        cat = {k: np.concatenate([r[k] for r in self.records])[:n] for k in self.records[0]}
+        cat = {k: np.concatenate([r[k] for r in self.records]) for k in self.records[0]}
         idx = cat.pop("indices").astype(np.int32)
-        return campaign.Result(self.space, self.batch, idx, cat)
+        t = np.asarray(self.search_seconds, np.float64)
+        return campaign.Result(self.space, self.batch, idx, cat, self.clock.phases.get(
+            "compile", 0.0), float(np.nansum(t)), t, 1)
 
     def finish(self, figures: bool = True) -> runs.RunOutcome:
         """Write the results (``evaluations.parquet``, ``summary.json``, ``critical.csv``,

@@ -42,7 +42,8 @@ def test_ask_tell_round_trip_equals_run(tmp_path, strategy, evaluations):
     while not f.done:
         a = f.ask()
         assert f.ask() is a  # asking again before telling: the same batch
-        np.testing.assert_array_equal(a.evaluation, a.update * f.batch + 1 + np.arange(f.batch))
+        n = min(f.batch, evaluations - a.update * f.batch)  # the last: the budget's rest
+        np.testing.assert_array_equal(a.evaluation, a.update * f.batch + 1 + np.arange(n))
         o = jax_outcomes(b.space, a)
         f.tell(a, np.asarray(o.robustness), np.asarray(o.collision),
                signals={"reward": np.asarray(o.reward), "min_ttc": np.asarray(o.min_ttc),
@@ -240,3 +241,39 @@ def test_dask_cluster_evaluates_as_the_local_pool(tmp_path):
     np.testing.assert_array_equal(o.result.indices, res.indices)
 
 
+
+
+def test_the_last_batch_holds_only_the_budgets_rest(tmp_path):
+    f = jf.Falsifier("paper", strategy="random", batch=8, evaluations=12, out=tmp_path / "r")
+    sizes = []
+    while not f.done:
+        a = f.ask()
+        sizes.append(len(a))
+        f.tell(a, a.values["ped_speed"] - 1.5)
+    assert sizes == [8, 4]
+    o = f.finish(figures=False)
+    assert o.result.n == 12 and o.summary["evaluations"] == 12
+
+
+def test_cli_compare_with_an_evaluator(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code = main(["compare", "--evaluator", f"{HOST}:plain", "--strategies", "random,cem",
+                 "--seeds", "2", "--evaluations", "40", "--batch", "8", "--workers", "2",
+                 "--out", "cmp", "--quiet"])
+    assert code == 0
+    result = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    for name in ("random", "cem"):
+        row = result["strategies"][name]
+        assert row["batch"] == 8 and row["seeds"] == 2
+        for seed_row in row["per_seed"]:  # against the seed's own run folder
+            _, _, s, ep = load_run(tmp_path / "cmp" / "runs" / f"{name}-s{seed_row['seed']}")
+            first = np.nonzero(ep["ped_speed"] < 1.5)[0]
+            assert seed_row["first_failure"] == (int(first[0]) + 1 if first.size else None)
+            assert seed_row["distinct_failures"] == len(
+                {tuple(r) for r in np.stack([ep[f"{n}_idx"] for n in
+                                             ("ego_offset", "ped_accel", "ped_speed",
+                                              "ped_offset", "weather")], 1)[first]})
+    assert "| random | 8 |" in capsys.readouterr().out
+    assert main(["compare", "--evaluator", f"{HOST}:plain", "--sut", "sensor-aeb",
+                 "--out", "x"]) == 2
+    assert "cannot be combined with --evaluator" in capsys.readouterr().err
