@@ -493,9 +493,20 @@ def compare_markdown(result: dict) -> str:
 
 
 def tell_results(f: Falsifier, asked: Asked, res: Results) -> None:
-    """Tell a Falsifier a pool's results (failed scenarios as failed)."""
+    """Tell a Falsifier a pool's results: failed scenarios as failed, and so is a scenario
+    whose robustness or signal came back non-finite (its reason added to ``res.errors``)."""
     out = res.outputs
-    rob = np.where(res.failed, 0.0, out.get("robustness", np.zeros(len(asked))))
-    collision = out.get("collision")
-    sig = {k: np.where(res.failed, 0.0, out[k]) for k in SIGNALS if k in out}
-    f.tell(asked, rob, collision, signals=sig, failed=res.failed)
+    failed = res.failed.copy()
+    for k in ("robustness", *SIGNALS):
+        if k not in out:
+            continue
+        bad = ~np.isfinite(out[k]) & ~failed
+        if k == "min_ttc":
+            bad &= ~np.isposinf(out[k])  # no approach: an infinite TTC is an answer
+        for row in np.nonzero(bad)[0]:
+            res.errors[int(row)] = f"returned {k} {out[k][row]}"
+        failed |= bad
+    res.failed[:] = failed
+    rob = np.where(failed, 0.0, out.get("robustness", np.zeros(len(asked))))
+    sig = {k: np.where(failed, 0.0, out[k]) for k in SIGNALS if k in out}
+    f.tell(asked, rob, out.get("collision"), signals=sig, failed=failed)

@@ -62,3 +62,9 @@ def two_args(s, extra):
 
 
 NOT_CALLABLE = 3
+
+
+def nan_fast(s):
+    """NaN robustness for ped_speed > 1.6."""
+    rob = plain(s)
+    return np.where(np.asarray(s["ped_speed"]) > 1.6, np.nan, rob)

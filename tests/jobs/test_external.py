@@ -277,3 +277,14 @@ def test_cli_compare_with_an_evaluator(tmp_path, capsys, monkeypatch):
     assert main(["compare", "--evaluator", f"{HOST}:plain", "--sut", "sensor-aeb",
                  "--out", "x"]) == 2
     assert "cannot be combined with --evaluator" in capsys.readouterr().err
+
+
+def test_a_non_finite_result_is_recorded_as_failed(tmp_path):
+    rc = runs.RunConfig(strategy="random", batch=16, evaluations=48,
+                        evaluator=f"{HOST}:nan_fast")
+    o = evaluators.run(rc, tmp_path / "nan", workers=2, figures=False)
+    bad = values_of(o.result) > 1.6
+    assert bad.any()
+    np.testing.assert_array_equal(o.result.fields["failed"], bad)
+    assert o.summary["n_failed"] == int(bad.sum())
+    assert o.summary["failed_evaluations"] == [int(e) for e in np.nonzero(bad)[0] + 1]
