@@ -9,8 +9,9 @@ Host-side only (matplotlib, Agg backend); the jitted core never imports this mod
   typical non-critical one, high-risk steps red, low-risk green, the < 1 m collision zone
   shaded (paper Fig. 7);
 * ``high_risk_second_half.png`` — their high-risk shares over the second half (paper Fig. 8);
-* ``distance_14_scenarios.png`` — distance over time of 14 evaluated scenarios, collisions
-  red, the rest green (paper Fig. 9);
+* ``distance_14_scenarios.png`` — distance over time of 14 evaluated scenarios, the critical
+  ones red (collisions, or the violations of the run's ``--requirement``), the rest green
+  (paper Fig. 9);
 * ``critical_regions.png`` — beyond the paper: the collision share of the exhaustive sweep over
   every pair of parameters (a perceptual colour scale fitted to the data), with a subsample of
   the run's evaluated scenarios on top; axes in the parameters' units, ticks at their values;
@@ -133,11 +134,13 @@ def pick(ep: dict) -> dict[str, int | None]:
 
 
 def fig10_rows(ep: dict, n: int = 14, n_collisions: int = 3) -> list[int]:
-    """Up to ``n`` evaluated scenarios, ``n_collisions`` of them collisions (paper Fig. 9);
-    a fixed draw so redrawing gives the same figure."""
+    """Up to ``n`` evaluated scenarios, ``n_collisions`` of them critical (collisions, or the
+    run's requirement's violations: paper Fig. 9); a fixed draw so redrawing gives the same
+    figure."""
     rng = np.random.default_rng(0)
-    col = np.nonzero(analysis.collided(ep))[0]
-    oth = np.nonzero(~ep["collision"] & ~ep["nonfinite"])[0]
+    crit = analysis.critical(ep)  # a run's requirement's violations (without one: collisions)
+    col = np.nonzero(crit)[0]
+    oth = np.nonzero(~crit & ~ep["nonfinite"])[0]
     k = min(n_collisions, col.size)
     return [int(r) for r in rng.choice(col, k, replace=False)] + \
         [int(r) for r in rng.choice(oth, min(n - k, oth.size), replace=False)]
@@ -299,15 +302,18 @@ def _simulated_figures(plt, save, sp, rc, ep, world, prepared) -> None:
     place()
     save(fig, "high_risk_second_half.png")
 
-    # Fig. 9: 14 scenarios, collisions red
+    # Fig. 9: 14 scenarios, the critical ones (collisions, or the requirement's violations) red
     fig, ax, place = _single(plt, (8, 5), top=TITLE, legend=True)
     ax.axhspan(0, 1.0, color="0.85", label="collision zone (< 1 m)")
     labelled = set()
-    # the others first, collisions on top (drawn last, higher zorder)
-    for k, row in sorted(enumerate(chosen), key=lambda kr: bool(ep["collision"][kr[1]])):
+    crit = analysis.critical(ep)
+    req = rc.requirement if rc.requirement != "collision" else None
+    words = (f"violates {req}", f"satisfies {req}") if req else ("collision", "no collision")
+    # the others first, critical ones on top (drawn last, higher zorder)
+    for k, row in sorted(enumerate(chosen), key=lambda kr: bool(crit[kr[1]])):
         v = np.asarray(traj.valid[2 + k])
-        hit = bool(ep["collision"][row])
-        label = "collision" if hit else "no collision"
+        hit = bool(crit[row])
+        label = words[0] if hit else words[1]
         ax.plot(np.asarray(traj.t[2 + k])[v], np.asarray(traj.distance[2 + k])[v],
                 color="tab:red" if hit else "tab:green", lw=1.6 if hit else 1.0,
                 zorder=3 if hit else 2, label=None if label in labelled else label)

@@ -16,8 +16,8 @@ Entities of a recording:
   0 green), ``metrics/ego_speed``, ``metrics/ped_speed`` (m/s): scalar series on ``sim_time``;
 * ``info``: the scenario's parameters and outcome as a markdown document;
 * ``training/reward``: the run's reward per evaluation, on the ``evaluation`` timeline;
-* ``overlay/<k>/distance``: with several scenarios, each one's distance (collisions red), as in
-  the paper's Fig. 9.
+* ``overlay/<k>/distance``: with several scenarios, each one's distance (the critical ones red:
+  collisions, or the violations of the run's requirement), as in the paper's Fig. 9.
 
 A blueprint puts the top view and the scenario's text beside three plots: the distance with
 the RSS safe distance and the epsilon line, the speeds and the high-risk flag, the training
@@ -188,8 +188,9 @@ def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
         rows = rng.choice(len(ep["reward"]), overlay, replace=False)
         ov = resimulate(sp, rc, ep, rows)
         rec.reset_time()  # and no evaluation number on the overlaid distances
+        crit = analysis.critical(ep)  # the run's requirement's violations (or collisions)
         for j, r in enumerate(rows):
-            color = RED if ep["collision"][r] else GREEN
+            color = RED if crit[r] else GREEN
             rec.log(f"overlay/{j}/distance", rr.SeriesLines(colors=[color],
                                                            names=[f"eval {r + 1}"]), static=True)
             v = np.asarray(ov.valid[j])

@@ -28,3 +28,23 @@ def test_without_a_satisfying_scenario_it_is_the_median_non_collision():
                 collision=[False, False, False, True])
     assert analysis.typical_non_critical(f) == 1
     assert analysis.typical_non_critical(_fields([0.2], [-1.0], [True])) is None
+
+
+def test_fig9_rows_are_the_requirements_violations_when_the_run_names_one():
+    """Oracle: a hand-built record where violations and collisions differ; Fig. 9's critical
+    rows must come from the violations (a run with --requirement), the others from the
+    evaluations that satisfy it."""
+    from jaxfalsify.figures import fig10_rows
+
+    n = 40
+    collision = np.zeros(n, bool)
+    collision[:5] = True
+    violated = np.zeros(n, bool)
+    violated[20:30] = True
+    ep = {"collision": collision, "violated": violated, "nonfinite": np.zeros(n, bool)}
+    rows = fig10_rows(ep, n=14, n_collisions=3)
+    assert all(violated[r] for r in rows[:3])
+    assert not any(violated[r] for r in rows[3:]) and len(rows) == 14
+    del ep["violated"]  # a run without a requirement: collisions
+    rows = fig10_rows(ep, n=14, n_collisions=3)
+    assert all(collision[r] for r in rows[:3]) and not any(collision[r] for r in rows[3:])
