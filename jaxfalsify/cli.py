@@ -577,7 +577,7 @@ def cmd_compare(args, stop, startup) -> int:
 
 
 def _compare_suite(args, names, stop, startup) -> int:
-    from jaxfalsify import compare
+    from jaxfalsify import suites
     from jaxfalsify.progress import timing_line
 
     for flag, given in (("--space", args.space), ("--space-seed", args.space_seed is not None),
@@ -589,14 +589,14 @@ def _compare_suite(args, names, stop, startup) -> int:
             raise UsageError(f"--suite takes its spaces, SUTs and budgets from the suite file; "
                              f"drop {flag}")
     entries = _names("--entries", args.entries, "space", "aeb-9e6,island-dash")
-    suite = compare.load_suite(args.suite, seeds=args.seeds, strategies=names,
-                               jobs=args.jobs or 0, entries=entries,
-                               strategy_params=_per_strategy(args.strategy_param),
-                               batch=args.batch)
-    result = compare.execute_suite(suite, args.out, force=args.force,
-                                   progress=_progress(args.quiet), stop=stop,
-                                   startup_seconds=startup)
-    print(compare.suite_markdown(result))
+    suite = suites.load_suite(args.suite, seeds=args.seeds, strategies=names,
+                              jobs=args.jobs or 0, entries=entries,
+                              strategy_params=_per_strategy(args.strategy_param),
+                              batch=args.batch)
+    result = suites.execute_suite(suite, args.out, force=args.force,
+                                  progress=_progress(args.quiet), stop=stop,
+                                  startup_seconds=startup)
+    print(suites.suite_markdown(result))
     print(f"wall time {timing_line(result['timing'])}")
     print(f"wrote {result['out']}/suite.json, suite.md (and a comparison folder per space)")
     return 0

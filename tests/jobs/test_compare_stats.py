@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from jaxfalsify import campaign, compare
+from jaxfalsify import campaign, compare, suites
 
 
 class _Space:
@@ -96,11 +96,11 @@ def test_suite_section_of_a_space_without_collisions():
              "failures_interior": False, "overhead": {}, "uniform_corner_share": 0.5,
              "budgets": [{"budget": 4, "rows": [],
                           "uniform_first_collision": compare.uniform_first_collision(8, 0, 4)}]}
-    text = compare.suite_markdown({"suite": "t", "seeds": 2, "entries": [entry]})
+    text = suites.suite_markdown({"suite": "t", "seeds": 2, "entries": [entry]})
     assert "0 collisions of 8 scenarios (p = 0); global maximum -0.0500 (1 scenario); " \
         "no collision anywhere in the space." in text
     one = {**entry, "n_collisions": 1, "failures_interior": True}
-    assert "1 collision of 8 scenarios" in compare.suite_markdown(
+    assert "1 collision of 8 scenarios" in suites.suite_markdown(
         {"suite": "t", "seeds": 2, "entries": [one]})
 
 

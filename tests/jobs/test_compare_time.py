@@ -11,7 +11,7 @@ import pytest
 from conftest import TINY_SPACE, run_campaign
 
 import jaxfalsify as jf
-from jaxfalsify import campaign, compare
+from jaxfalsify import campaign, compare, suites
 from jaxfalsify.progress import Progress
 
 NO_COLLISION_SPACE = TINY_SPACE.replace("values = [7, 9]", "values = [1, 2]", 1)  # carla-tm:
@@ -233,7 +233,7 @@ def test_the_suite_tables_show_the_times(compared):
     budget's median search seconds to the first collision; the failures per second and the
     compile seconds at the largest budget."""
     res = compared[0]
-    text = compare.suite_markdown({"suite": "t", "seeds": 3, "entries": [res]})
+    text = suites.suite_markdown({"suite": "t", "seeds": 3, "entries": [res]})
     assert compare.TIME_NOTE in text
     for k, name in enumerate(["random", "cem"]):
         line = next(x for x in text.splitlines() if x.startswith(f"| {name} |"))

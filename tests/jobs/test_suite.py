@@ -10,7 +10,7 @@ import pytest
 from conftest import TINY_SPACE, run_campaign, space_file_fixture
 
 import jaxfalsify as jf
-from jaxfalsify import compare, runs
+from jaxfalsify import compare, runs, suites
 from jaxfalsify.cli import main
 from jaxfalsify.sweep import sweep_arrays
 
@@ -103,7 +103,7 @@ def test_a_suites_relative_paths_are_the_suite_files(tmp_path, monkeypatch):
     import shutil
 
     from jaxfalsify import sut as sut_lib
-    from jaxfalsify.compare import load_suite
+    from jaxfalsify.suites import load_suite
 
     sub = (tmp_path / "sub").resolve()
     sub.mkdir()
@@ -127,7 +127,7 @@ def test_the_shipped_suite_loads_with_every_space_and_sut():
     from jaxfalsify import sut as sut_lib
 
     path = Path(__file__).parents[2] / "experiments" / "suite" / "suite.toml"
-    suite = compare.load_suite(str(path))
+    suite = suites.load_suite(str(path))
     raw = tomllib.loads(path.read_text())["entry"]
     assert len(suite.entries) == len(raw) >= 6
     assert len({e.sut for e in suite.entries}) >= 2
@@ -157,13 +157,13 @@ def test_suite_entries_picks_spaces_by_name(tmp_path, capsys):
                      '[[entry]]\nspace = "other.toml"\nsut = "sensor-aeb"\n'
                      'sut_params = { ttc_full = 1.5 }\n[[entry]]\nspace = "tiny.toml"\n'
                      'sut = "none"\n')
-    full = compare.load_suite(suite).entries
-    picked = compare.load_suite(suite, entries=("tiny2",)).entries
+    full = suites.load_suite(suite).entries
+    picked = suites.load_suite(suite, entries=("tiny2",)).entries
     assert picked == (full[1],) and dict(picked[0].sut_params) == {"ttc_full": 1.5}
-    both = compare.load_suite(suite, entries=("tiny2", "tiny")).entries
+    both = suites.load_suite(suite, entries=("tiny2", "tiny")).entries
     assert both == full  # the file's order, every entry of a named space
     with pytest.raises(ValueError, match=r"no entry of space 'other' .*entries: tiny, tiny2\)"):
-        compare.load_suite(suite, entries=("other",))
+        suites.load_suite(suite, entries=("other",))
     capsys.readouterr()
     out = tmp_path / "o"
     assert main(["compare", "--suite", str(suite), "--entries", "tiny2,nope", "--out",
@@ -234,7 +234,7 @@ def test_suite_strategy_options_from_the_file_and_the_command_line(tmp_path, cap
     suite.write_text('strategies = ["random", "cem"]\n[strategy_params."cem"]\n'
                      'elite_frac = 0.2\nsmoothing = 0.5\n[[entry]]\nspace = "tiny.toml"\n'
                      '[[entry]]\nspace = "tiny.toml"\nsut = "none"\nexclude = ["cem"]\n')
-    s = compare.load_suite(suite, strategy_params={"cem": {"elite_frac": 0.4}})
+    s = suites.load_suite(suite, strategy_params={"cem": {"elite_frac": 0.4}})
     assert s.strategy_params == {"cem": {"elite_frac": 0.4, "smoothing": 0.5}}
     first, second = (s.compare_config(e) for e in s.entries)
     assert first.strategy_params == {"cem": {"elite_frac": 0.4, "smoothing": 0.5}}
@@ -243,27 +243,27 @@ def test_suite_strategy_options_from_the_file_and_the_command_line(tmp_path, cap
     assert np.isclose(float(built.strategy_params.elite_frac), 0.4)
     assert np.isclose(float(built.strategy_params.smoothing), 0.5)
     with pytest.raises(ValueError, match="strategy_params: 'anneal' is not among"):
-        compare.load_suite(suite, strategy_params={"anneal": {"decay": 0.9}})
+        suites.load_suite(suite, strategy_params={"anneal": {"decay": 0.9}})
     # the file's options of a strategy left out by --strategies go with it
-    assert compare.load_suite(suite, strategies=("random",)).strategy_params == {}
+    assert suites.load_suite(suite, strategies=("random",)).strategy_params == {}
     # a table naming no strategy of the file is refused, not dropped; an alias is the same
     # strategy (the options are keyed by the name the comparison runs under)
     typo = tmp_path / "typo.toml"
     typo.write_text('strategies = ["random", "cem"]\n[strategy_params."cme"]\nelite_frac = 0.2\n'
                     '[[entry]]\nspace = "tiny.toml"\n')
     with pytest.raises(ValueError, match=r"typo.toml: strategy_params: 'cme' is not among"):
-        compare.load_suite(typo)
+        suites.load_suite(typo)
     alias = tmp_path / "alias.toml"
     alias.write_text('strategies = ["reinforce/screened"]\n[strategy_params."reinforce/screened"]\n'
                      'kappa = 0.5\n[[entry]]\nspace = "tiny.toml"\n')
-    got = compare.load_suite(alias, strategy_params={"reinforce/screened": {"lr": 0.01}})
+    got = suites.load_suite(alias, strategy_params={"reinforce/screened": {"lr": 0.01}})
     assert got.strategy_params == {"reinforce/screened": {"kappa": 0.5, "lr": 0.01}}
     built = got.compare_config(got.entries[0]).run_config("reinforce/screened").build()
     assert np.isclose(float(built.strategy_params.kappa), 0.5)
     bad = tmp_path / "bad.toml"
     bad.write_text('strategy_params = { cem = 3 }\n[[entry]]\nspace = "tiny.toml"\n')
     with pytest.raises(ValueError, match="strategy_params must hold a table per strategy"):
-        compare.load_suite(bad)
+        suites.load_suite(bad)
     capsys.readouterr()
     out = tmp_path / "o"
     assert main(["compare", "--suite", str(suite), "--strategy-param", "cem:elite_frac=2",

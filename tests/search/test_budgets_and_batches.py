@@ -9,7 +9,7 @@ import tomllib
 import jax
 import pytest
 
-from jaxfalsify import compare, runs, search
+from jaxfalsify import compare, runs, search, suites
 
 
 def test_default_run_is_300_updates_of_4096_and_the_paper_preset_keeps_4000():
@@ -55,11 +55,11 @@ def test_compare_batch_sets_every_strategy_and_is_recorded(tmp_path):
         'high = 4\nsamples = 4\n')
     suite.write_text('strategies = ["random", "cem"]\nbudgets = [128]\nbatch = 32\n'
                      '[[entry]]\nspace = "tiny.toml"\n')
-    got = compare.load_suite(suite)
+    got = suites.load_suite(suite)
     assert got.batch == 32
     assert got.compare_config(got.entries[0]).run_config("cem").build().strategy.batch == 32
-    assert compare.load_suite(suite, batch=16).batch == 16
+    assert suites.load_suite(suite, batch=16).batch == 16
     suite.write_text('strategies = ["random"]\nbudgets = [128]\nbatch = -1\n'
                      '[[entry]]\nspace = "tiny.toml"\n')
     with pytest.raises(ValueError, match="s.toml: batch"):
-        compare.load_suite(suite)
+        suites.load_suite(suite)
