@@ -389,25 +389,26 @@ def cmd_run(args, stop, startup) -> int:
                                                  "strategy_param", "requirement_param"))
         rc, out = runs.resume_config(args.resume), args.resume
     else:
+        default = "reinforce/screened" if args.evaluator and args.config is None else None
+        # (an external system: the sample-efficient strategy unless one is named)
         rc = runs.configure(args.config, sut_params=_sut_values(args.sut_param),
                             strategy_params=_assignments(args.strategy_param,
                                                          "--strategy-param"),
                             requirement_params=_sut_values(args.requirement_param,
                                                            "--requirement-param"),
-                            **{k: getattr(args, k) for k in runs.SETTINGS})
+                            **{k: getattr(args, k) for k in runs.SETTINGS
+                               if k != "strategy"}, strategy=args.strategy or default)
         out = args.out  # None: a new folder runs/<time>-<strategy>
-        if args.evaluator and args.strategy is None and args.config is None:
-            # an external system: the sample-efficient strategy (unless one is named)
-            rc = runs.configure(rc, strategy="reinforce/screened")
     if rc.evaluator:
         if args.rerun:
             raise UsageError("--rerun needs the JAX simulator (a run with an evaluator has no "
                              "trajectories to record)")
         from jaxfalsify import evaluators
 
-        o = evaluators.run(rc, out, workers=args.workers, timeout=args.timeout,
-                           retries=1 if args.retries is None else args.retries,
-                           scheduler=args.scheduler, resume=args.resume is not None,
+        pool = evaluators.pool_settings(args.resume, workers=args.workers,
+                                        timeout=args.timeout, retries=args.retries,
+                                        scheduler=args.scheduler)
+        o = evaluators.run(rc, out, **pool, resume=args.resume is not None,
                            force=args.force, progress=_progress(args.quiet), stop=stop,
                            figures=not args.no_figures)
     else:

@@ -27,6 +27,7 @@ evaluating, checkpointed after every update and resumable.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import socket
 import subprocess
@@ -42,7 +43,13 @@ from jaxfalsify import runs, store
 from jaxfalsify.external import Asked, Falsifier
 from jaxfalsify.problem import RunConfig
 from jaxfalsify.progress import Clock, Progress
-from jaxfalsify.worker import SIGNALS, EvaluatorError, call, load  # noqa: F401 - re-exported
+from jaxfalsify.worker import (  # noqa: F401 - re-exported
+    SIGNALS,
+    EvaluatorError,
+    call,
+    dask_task,
+    load,
+)
 
 WORKER = str(Path(__file__).with_name("worker.py"))  # a worker process runs this file
 
@@ -68,6 +75,13 @@ def _assemble(B: int, done: dict[int, dict], errors: dict[int, str]) -> Results:
     return Results(outputs, failed, errors)
 
 
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
 class Pool:
     """Local worker processes evaluating batches (see the module's docstring).
 
@@ -75,26 +89,36 @@ class Pool:
       spec: the evaluator's import path.
       workers: processes (default: the CPU cores this process may use).
       timeout: seconds allowed per scenario (None: no limit).
-      retries: further tries of a failed scenario (each alone).
+      retries: further tries of a scenario that failed alone: a failed chunk's scenarios are
+        each tried alone, ``1 + retries`` times at most.
       chunk: scenarios per task (None: the batch split into about 4 tasks per worker).
+
+    Workers run in their own process group (a Ctrl-C in the terminal reaches only this
+    process, which stops them) and end by themselves when this process dies.
     """
 
     def __init__(self, spec: str, workers: int | None = None, timeout: float | None = None,
                  retries: int = 1, chunk: int | None = None):
+        check_settings(workers, timeout, retries, chunk)
         self.spec, self.timeout, self.retries, self.chunk = spec, timeout, retries, chunk
-        self.n = workers or len(os.sched_getaffinity(0))
+        self.n = workers or _cores()
         self.procs: list[Any] = [None] * self.n
         self.conns: list[Any] = [None] * self.n
         self.restarts = 0
-        for w in range(self.n):
-            self._start(w)
-        for w in range(self.n):
-            self._ready(w)
+        try:
+            for w in range(self.n):
+                self._start(w)
+            for w in range(self.n):
+                self._ready(w)
+        except BaseException:
+            self.close()
+            raise
 
     def _start(self, w: int) -> None:
         parent, child = socket.socketpair()
-        p = subprocess.Popen([sys.executable, "-P", WORKER, str(child.fileno())],
-                             pass_fds=[child.fileno()], stdin=subprocess.DEVNULL)
+        p = subprocess.Popen([sys.executable, "-P", WORKER, str(child.fileno()),
+                              str(os.getpid())], pass_fds=[child.fileno()],
+                             stdin=subprocess.DEVNULL, process_group=0)
         child.close()
         conn = Connection(parent.detach())
         conn.send((self.spec, list(sys.path), os.getcwd()))
@@ -105,93 +129,115 @@ class Pool:
             tag, msg = self.conns[w].recv()
         except EOFError:
             code = self.procs[w].wait()
-            self.close()
             raise EvaluatorError(f"evaluator '{self.spec}': its worker process ended while "
                                  f"loading it (exit code {code})") from None
         if tag == "load":
-            self.close()
             raise EvaluatorError(msg)
 
     def _restart(self, w: int) -> None:
-        p = self.procs[w]
-        if p.poll() is None:
-            p.kill()
-        p.wait()
-        self.conns[w].close()
+        self._stop(w)
         self.restarts += 1
         self._start(w)
         self._ready(w)
 
+    def _stop(self, w: int) -> None:
+        p, c = self.procs[w], self.conns[w]
+        if p is not None:
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+        if c is not None:
+            c.close()
+        self.procs[w] = self.conns[w] = None
+
     def evaluate(self, values: dict[str, np.ndarray]) -> Results:
-        """Evaluate one batch ``{name: (B,)}``."""
+        """Evaluate one batch ``{name: (B,)}``. Left early (an exception, Ctrl-C), the
+        workers still busy are restarted, so no late reply reaches a later batch."""
         B = len(next(iter(values.values())))
         size = self.chunk or max(1, -(-B // (4 * self.n)))
         queue = [(list(range(s, min(s + size, B))), 0) for s in range(0, B, size)]
         done: dict[int, dict] = {}
         errors: dict[int, str] = {}
-        busy: dict[int, tuple[list[int], int, float]] = {}  # worker -> (rows, tries, deadline)
+        busy: dict[int, tuple] = {}  # worker -> (rows, tries, deadline, tag)
         tag = 0
 
         def fail(rows, tries, reason):
-            if tries < self.retries or len(rows) > 1:  # a chunk: its scenarios one by one
-                queue.extend(([r], tries + (len(rows) == 1)) for r in rows)
+            if len(rows) > 1:  # a chunk: its scenarios one by one, a first try each
+                queue.extend(([r], 0) for r in rows)
+            elif tries < self.retries:
+                queue.append((rows, tries + 1))
             else:
-                for r in rows:
-                    errors[r] = reason
+                errors[rows[0]] = reason
 
-        while queue or busy:
-            for w in range(self.n):
-                if w not in busy and queue:
-                    rows, tries = queue.pop(0)
-                    tag += 1
-                    self.conns[w].send((tag, {k: v[rows] for k, v in values.items()}))
-                    limit = np.inf if self.timeout is None else self.timeout * len(rows)
-                    busy[w] = (rows, tries, time.monotonic() + limit)
-            now = time.monotonic()
-            wait_s = min(d for _, _, d in busy.values()) - now
-            ready = wait([self.conns[w] for w in busy],
-                         timeout=None if wait_s == np.inf else max(wait_s, 0.0))
-            for w in list(busy):
-                rows, tries, deadline = busy[w]
-                if self.conns[w] in ready:
-                    try:
-                        _, (status, payload) = self.conns[w].recv()
-                    except (EOFError, OSError):  # the worker died
+        try:
+            while queue or busy:
+                for w in range(self.n):
+                    if w not in busy and queue:
+                        rows, tries = queue.pop(0)
+                        tag += 1
+                        try:
+                            self.conns[w].send((tag, {k: v[rows] for k, v in values.items()}))
+                        except OSError:  # the worker died while idle: a fresh one, no try
+                            self._restart(w)  # counted
+                            queue.insert(0, (rows, tries))
+                            continue
+                        limit = np.inf if self.timeout is None else self.timeout * len(rows)
+                        busy[w] = (rows, tries, time.monotonic() + limit, tag)
+                if not busy:  # a worker was replaced before its chunk went out: again
+                    continue
+                wait_s = min(d for _, _, d, _ in busy.values()) - time.monotonic()
+                ready = wait([self.conns[w] for w in busy],
+                             timeout=None if wait_s == np.inf else max(wait_s, 0.0))
+                for w in list(busy):
+                    rows, tries, deadline, sent = busy[w]
+                    if self.conns[w] in ready:
+                        try:
+                            got, (status, payload) = self.conns[w].recv()
+                        except (EOFError, OSError):  # the worker died
+                            del busy[w]
+                            code = self.procs[w].wait()
+                            self._restart(w)
+                            fail(rows, tries, f"the worker process died (exit code {code})")
+                            continue
+                        if got != sent:  # not this chunk's reply (cannot happen: a worker
+                            continue     # left busy is restarted); wait for its own
                         del busy[w]
-                        code = self.procs[w].wait()
+                        if status == "ok":
+                            for j, r in enumerate(rows):
+                                done[r] = {k: v[j] for k, v in payload.items()}
+                        else:
+                            fail(rows, tries, payload)
+                    elif time.monotonic() >= deadline:
+                        del busy[w]
                         self._restart(w)
-                        fail(rows, tries, f"the worker process died (exit code {code})")
-                        continue
-                    del busy[w]
-                    if status == "ok":
-                        for j, r in enumerate(rows):
-                            done[r] = {k: v[j] for k, v in payload.items()}
-                    else:
-                        fail(rows, tries, payload)
-                elif time.monotonic() >= deadline:
-                    del busy[w]
-                    self._restart(w)
-                    fail(rows, tries, f"timed out after {self.timeout:g} s per scenario")
+                        fail(rows, tries, f"timed out after {self.timeout:g} s per scenario")
+        finally:
+            for w in list(busy):  # left early: its reply must not reach the next batch
+                self._stop(w)
+                try:
+                    self._start(w)
+                    self._ready(w)
+                except Exception:  # noqa: BLE001 - the next evaluate finds it dead and says
+                    pass
         return _assemble(B, done, errors)
 
     def close(self) -> None:
+        """Stop every worker: an idle one is asked to end, and any still running after a
+        shared second is killed."""
         for c in self.conns:
             if c is not None:
                 try:
                     c.send(None)
                 except (OSError, ValueError):
                     pass
-        for p, c in zip(self.procs, self.conns):
-            if p is None:
-                continue
-            try:
-                p.wait(timeout=2)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-            c.close()
-        self.procs = [None] * self.n
-        self.conns = [None] * self.n
+        deadline = time.monotonic() + 1.0
+        for w, p in enumerate(self.procs):
+            if p is not None:
+                try:
+                    p.wait(timeout=max(0.0, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    pass
+            self._stop(w)
 
     def __enter__(self):
         return self
@@ -201,29 +247,19 @@ class Pool:
         return False
 
 
-def _dask_task(spec: str, values: dict[str, np.ndarray]):
-    """What a Dask worker runs: the evaluator (loaded once per worker process) on one
-    chunk; an exception comes back as ``("error", reason)``."""
-    fn = _LOADED.get(spec)
-    if fn is None:
-        fn = _LOADED[spec] = load(spec)
-    try:
-        return "ok", call(fn, values)
-    except Exception as e:  # noqa: BLE001
-        return "error", f"{type(e).__name__}: {e}"[:300]
-
-
-_LOADED: dict[str, Callable] = {}
-
-
 class DaskPool:
     """The pool on a Dask cluster (``pip install "jaxfalsify[cluster]"``): each chunk a task
-    submitted to ``scheduler`` (an address, or a ``distributed.Client``); timeouts and retries
-    as :class:`Pool`'s. A timed-out task is cancelled and recorded as failed; Dask itself
-    reschedules the tasks of a worker that died."""
+    submitted to ``scheduler`` (an address, or a ``distributed.Client``); chunks and retries
+    as :class:`Pool`'s, a time limit per task (``timeout`` x its scenarios, from the moment
+    the batch is submitted, so a queue longer than the cluster's threads counts against it).
+    A task past its limit is cancelled and its scenarios recorded as failed, but Dask cannot
+    stop a task that is running: a hung evaluation keeps its worker thread. Dask reschedules
+    the tasks of a worker that died. The workers need jaxfalsify (its ``worker`` module runs
+    the evaluator) and the evaluator's module."""
 
     def __init__(self, spec: str, scheduler, timeout: float | None = None, retries: int = 1,
                  chunk: int | None = None):
+        check_settings(None, timeout, retries, chunk)
         try:
             import distributed
         except ImportError:
@@ -240,7 +276,7 @@ class DaskPool:
         self.restarts = 0
 
     def evaluate(self, values: dict[str, np.ndarray]) -> Results:
-        import distributed
+        from distributed import wait as dask_wait
 
         B = len(next(iter(values.values())))
         size = self.chunk or max(1, -(-B // (4 * self.n)))
@@ -248,33 +284,39 @@ class DaskPool:
         done: dict[int, dict] = {}
         errors: dict[int, str] = {}
         while pending:
-            futures = {self.client.submit(_dask_task, self.spec,
+            t0 = time.monotonic()
+            futures = {self.client.submit(dask_task, self.spec,
                                           {k: v[rows] for k, v in values.items()},
                                           pure=False): (rows, tries)
                        for rows, tries in pending}
             pending = []
-            limit = None if self.timeout is None else self.timeout * size * \
-                -(-len(futures) // self.n) + 30
-            try:
-                finished = distributed.wait(list(futures), timeout=limit).done
-            except TimeoutError:
-                finished = {f for f in futures if f.done()}
             for f, (rows, tries) in futures.items():
-                if f in finished and f.status == "finished":
+                left = None if self.timeout is None else max(
+                    0.0, t0 + self.timeout * len(rows) * -(-len(futures) // self.n)
+                    - time.monotonic())
+                try:
+                    dask_wait([f], timeout=left)
+                except TimeoutError:
+                    pass
+                if f.status == "finished":
                     status, payload = f.result()
+                    if status == "load":
+                        raise EvaluatorError(payload)
                 else:
+                    timed_out = not f.done()
                     f.cancel()
                     status = "error"
-                    payload = (f"timed out after {self.timeout:g} s per scenario"
-                               if f not in finished else f"the task failed ({f.status})")
+                    payload = (f"timed out after {self.timeout:g} s per scenario" if timed_out
+                               else f"the task failed ({f.status})")
                 if status == "ok":
                     for j, r in enumerate(rows):
                         done[r] = {k: v[j] for k, v in payload.items()}
-                elif tries < self.retries or len(rows) > 1:
-                    pending.extend(([r], tries + (len(rows) == 1)) for r in rows)
+                elif len(rows) > 1:
+                    pending.extend(([r], 0) for r in rows)
+                elif tries < self.retries:
+                    pending.append((rows, tries + 1))
                 else:
-                    for r in rows:
-                        errors[r] = payload
+                    errors[rows[0]] = payload
         return _assemble(B, done, errors)
 
     def close(self) -> None:
@@ -308,6 +350,8 @@ def run(config: RunConfig, out: Path | str | None = None, *, workers: int | None
         load(config.evaluator)  # here, in one line, before a folder or a worker exists
     progress = progress or Progress()
     f = Falsifier.from_config(config, out, resume=resume, force=force, progress=progress)
+    f.status_extra["pool"] = {"workers": workers, "timeout": timeout, "retries": retries,
+                              "scheduler": None if scheduler is None else str(scheduler)}
     try:
         t = time.perf_counter()
         pool = make_pool(config.evaluator, workers, timeout, retries, chunk, scheduler)
@@ -321,6 +365,27 @@ def run(config: RunConfig, out: Path | str | None = None, *, workers: int | None
         f.close()
         raise
     return f.finish(figures=figures)
+
+
+POOL_SETTINGS = ("workers", "timeout", "retries", "scheduler")
+
+
+def pool_settings(resume_from: Path | str | None = None, **given) -> dict:
+    """The pool's settings for :func:`run`: those ``given`` (None: not given); on a resume,
+    the interrupted run's own (its ``status.json``) for the others; then the defaults
+    (retries 1)."""
+    out = {k: given.get(k) for k in POOL_SETTINGS}
+    if resume_from is not None:
+        try:
+            earlier = json.loads((Path(resume_from) / "status.json").read_text()).get("pool")
+        except (OSError, ValueError, AttributeError):
+            earlier = None
+        for k in POOL_SETTINGS:
+            if out[k] is None and isinstance(earlier, dict):
+                out[k] = earlier.get(k)
+    if out["retries"] is None:
+        out["retries"] = 1
+    return out
 
 
 def make_pool(spec: str, workers=None, timeout=None, retries: int = 1, chunk=None,
@@ -379,6 +444,10 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
     if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
         raise ValueError(f"seeds must be an integer >= 1 (got {seeds!r})")
     strategy_params = dict(strategy_params or {})
+    for name in strategy_params:
+        if name not in strategies:
+            raise ValueError(f"strategy_params: {name!r} is not among the strategies "
+                             f"({', '.join(strategies)})")
     configs = {name: RunConfig(space=space, space_seed=space_seed, strategy=name,
                                strategy_params=strategy_params.get(name, {}),
                                evaluations=evaluations, batch=batch, evaluator=evaluator)

@@ -74,7 +74,7 @@ import numpy as np
 from jaxfalsify import analysis, store
 from jaxfalsify import sut as sut_lib
 from jaxfalsify import weather as weather_lib
-from jaxfalsify.rundir import indices_of, load_run, resimulate
+from jaxfalsify.rundir import check_simulated, indices_of, load_run, resimulate
 from jaxfalsify.sim import STILL, WINDOW, WORLD, start_positions
 from jaxfalsify.space import KNOWN_PARAMETERS, decimal_grid
 from jaxfalsify.store import folder_kind
@@ -731,6 +731,7 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
     final = Path(out)
     _check_out(final, force)
     sp, rc, summary, ep = load_run(run_dir)
+    check_simulated(run_dir, rc, "export")
     if which == "best":
         rows = [analysis.best(ep)]
     else:

@@ -78,8 +78,8 @@ class Falsifier:
       space: a built-in space name, a TOML path or a space description table.
       strategy: a strategy name (default ``reinforce/screened``, the sample-efficient one:
         an external system's evaluation usually costs far more than the search).
-      strategy_params, batch, evaluations, seed, space_seed, checkpoint_every: as
-        :class:`jaxfalsify.RunConfig`'s.
+      strategy_params, batch, evaluations, seed, space_seed: as :class:`jaxfalsify.RunConfig`'s
+        (a checkpoint is committed after every update).
       out: the run folder (None: ``runs/<time>-<strategy>``).
       resume: continue the unfinished run in ``out`` (the same settings).
       force: discard earlier results in ``out`` first.
@@ -93,13 +93,12 @@ class Falsifier:
     def __init__(self, space: Any = "paper", *, strategy: str = "reinforce/screened",
                  strategy_params: Mapping[str, Any] | None = None, batch: int | None = None,
                  evaluations: int | None = None, seed: int = 0, space_seed: int = 0,
-                 checkpoint_every: int | None = None, out: Path | str | None = None,
+                 out: Path | str | None = None,
                  resume: bool = False, force: bool = False, evaluator: str = "python",
                  progress: Progress | None = None):
         config = RunConfig(space=space, space_seed=space_seed, strategy=strategy,
                            strategy_params=dict(strategy_params or {}), batch=batch,
-                           evaluations=evaluations, seed=seed, evaluator=evaluator,
-                           checkpoint_every=checkpoint_every)
+                           evaluations=evaluations, seed=seed, evaluator=evaluator)
         self._open(config, out, resume, force, progress)
 
     @classmethod
@@ -130,9 +129,15 @@ class Falsifier:
                                                     "run")
         else:
             out = Path(out)
-            self._lock = store.open_folder(out, "run", force=force, resume=resume)
+            try:
+                self._lock = store.open_folder(out, "run", force=force, resume=resume)
+            except store.FolderError as e:
+                if config.evaluator != "python":
+                    raise
+                raise store.FolderError(_python_words(str(e), out)) from None
         self.out = out
         self._finished = False
+        self.status_extra: dict = {}  # more for status.json (the pool's settings)
         try:
             self._lock.claim("run")
             self._start(resume, force)
@@ -200,13 +205,22 @@ class Falsifier:
                                              np.zeros(B, np.float32), np.zeros(B, bool),
                                              np.full(B, np.inf, np.float32)))
         self._pending = None
-        store.write_status(self.out, "run", "running", evaluations=self.budget,
-                           resumed_from_evaluation=self.start_from, evaluator=rc.evaluator)
+        self._status("running", evaluations=self.budget,
+                     resumed_from_evaluation=self.start_from)
         if self.start_from:
             self.progress.message(f"resuming {self.out} at evaluation {self.start_from} of "
                                   f"{self.budget}")
         self.progress.start(self.budget, self.start_from, "eval",
                             f"{rc.strategy} on {self.space.name}")
+
+    def _status(self, state: str, **extra) -> None:
+        """``status.json``, with the evaluator, the pool's settings and how to resume (a
+        user's own loop: ``Falsifier(..., resume=True)``)."""
+        if self.config.evaluator == "python" and state != "complete":
+            extra["resume"] = (f"Falsifier(..., out={str(self.out)!r}, resume=True) with the "
+                               "settings of its config.toml")
+        store.write_status(self.out, "run", state, **extra, evaluator=self.config.evaluator,
+                           **self.status_extra)
 
     def _fingerprint(self) -> dict:
         return json.loads(json.dumps({
@@ -322,8 +336,10 @@ class Falsifier:
                   "reward": np.where(failed, np.nan, reward).astype(np.float32),
                   "reward_rss": nan, "reward_distance": nan, "reward_collision": nan,
                   "collision": coll & ~failed,
-                  "min_distance": sig.get("min_distance", nan).astype(np.float32),
-                  "final_distance": sig.get("final_distance", nan).astype(np.float32),
+                  "min_distance": np.where(failed, np.nan, sig.get("min_distance", nan))
+                  .astype(np.float32),
+                  "final_distance": np.where(failed, np.nan, sig.get("final_distance", nan))
+                  .astype(np.float32),
                   "high_risk_share": nan, "high_risk_share_second_half": nan,
                   "robustness": np.where(failed, np.nan, rob).astype(np.float32),
                   "nonfinite": failed, "violated": violated, "failed": failed}
@@ -331,8 +347,7 @@ class Falsifier:
         self._pending = None
         with self.clock("checkpoint"):
             self.ckpt.save(len(self.records) - 1, self._flatten(self._carry), record, self.told)
-            store.write_status(self.out, "run", "running", evaluations=self.budget,
-                               evaluations_done=self.told, evaluator=self.config.evaluator)
+            self._status("running", evaluations=self.budget, evaluations_done=self.told)
         self.progress.update(self.told, collisions=int(sum(np.sum(x["violated"])
                                                            for x in self.records)))
 
@@ -388,8 +403,7 @@ class Falsifier:
                         **self.clock.summary(), "resumed_from_evaluation": self.start_from})
             timing = {**self.clock.summary(), "resumed_from_evaluation": self.start_from}
             store.write_json(self.out / "timing.json", timing, indent=2)
-            store.write_status(self.out, "run", "complete", evaluations_done=res.n,
-                               evaluations=res.n, evaluator=self.config.evaluator)
+            self._status("complete", evaluations_done=res.n, evaluations=res.n)
             self.ckpt.remove()
         finally:
             self._finished = True
@@ -404,8 +418,7 @@ class Falsifier:
         self.progress.close()
         self._finished = True
         try:
-            store.write_status(self.out, "run", "interrupted", evaluations_done=self.told,
-                               evaluations=self.budget, evaluator=self.config.evaluator)
+            self._status("interrupted", evaluations_done=self.told, evaluations=self.budget)
         finally:
             self._lock.release()
 
@@ -415,6 +428,16 @@ class Falsifier:
     def __exit__(self, *exc):
         self.close()
         return False
+
+
+def _python_words(text: str, out: Path) -> str:
+    """A folder error in the Falsifier's words (its arguments, not the CLI's flags)."""
+    shell = store.shell_path(out)
+    for flag, arg in ((f"--resume {shell}", "resume=True"), (f"--resume {out}", "resume=True"),
+                      (f"--out {out}", f"out={str(out)!r}"), ("--resume", "resume=True"),
+                      ("--force", "force=True")):
+        text = text.replace(flag, arg)
+    return text
 
 
 def summary_dict(res: campaign.Result, rc: RunConfig) -> dict:

@@ -172,14 +172,19 @@ class RunConfig:
         requirement: the evaluator's robustness decides)."""
         check_evaluator(self.evaluator)
         self._check_numbers()
-        if self.sut not in ("external", RunConfig.sut) or self.sut_params:
+        if self.sut not in ("external", RunConfig.sut):
             raise ValueError(f"sut = {self.sut!r}: a run with an evaluator has no JAX SUT "
                              "(its evaluator is the system under test)")
-        if self.requirement not in (RunConfig.requirement, "evaluator") or \
-                self.requirement_params:
+        if self.sut_params:
+            raise ValueError(f"sut_params {sorted(self.sut_params)[0]!r}: a run with an "
+                             "evaluator has no JAX SUT to set parameters of")
+        if self.requirement not in (RunConfig.requirement, "evaluator"):
             raise ValueError(f"requirement = {self.requirement!r}: with an evaluator, its "
                              "results decide what is critical (its collision flags, or "
                              "robustness < 0)")
+        if self.requirement_params:
+            raise ValueError(f"requirement_params {sorted(self.requirement_params)[0]!r}: with "
+                             "an evaluator, its results decide what is critical")
         if not isinstance(self.strategy, str):
             raise ValueError("strategy must be a name")
         sp = build_space(self.space, self.space_seed)

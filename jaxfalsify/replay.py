@@ -42,7 +42,7 @@ import numpy as np
 from jaxfalsify import analysis, sim, store
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.config import plain
-from jaxfalsify.rundir import indices_of, load_run, resimulate
+from jaxfalsify.rundir import check_simulated, indices_of, load_run, resimulate
 from jaxfalsify.space import SUT_PREFIX, is_sut_parameter
 
 RED, GREEN, BLUE, GREY = (220, 40, 40), (40, 160, 60), (40, 90, 220), (150, 150, 150)
@@ -88,6 +88,7 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
     import rerun as rr
 
     sp, rc, summary, ep = load_run(run_dir)
+    check_simulated(run_dir, rc, "replay")
     row = resolve_scenario(scenario, ep, sp)
     if overlay > len(ep["reward"]):
         raise ValueError(f"--scenarios {overlay}: the run has {len(ep['reward'])} evaluations")
@@ -229,6 +230,7 @@ def record_campaign(run_dir: Path, save: Path | None = None, spawn: bool = False
     if isinstance(window, bool) or not isinstance(window, int) or window < 1:
         raise ValueError(f"window must be a positive integer (got {window!r})")
     sp, rc, summary, ep = load_run(run_dir)
+    check_simulated(run_dir, rc, "replay")
     rec = rr.RecordingStream("jaxfalsify", recording_id=f"{Path(run_dir).name}-campaign")
     if spawn:
         _spawn(rec)

@@ -83,6 +83,14 @@ def check_config_matches(run_dir: Path, sp, rc, summary: dict, ep: dict) -> None
                              "builds (edited after the run?)")
 
 
+def check_simulated(run_dir: Path, rc, what: str) -> None:
+    """ValueError (one line) for a run whose scenarios an external evaluator evaluated: there
+    is no JAX SUT to simulate them again for ``what`` (replay, export)."""
+    if rc.evaluator:
+        raise ValueError(f"{run_dir} was evaluated by {rc.evaluator!r} outside JAX: {what} "
+                         "needs the run's JAX SUT to simulate its scenarios again")
+
+
 def indices_of(ep: dict, space, rows) -> np.ndarray:
     return np.stack([ep[f"{n}_idx"][rows] for n in space.names], -1)
 

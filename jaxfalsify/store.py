@@ -580,7 +580,7 @@ def write_status(out: Path, kind: str, state: str, **extra) -> None:
     """``status.json``: ``running``, ``interrupted`` or ``complete``, and how to resume."""
     doc = {"state": state, **extra}
     if state != "complete":
-        doc["resume"] = f"jaxfalsify {kind} --resume {shell_path(out)}"
+        doc.setdefault("resume", f"jaxfalsify {kind} --resume {shell_path(out)}")
     write_json(Path(out) / "status.json", doc, indent=2)
 
 

@@ -10,7 +10,9 @@ import importlib
 import importlib.util
 import inspect
 import os
+import signal
 import sys
+import time
 import traceback
 from pathlib import Path
 from typing import Callable
@@ -104,6 +106,34 @@ def call(fn: Callable, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return res
 
 
+_LOADED: dict[str, Callable] = {}
+
+
+def dask_task(spec: str, values: dict[str, np.ndarray]):
+    """What a Dask worker runs: the evaluator (loaded once per worker process) on one chunk:
+    ``("ok", outputs)``, ``("error", reason)`` when it raised, ``("load", message)`` when it
+    cannot be loaded there."""
+    fn = _LOADED.get(spec)
+    if fn is None:
+        try:
+            fn = _LOADED[spec] = load(spec)
+        except EvaluatorError as e:
+            return "load", f"{e} (on a Dask worker)"
+    try:
+        return "ok", call(fn, values)
+    except Exception as e:  # noqa: BLE001 - the user's evaluator: recorded per scenario
+        return "error", f"{type(e).__name__}: {e}"[:300]
+
+
+def _watch_parent(parent: int) -> None:
+    """End this worker when the process that started it is gone (killed, even with
+    SIGKILL): a hung evaluation does not outlive the run."""
+    while True:
+        time.sleep(1.0)
+        if os.getppid() != parent:
+            os._exit(1)
+
+
 def serve(fd: int) -> None:
     """A worker process (this file run by the interpreter, so a user's script is never
     imported again, as ``multiprocessing``'s spawn would): read the evaluator's spec, the
@@ -111,6 +141,7 @@ def serve(fd: int) -> None:
     the chunks sent until None."""
     from multiprocessing.connection import Connection
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops us (its own group)
     conn = Connection(fd)
     spec, path, cwd = conn.recv()
     sys.path[:] = path
@@ -130,12 +161,19 @@ def serve(fd: int) -> None:
             return
         tag, values = job
         try:
-            conn.send((tag, ("ok", call(fn, values))))
+            reply = ("ok", call(fn, values))
         except Exception as e:  # noqa: BLE001 - the user's evaluator: recorded per scenario
             tb = traceback.extract_tb(e.__traceback__)
             where = f" ({Path(tb[-1].filename).name}:{tb[-1].lineno})" if tb else ""
-            conn.send((tag, ("error", f"{type(e).__name__}: {e}"[:300] + where)))
+            reply = ("error", f"{type(e).__name__}: {e}"[:300] + where)
+        try:
+            conn.send((tag, reply))
+        except OSError:  # the parent is gone
+            return
 
 
 if __name__ == "__main__":
+    import threading
+
+    threading.Thread(target=_watch_parent, args=(int(sys.argv[2]),), daemon=True).start()
     serve(int(sys.argv[1]))

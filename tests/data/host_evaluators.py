@@ -68,3 +68,17 @@ def nan_fast(s):
     """NaN robustness for ped_speed > 1.6."""
     rob = plain(s)
     return np.where(np.asarray(s["ped_speed"]) > 1.6, np.nan, rob)
+
+
+def signals_raise_fast(s):
+    """with_signals, raising for a batch holding a scenario with ped_speed > 1.8."""
+    raises_fast(s)
+    return with_signals(s)
+
+
+def exits_after_reply(s):
+    """Replies, then its process exits 0.2 s later (a worker that dies while idle)."""
+    import threading
+
+    threading.Timer(0.2, os._exit, args=(0,)).start()
+    return plain(s)

@@ -288,3 +288,85 @@ def test_a_non_finite_result_is_recorded_as_failed(tmp_path):
     np.testing.assert_array_equal(o.result.fields["failed"], bad)
     assert o.summary["n_failed"] == int(bad.sum())
     assert o.summary["failed_evaluations"] == [int(e) for e in np.nonzero(bad)[0] + 1]
+
+
+def test_a_pool_left_early_gives_the_next_batch_its_own_results():
+    """Interrupted mid-batch (an exception from a timer), the pool's busy workers are
+    restarted: the next batch gets its own robustness, never the old batch's late replies."""
+    import signal
+
+    class Early(Exception):
+        pass
+
+    def interrupt(*_):
+        raise Early
+
+    old = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        with evaluators.Pool(f"{HOST}:hangs_fast", workers=2) as pool:
+            signal.setitimer(signal.ITIMER_REAL, 0.5)
+            with pytest.raises(Early):
+                pool.evaluate({"ped_speed": np.array([1.9, 1.95, 2.0, 1.85])})
+            slow = {"ped_speed": np.array([1.0, 1.2, 1.4, 1.6])}
+            np.testing.assert_allclose(pool.evaluate(slow).outputs["robustness"],
+                                       slow["ped_speed"] - 1.5)
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def test_a_worker_that_died_while_idle_is_replaced():
+    import time
+
+    with evaluators.Pool(f"{HOST}:exits_after_reply", workers=1, retries=0) as pool:
+        for k in range(3):
+            batch = {"ped_speed": np.array([1.0, 1.1]) + k}
+            res = pool.evaluate(batch)
+            assert not res.failed.any()
+            np.testing.assert_allclose(res.outputs["robustness"], batch["ped_speed"] - 1.5)
+            time.sleep(0.5)  # the worker exits meanwhile
+
+
+def test_failed_rows_keep_no_distance(tmp_path):
+    rc = runs.RunConfig(strategy="random", batch=16, evaluations=32,
+                        evaluator=f"{HOST}:signals_raise_fast")
+    o = evaluators.run(rc, tmp_path / "f", workers=2, retries=0, figures=False)
+    failed = o.result.fields["failed"]
+    np.testing.assert_array_equal(failed, values_of(o.result) > 1.8)
+    assert np.isnan(o.result.fields["min_distance"][failed]).all()
+    np.testing.assert_allclose(o.result.fields["min_distance"][~failed],
+                               np.abs(values_of(o.result)[~failed] - 1.5), atol=1e-6)
+
+
+def test_resume_takes_the_interrupted_runs_pool_settings(tmp_path):
+    (tmp_path / "status.json").write_text(json.dumps(
+        {"state": "interrupted", "pool": {"workers": 3, "timeout": 30.0, "retries": 0,
+                                          "scheduler": None}}))
+    got = evaluators.pool_settings(tmp_path, workers=None, timeout=None, retries=None,
+                                   scheduler=None)
+    assert got == {"workers": 3, "timeout": 30.0, "retries": 0, "scheduler": None}
+    got = evaluators.pool_settings(tmp_path, workers=1, timeout=None, retries=2,
+                                   scheduler=None)
+    assert got == {"workers": 1, "timeout": 30.0, "retries": 2, "scheduler": None}
+    assert evaluators.pool_settings(None, workers=None, timeout=None, retries=None,
+                                    scheduler=None)["retries"] == 1
+
+
+def test_cli_evaluator_keeps_batch_and_options_and_refuses_what_it_cannot_do(
+        tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", "--evaluator", f"{HOST}:plain", "--batch", "4", "--strategy-param",
+                 "lr=0.05", "--evaluations", "8", "--workers", "1", "--out", "r",
+                 "--quiet", "--no-figures"]) == 0
+    rc = runs.RunConfig.from_toml(tmp_path / "r" / "config.toml")
+    assert rc.strategy == "reinforce/screened" and rc.batch == 4
+    assert rc.strategy_params["lr"] == 0.05
+    capsys.readouterr()
+    for argv, words in ((["replay", "r"], "needs the run's JAX SUT"),
+                        (["export", "r", "--out", "x"], "needs the run's JAX SUT"),
+                        (["run", "--evaluator", f"{HOST}:plain", "--sut-param", "x=1",
+                          "--out", "y"], "sut_params 'x'")):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and "\n" not in err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
