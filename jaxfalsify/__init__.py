@@ -64,7 +64,7 @@ _SUBMODULES = frozenset({
     "analysis", "cache", "campaign", "cli", "compare", "config", "distributed", "export",
     "figures", "metrics", "progress", "pytree", "reference", "replay", "report", "reward",
     "runs", "search", "sim", "space", "store", "sut", "sweep", "weather", "external",
-    "evaluators", "estimate", "requirements", "suites"})
+    "evaluators", "estimate", "requirements", "suites", "pools", "worker"})
 _LAZY = {"Falsifier": "external", "RunConfig": "problem"}  # names loaded with their module
 
 

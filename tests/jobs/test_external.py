@@ -33,7 +33,7 @@ def jax_outcomes(space, asked):
     return out
 
 
-@pytest.mark.parametrize("strategy,evaluations", [("reinforce/screened", 96),
+@pytest.mark.parametrize("strategy,evaluations", [("reinforce/screened", 64),
                                                   ("cem", 300)])
 def test_ask_tell_round_trip_equals_run(tmp_path, strategy, evaluations):
     b, res = builtin(strategy, evaluations, 3)
