@@ -286,4 +286,6 @@ def tell_results(f: Falsifier, asked: Asked, res: Results) -> None:
     res.failed[:] = failed
     rob = np.where(failed, 0.0, out.get("robustness", np.zeros(len(asked))))
     sig = {k: np.where(failed, 0.0, out[k]) for k in SIGNALS if k in out}
-    f.tell(asked, rob, out.get("collision"), signals=sig, failed=failed)
+    traj = {k.split("/", 1)[1]: v for k, v in out.items() if k.startswith("trajectory/")}
+    f.tell(asked, rob, out.get("collision"), signals=sig, failed=failed,
+           trajectory=traj or None)

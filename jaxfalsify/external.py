@@ -40,7 +40,9 @@ from jaxfalsify import report as report_lib
 from jaxfalsify.problem import RunConfig
 from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.search.base import accepts_ttc
-from jaxfalsify.worker import SIGNALS
+from jaxfalsify.worker import SIGNALS, trajectory_arrays
+
+TRAJECTORIES = "trajectories.npz"  # an evaluator's run: the trajectories it told
 
 
 @dataclasses.dataclass(frozen=True)
@@ -277,7 +279,8 @@ class Falsifier:
         return self._pending[0]
 
     def tell(self, asked: Asked, robustness, collision=None,
-             signals: Mapping[str, Any] | None = None, failed=None) -> None:
+             signals: Mapping[str, Any] | None = None, failed=None,
+             trajectory: Mapping[str, Any] | None = None) -> None:
         """The results of ``asked`` (the batch :meth:`ask` returned last).
 
         Args:
@@ -289,6 +292,9 @@ class Falsifier:
           signals: any of :data:`SIGNALS`, ``(B,)`` each.
           failed: ``(B,)`` bool: evaluations that failed (recorded as failed, with their
             robustness ignored; the search learns nothing from them).
+          trajectory: ``{name: (B, T)}`` per-step histories (names from
+            :data:`jaxfalsify.worker.TRAJECTORY`; NaN after a scenario's end), kept in the
+            run folder's ``trajectories.npz`` and drawn in its figures.
         Raises ValueError (one line, naming the scenario) on missing or non-finite values."""
         self._check_open()
         if self._pending is None or asked is not self._pending[0]:
@@ -303,6 +309,7 @@ class Falsifier:
             raise ValueError(f"signal '{unknown[0]}' is not one of {', '.join(SIGNALS)}")
         sig = {k: self._column(k, v, np.float64, n) for k, v in signals.items()}
         coll = rob < 0 if collision is None else self._column("collision", collision, bool, n)
+        traj = {} if trajectory is None else trajectory_arrays(trajectory, n)
         for name, col in (("robustness", rob), *sig.items()):
             bad = ~np.isfinite(col) & ~failed
             if name == "min_ttc":  # no approach at all: an infinite TTC is an answer
@@ -342,7 +349,9 @@ class Falsifier:
                   .astype(np.float32),
                   "high_risk_share": nan, "high_risk_share_second_half": nan,
                   "robustness": np.where(failed, np.nan, rob).astype(np.float32),
-                  "nonfinite": failed, "violated": violated, "failed": failed}
+                  "nonfinite": failed, "violated": violated, "failed": failed,
+                  **{k: np.where(failed[:, None], np.nan, v).astype(np.float32)
+                     for k, v in traj.items()}}
         self.records.append(record)
         self._pending = None
         with self.clock("checkpoint"):
@@ -375,11 +384,29 @@ class Falsifier:
         "chunk" per update: :meth:`~jaxfalsify.campaign.Result.search_seconds_at`)."""
         if not self.records:
             raise ValueError("nothing told yet")
-        cat = {k: np.concatenate([r[k] for r in self.records]) for k in self.records[0]}
+        cat = {k: np.concatenate([r[k] for r in self.records]) for k in self.records[0]
+               if not k.startswith("trajectory/")}
         idx = cat.pop("indices").astype(np.int32)
         t = np.asarray(self.search_seconds, np.float64)
         return campaign.Result(self.space, self.batch, idx, cat, self.clock.phases.get(
             "compile", 0.0), float(np.nansum(t)), t, 1)
+
+    def trajectories(self) -> dict[str, np.ndarray]:
+        """``{name: (N, T) float32}`` every evaluation's told trajectory (NaN where none was
+        told, and after a scenario's end; ``T`` the longest told), and ``evaluation (N,)``;
+        empty when no trajectory was told."""
+        names = sorted({k for r in self.records for k in r if k.startswith("trajectory/")})
+        if not names:
+            return {}
+        out = {"evaluation": np.arange(1, self.told + 1)}
+        for k in names:
+            steps = max(r[k].shape[1] for r in self.records if k in r)
+            rows = [np.pad(r[k], ((0, 0), (0, steps - r[k].shape[1])),
+                           constant_values=np.nan) if k in r else
+                    np.full((len(r["reward"]), steps), np.nan, np.float32)
+                    for r in self.records]
+            out[k.split("/", 1)[1]] = np.concatenate(rows).astype(np.float32)
+        return out
 
     def finish(self, figures: bool = True) -> runs.RunOutcome:
         """Write the results (``evaluations.parquet``, ``summary.json``, ``critical.csv``,
@@ -396,6 +423,9 @@ class Falsifier:
                                     runs.evaluations_table(res))
                 store.write_atomic(self.out / "critical.csv", runs.critical_csv(res))
                 store.write_json(self.out / "summary.json", summary, indent=2)
+                traj = self.trajectories()
+                if traj:
+                    store.save_npz(self.out / TRAJECTORIES, traj)
             if figures:
                 with self.clock("figures"):
                     figures_lib.make_figures(self.out)

@@ -243,11 +243,62 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
 
     if not rc.evaluator:  # an evaluator's run has no JAX SUT to simulate its scenarios
         _simulated_figures(plt, save, sp, rc, ep, world, prepared)
+    else:  # but perhaps the trajectories its evaluator returned
+        _told_figures(plt, save, run_dir, ep, rc)
     save(search_figure(plt, sp, ep, rc.strategy), "search_distribution.png")
     save(cluster_figure(plt, sp, ep), "failure_clusters.png")
     out.mkdir(exist_ok=True)
     store.write_all_atomic(drawn)
     return list(drawn)
+
+
+def distance_figure(plt, ep: dict, rc, rows, t, distance, valid):
+    """Paper Fig. 9: the distance over time of the evaluated ``rows`` (``t``, ``distance``,
+    ``valid`` ``(len(rows), T)`` their histories), the critical ones (collisions, or the run's
+    requirement's violations) red, the rest green."""
+    fig, ax, place = _single(plt, (8, 5), top=TITLE, legend=True)
+    ax.axhspan(0, 1.0, color="0.85", label="collision zone (< 1 m)")
+    labelled = set()
+    crit = analysis.critical(ep)
+    req = rc.requirement if rc.requirement not in ("collision", "evaluator") else None
+    words = (f"violates {req}", f"satisfies {req}") if req else \
+        ("failure", "no failure") if rc.evaluator else ("collision", "no collision")
+    # the others first, critical ones on top (drawn last, higher zorder)
+    for k, row in sorted(enumerate(rows), key=lambda kr: bool(crit[kr[1]])):
+        v = np.asarray(valid[k], bool)
+        hit = bool(crit[row])
+        label = words[0] if hit else words[1]
+        ax.plot(np.asarray(t[k])[v], np.asarray(distance[k])[v],
+                color="tab:red" if hit else "tab:green", lw=1.6 if hit else 1.0,
+                zorder=3 if hit else 2, label=None if label in labelled else label)
+        labelled.add(label)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("Euclidean distance between the boxes [m]")
+    ax.set_title(f"{len(rows)} evaluated scenarios")
+    ax.set_ylim(bottom=0)
+    _bottom_legend(fig, ncol=3)
+    place()
+    return fig
+
+
+def _told_figures(plt, save, run_dir: Path, ep: dict, rc) -> None:
+    """An evaluator's run: Fig. 9 from the trajectories its evaluator returned (the run
+    folder's ``trajectories.npz``), when they hold ``t`` and ``distance``."""
+    path = run_dir / "trajectories.npz"
+    if not path.exists():
+        return
+    with np.load(path) as z:
+        if not {"t", "distance", "evaluation"} <= set(z.files):
+            return
+        t, d, ev = z["t"], z["distance"], z["evaluation"]
+    told = np.isfinite(d).any(axis=1)
+    rows = [r for r in fig10_rows(ep, N_TRAJECTORIES - 2) if r < len(told) and told[r]]
+    if rows:
+        rows = np.asarray(rows)
+        idx = np.searchsorted(ev, np.asarray(ep["evaluation"])[rows])
+        valid = np.isfinite(d[idx]) & np.isfinite(t[idx])
+        save(distance_figure(plt, ep, rc, list(rows), t[idx], d[idx], valid),
+             "distance_14_scenarios.png")
 
 
 def _simulated_figures(plt, save, sp, rc, ep, world, prepared) -> None:
@@ -303,28 +354,8 @@ def _simulated_figures(plt, save, sp, rc, ep, world, prepared) -> None:
     save(fig, "high_risk_second_half.png")
 
     # Fig. 9: 14 scenarios, the critical ones (collisions, or the requirement's violations) red
-    fig, ax, place = _single(plt, (8, 5), top=TITLE, legend=True)
-    ax.axhspan(0, 1.0, color="0.85", label="collision zone (< 1 m)")
-    labelled = set()
-    crit = analysis.critical(ep)
-    req = rc.requirement if rc.requirement != "collision" else None
-    words = (f"violates {req}", f"satisfies {req}") if req else ("collision", "no collision")
-    # the others first, critical ones on top (drawn last, higher zorder)
-    for k, row in sorted(enumerate(chosen), key=lambda kr: bool(crit[kr[1]])):
-        v = np.asarray(traj.valid[2 + k])
-        hit = bool(crit[row])
-        label = words[0] if hit else words[1]
-        ax.plot(np.asarray(traj.t[2 + k])[v], np.asarray(traj.distance[2 + k])[v],
-                color="tab:red" if hit else "tab:green", lw=1.6 if hit else 1.0,
-                zorder=3 if hit else 2, label=None if label in labelled else label)
-        labelled.add(label)
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("Euclidean distance between the boxes [m]")
-    ax.set_title(f"{len(chosen)} evaluated scenarios")
-    ax.set_ylim(bottom=0)
-    _bottom_legend(fig, ncol=3)
-    place()
-    save(fig, "distance_14_scenarios.png")
+    save(distance_figure(plt, ep, rc, chosen, np.asarray(traj.t)[2:], np.asarray(traj.distance)[2:],
+                         np.asarray(traj.valid)[2:]), "distance_14_scenarios.png")
 
     # Critical-region maps from the exhaustive sweep
     if sp.size <= TRUTH_LIMIT and sum(n > 1 for n in sp.shape) >= 2:

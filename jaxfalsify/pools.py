@@ -34,11 +34,16 @@ class Results:
 
 def _assemble(B: int, done: dict[int, dict], errors: dict[int, str]) -> Results:
     keys = sorted({k for d in done.values() for k in d})
-    outputs = {k: np.full(B, False) if k == "collision" else np.full(B, np.nan)
-               for k in keys}
+    steps = {k: max(np.size(d[k]) for d in done.values() if k in d) for k in keys
+             if k.startswith("trajectory/")}  # (T,) per row; chunks may differ in T
+    outputs = {k: np.full((B, steps[k]), np.nan) if k in steps else
+               np.full(B, False) if k == "collision" else np.full(B, np.nan) for k in keys}
     for row, d in done.items():
         for k, v in d.items():
-            outputs[k][row] = v
+            if k in steps:
+                outputs[k][row, :np.size(v)] = v
+            else:
+                outputs[k][row] = v
     failed = np.zeros(B, bool)
     failed[list(errors)] = True
     return Results(outputs, failed, errors)

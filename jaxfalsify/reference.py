@@ -32,7 +32,8 @@ def reference_evaluate(scenario: dict, sut: str = "carla-tm", world: World = WOR
                        record: bool = False) -> dict:
     """Evaluate a flat batch ``{name: (B,)}``; returns a dict of ``(B,)`` NumPy arrays with the
     same outcome fields as :class:`jaxfalsify.sim.Outcome` (float64); with ``record`` also
-    ``ego_x``, ``ego_speed``, ``ped_y`` and ``valid`` histories ``(B, T)`` (after each step)."""
+    ``ego_x``, ``ego_speed``, ``ped_y``, ``distance`` (between the boxes) and ``valid``
+    histories ``(B, T)`` (after each step)."""
     if sut not in ("carla-tm", "none"):
         raise ValueError(f"the reference supports carla-tm and none, not '{sut}'")
     w = world
@@ -60,7 +61,8 @@ def reference_evaluate(scenario: dict, sut: str = "carla-tm", world: World = WOR
     last_c = np.full(B, np.nan)
     min_ttc = np.full(B, np.inf)
     min_rss = np.full(B, np.inf)
-    hist = {k: np.zeros((B, w.horizon)) for k in ("ego_x", "ego_speed", "ped_y", "valid")}
+    hist = {k: np.zeros((B, w.horizon)) for k in ("ego_x", "ego_speed", "ped_y", "distance",
+                                                   "valid")}
 
     # the original's pdf.py loop: s starts at speed - 5*accel; steps 0..5 at s; then s += accel
     # per step until it exceeds speed + 0.25; the change window (6 steps from T) walks at
@@ -122,7 +124,8 @@ def reference_evaluate(scenario: dict, sut: str = "carla-tm", world: World = WOR
         x, v = np.where(valid, x1, x), np.where(valid, v1, v)
         py, ped_v = np.where(valid, y1, py), np.where(valid, vp, ped_v)
         alive = valid & ~done
-        for key, val in (("ego_x", x), ("ego_speed", v), ("ped_y", py), ("valid", valid)):
+        for key, val in (("ego_x", x), ("ego_speed", v), ("ped_y", py), ("distance", d),
+                         ("valid", valid)):
             hist[key][:, k] = val
 
     hr = hr_flags.sum(1)

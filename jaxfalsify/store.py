@@ -269,7 +269,7 @@ FIGURES = [  # a run's figures under figures/, with their captions in report.md
             "cluster's best-reward member)")]
 RESULT_FILES = {
     "run": ("evaluations.parquet", "summary.json", "critical.csv", "timing.json", "report.md",
-            "best.rrd"),
+            "best.rrd", "trajectories.npz"),
     "sweep": ("sweep.parquet", "summary.json", "timing.json"),
     "compare": ("compare.json", "compare.md", "timing.json"),
     "suite": ("suite.json", "suite.md", "timing.json"),

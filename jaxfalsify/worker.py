@@ -19,6 +19,9 @@ from typing import Callable
 
 import numpy as np
 
+TRAJECTORY = ("t", "distance", "ego_x", "ego_y", "ped_x", "ped_y", "ego_speed")  # what an
+# evaluator's trajectory may hold, (n, T) each: time [s], the distance between the boxes [m],
+# positions [m] and the ego's speed [m/s] per step (NaN after a scenario's end)
 SIGNALS = ("reward", "min_distance", "final_distance", "min_ttc")  # what a result may add to
 # the robustness, (B,) each: the reward the search ranks failures by (default: -robustness),
 # distances for the tables [m], the minimum time-to-collision [s] (tells near misses apart)
@@ -85,16 +88,21 @@ def load(spec: str) -> Callable:
 
 def call(fn: Callable, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Call an evaluator on one batch and check what it returned: ``{output: (n,)}`` with
-    ``robustness`` float64, ``collision`` bool where given (ValueError, one line, otherwise)."""
+    ``robustness`` float64, ``collision`` bool where given, and a returned ``trajectory``
+    ``{name: (n, T)}`` as ``trajectory/<name>`` entries (ValueError, one line, otherwise)."""
     n = len(next(iter(values.values())))
     out = fn({k: np.array(v, np.float64) for k, v in values.items()})
     if not isinstance(out, dict):
         out = {"robustness": out}
-    unknown = sorted(set(out) - set(OUTPUTS))
+    unknown = sorted(set(out) - set(OUTPUTS) - {"trajectory"})
     if unknown or "robustness" not in out:
         raise ValueError(f"returned {'key ' + repr(unknown[0]) if unknown else 'no robustness'}"
-                         f" (a robustness array, or a dict of {', '.join(OUTPUTS)})")
+                         f" (a robustness array, or a dict of {', '.join(OUTPUTS)}, "
+                         "trajectory)")
     res = {}
+    traj = out.pop("trajectory", None)
+    if traj is not None:
+        res.update(trajectory_arrays(traj, n))
     for k, v in out.items():
         try:
             a = np.asarray(v, bool if k == "collision" else np.float64).reshape(-1)
@@ -103,6 +111,29 @@ def call(fn: Callable, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         if a.shape != (n,):
             raise ValueError(f"returned {k} of {a.size} values for {n} scenarios")
         res[k] = a
+    return res
+
+
+def trajectory_arrays(traj, n: int) -> dict[str, np.ndarray]:
+    """An evaluator's ``trajectory`` ``{name: (n, T)}`` (names from :data:`TRAJECTORY`, one
+    ``T`` for all; NaN after a scenario's end) as ``{"trajectory/<name>": (n, T) float64}``
+    (ValueError, one line, otherwise)."""
+    if not isinstance(traj, dict) or not traj:
+        raise ValueError(f"returned a trajectory that is not a dict of {', '.join(TRAJECTORY)}")
+    bad = sorted(set(traj) - set(TRAJECTORY))
+    if bad:
+        raise ValueError(f"returned trajectory {bad[0]!r} (one of {', '.join(TRAJECTORY)})")
+    res, steps = {}, None
+    for k, v in traj.items():
+        try:
+            a = np.asarray(v, np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"returned trajectory {k} that is not numbers") from None
+        if a.ndim != 2 or a.shape[0] != n or (steps is not None and a.shape[1] != steps):
+            raise ValueError(f"returned trajectory {k} of shape {a.shape}: expected (n={n}, "
+                             f"T){'' if steps is None else f' with T = {steps}'}")
+        steps = a.shape[1]
+        res[f"trajectory/{k}"] = a
     return res
 
 

@@ -16,13 +16,33 @@ import time
 import numpy as np
 
 from jaxfalsify.reference import reference_evaluate
+from jaxfalsify.sim import WORLD
 
 
 def evaluate(scenarios: dict) -> dict:
-    out = reference_evaluate(scenarios, sut="carla-tm")
+    return _outputs(reference_evaluate(scenarios, sut="carla-tm"))
+
+
+def _outputs(out: dict) -> dict:
     return {"robustness": out["robustness"], "collision": out["collision"],
             "reward": out["reward"], "min_distance": out["min_distance"],
             "final_distance": out["final_distance"], "min_ttc": out["min_ttc"]}
+
+
+def with_trajectories(scenarios: dict) -> dict:
+    """``evaluate`` with each scenario's trajectory (time, the distance between the boxes, the
+    ego's position and speed, the walker's position; NaN after its end): the run folder keeps
+    them in ``trajectories.npz`` and draws the distance figure from them."""
+    out = reference_evaluate(scenarios, sut="carla-tm", record=True)
+    valid = out["valid"].astype(bool)
+
+    def hist(a):
+        return np.where(valid, a, np.nan)
+
+    t = np.broadcast_to((np.arange(valid.shape[1]) + 1) * float(WORLD.dt), valid.shape)
+    return {**_outputs(out), "trajectory": {
+        "t": hist(t), "distance": hist(out["distance"]), "ego_x": hist(out["ego_x"]),
+        "ego_speed": hist(out["ego_speed"]), "ped_y": hist(out["ped_y"])}}
 
 
 def slow(scenarios: dict, seconds_each: float = 0.001) -> dict:

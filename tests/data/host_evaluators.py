@@ -82,3 +82,20 @@ def exits_after_reply(s):
 
     threading.Timer(0.2, os._exit, args=(0,)).start()
     return plain(s)
+
+
+def with_trajectory(s):
+    """plain, with a trajectory: t = 0.1 k, distance = |robustness| + t, 5 steps (NaN after
+    the third for ped_speed < 1.5); raises for ped_speed > 1.65."""
+    if np.any(np.asarray(s["ped_speed"]) > 1.65):
+        raise RuntimeError("walker too fast for this simulator")
+    rob = plain(s)
+    t = np.tile(np.arange(1, 6) * 0.1, (len(rob), 1))
+    d = np.abs(rob)[:, None] + t
+    d[rob < 0, 3:] = np.nan
+    return {"robustness": rob, "trajectory": {"t": t, "distance": d}}
+
+
+def bad_trajectory(s):
+    rob = plain(s)
+    return {"robustness": rob, "trajectory": {"distance": np.zeros((len(rob) + 1, 4))}}

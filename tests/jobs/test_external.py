@@ -370,3 +370,50 @@ def test_cli_evaluator_keeps_batch_and_options_and_refuses_what_it_cannot_do(
         err = capsys.readouterr().err.strip()
         assert words in err and "\n" not in err
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_trajectories_told_are_kept_and_drawn(tmp_path):
+    rc = runs.RunConfig(strategy="random", batch=16, evaluations=48,
+                        evaluator=f"{HOST}:with_trajectory")
+    o = evaluators.run(rc, tmp_path / "t", workers=2, retries=0)
+    speed = values_of(o.result)
+    failed = speed > 1.65
+    assert failed.any() and (speed < 1.5).any()
+    with np.load(tmp_path / "t" / "trajectories.npz") as z:
+        np.testing.assert_array_equal(z["evaluation"], np.arange(1, 49))
+        t, d = z["t"], z["distance"]
+    want = np.abs(speed - 1.5)[:, None] + np.arange(1, 6) * 0.1
+    want[speed < 1.5, 3:] = np.nan
+    want[failed] = np.nan  # a failed evaluation keeps no trajectory
+    np.testing.assert_allclose(d, want, atol=1e-6)
+    assert np.isnan(t[failed]).all()
+    assert (tmp_path / "t" / "figures" / "distance_14_scenarios.png").stat().st_size > 1000
+
+
+def test_reference_trajectories_agree_with_its_outcomes():
+    sys.path.insert(0, str(REFERENCE.parent))
+    try:
+        import reference_evaluator as ref
+    finally:
+        sys.path.pop(0)
+    rng = np.random.default_rng(1)
+    batch = {"ego_offset": rng.uniform(1, 10, 12), "ped_speed": rng.uniform(1.0, 1.8, 12),
+             "ped_accel": rng.uniform(0, 0.1, 12), "ped_offset": rng.uniform(3, 4.5, 12)}
+    out = ref.with_trajectories(batch)
+    d = out["trajectory"]["distance"]
+    np.testing.assert_allclose(np.nanmin(d, axis=1), out["min_distance"], atol=1e-9)
+    steps = np.sum(np.isfinite(d), axis=1)
+    np.testing.assert_allclose(np.nanmax(out["trajectory"]["t"], axis=1), steps * 0.1,
+                               atol=1e-9)
+
+
+def test_a_bad_trajectory_fails_its_scenarios_with_the_reason(tmp_path):
+    with evaluators.Pool(f"{HOST}:bad_trajectory", workers=1, retries=0) as pool:
+        res = pool.evaluate(pool_batch(3))
+    assert res.failed.all()
+    assert all("trajectory distance of shape" in r for r in res.errors.values())
+    f = jf.Falsifier("paper", strategy="random", batch=4, evaluations=4, out=tmp_path / "r")
+    a = f.ask()
+    with pytest.raises(ValueError, match=r"trajectory 'speed'"):
+        f.tell(a, a.values["ped_speed"] - 1.5, trajectory={"speed": np.zeros((4, 3))})
+    f.close()
