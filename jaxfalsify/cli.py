@@ -238,6 +238,11 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="STRATEGY:NAME=VALUE",
                    help="an option of one strategy, e.g. cem:elite_frac=0.2 (repeatable)")
     _add_sut(c)
+    c.add_argument("--requirement", help="what counts as critical: collision (default), clash, "
+                   "ttc, rss or an import path; the ground truth and every search count its "
+                   "violations")
+    c.add_argument("--requirement-param", action="append", dest="requirement_param",
+                   metavar="NAME=VALUE", help="set a requirement parameter (repeatable)")
     _evaluator_flags(c, "default strategies then reinforce/screened,random,cem; no ground "
                      "truth: evaluations and seconds to the first failure")
     c.add_argument("--out", type=_folder, help="folder for compare.json/.md "
@@ -433,7 +438,8 @@ def _no_evaluator_flags(args) -> None:
 def _compare_evaluator(args, names, stop) -> int:
     from jaxfalsify import evaluators
 
-    bad = [f for f in ("suite", "entries", "budgets", "sut", "sut_param", "jobs")
+    bad = [f for f in ("suite", "entries", "budgets", "sut", "sut_param", "jobs",
+                       "requirement", "requirement_param")
            if getattr(args, f, None) is not None] + (["distributed"] if args.distributed else [])
     if bad:
         raise UsageError(f"--{bad[0].replace('_', '-')} cannot be combined with --evaluator "
@@ -542,9 +548,12 @@ def cmd_compare(args, stop, startup) -> int:
         except ValueError:
             raise UsageError(f"--budgets {args.budgets!r}: comma-separated integers") from None
     given = {k: getattr(args, k) for k in ("seeds", "evaluations", "space", "space_seed", "sut",
-                                           "jobs", "batch") if getattr(args, k) is not None}
+                                           "jobs", "batch", "requirement")
+             if getattr(args, k) is not None}
     config = compare.CompareConfig(**given, **({"strategies": names} if names else {}),
                                    sut_params=_sut_values(args.sut_param),
+                                   requirement_params=_sut_values(args.requirement_param,
+                                                                  "--requirement-param"),
                                    strategy_params=_per_strategy(args.strategy_param),
                                    budgets=budgets)
     config.check()
@@ -584,6 +593,8 @@ def _compare_suite(args, names, stop, startup) -> int:
     for flag, given in (("--space", args.space), ("--space-seed", args.space_seed is not None),
                         ("--sut", args.sut),
                         ("--sut-param", args.sut_param), ("--budgets", args.budgets),
+                        ("--requirement", args.requirement),
+                        ("--requirement-param", args.requirement_param),
                         ("--distributed", args.distributed),
                         ("--evaluations", args.evaluations is not None)):
         if given:

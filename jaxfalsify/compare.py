@@ -60,7 +60,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from jaxfalsify import analysis, cache, campaign, search, sim, store
+from jaxfalsify import analysis, cache, campaign, requirements, search, sim, store
 from jaxfalsify import config as cfg
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.distributed import agree, barrier, share
@@ -92,6 +92,9 @@ class CompareConfig:
     strategy_params: Mapping[str, Mapping[str, Any]] = dataclasses.field(default_factory=dict)
     jobs: int = 0  # strategies searched side by side (0: one per CPU core, at most 4)
     batch: int | None = None  # scenarios per update of every strategy (None: each its own)
+    requirement: str = "collision"  # what is critical (a run's --requirement): the ground
+    # truth's and the searches' "collisions" are its violations
+    requirement_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
     def resolved_jobs(self) -> int:
         """``jobs``, 0 resolved to the usable CPU cores (at most 4 and the strategy count)."""
@@ -103,7 +106,9 @@ class CompareConfig:
         return RunConfig(space=self.space, space_seed=self.space_seed, sut=self.sut,
                          sut_params=self.sut_params, strategy=strategy,
                          strategy_params=dict(self.strategy_params.get(strategy, {})),
-                         evaluations=self.evaluations, batch=self.batch)
+                         evaluations=self.evaluations, batch=self.batch,
+                         requirement=self.requirement,
+                         requirement_params=dict(self.requirement_params))
 
     def check(self, num_processes: int = 1) -> None:
         """Everything validated and every strategy built; memory for this process's share
@@ -164,6 +169,9 @@ class CompareConfig:
                                "sut_params": dict(self.sut_params),
                                "strategy_params": {k: dict(v) for k, v
                                                    in self.strategy_params.items()},
+                               **({"requirement": sut_lib.recorded_spec(self.requirement),
+                                   "requirement_params": dict(self.requirement_params)}
+                                  if self.requirement != "collision" else {}),
                                "space": self.space if isinstance(self.space, Mapping)
                                else self.space})
 
@@ -225,7 +233,7 @@ def seed_stats(seed: int, r: campaign.Result, truth: dict, budget: int | None = 
         gmax = gmin = None
     ranked = analysis.ranked_reward(r.fields)
     best = float(ranked.max()) if r.n else -np.inf
-    first = analysis.first_collision(r.fields)
+    first = analysis.first_critical(r.fields)  # collisions, or the requirement's violations
     tail = ranked[r.n - max(1, r.n // 4):] if r.n else ranked
     tail = tail[np.isfinite(tail)]
     distinct = len(analysis.distinct_critical(r.indices, r.fields))
@@ -334,11 +342,15 @@ def sampled_truth(sp, b, budget: int | None = None, n: int | None = None,
     layout, table = sp.layout, sp.table_array
     chunk = 1 << 16
 
+    req, rparams = b.requirement, b.requirement_params
+
     @jax.jit
     def run(idx, key_data, params):  # one compiled call per chunk (sut.NAME values traced)
         out, _ = sim.batch_rollout(layout.scenario(idx, table), jax.numpy.arange(chunk),
                                    jax.random.wrap_key_data(key_data), s, params)
-        return out.collision & ~out.nonfinite, jax.numpy.where(
+        hit = out.collision if req is None else \
+            requirements.robustness(req, out, rparams) < 0  # the requirement's violations
+        return hit & ~out.nonfinite, jax.numpy.where(
             jax.numpy.isnan(out.reward), -jax.numpy.inf, out.reward)
 
     rng = np.random.default_rng([seed, 7919])
@@ -370,7 +382,8 @@ def sampled_truth(sp, b, budget: int | None = None, n: int | None = None,
 def truth_summary(sp, b, budget: int | None = None) -> dict:
     if sp.size > MAX_SIZE:
         return sampled_truth(sp, b, budget)
-    t = ground_truth(sp, b.sut, b.sut_params)
+    t = ground_truth(sp, b.sut, b.sut_params, requirement=b.requirement,
+                     requirement_params=b.requirement_params)
     r = np.where(np.isnan(t["reward"]), -np.inf, t["reward"]).astype(np.float64)
     finite = r[np.isfinite(r)]
     # None when no rollout has a finite reward (a SUT that returns NaN or inf everywhere)
@@ -491,15 +504,17 @@ def _search_side_by_side(builds, seeds: list[int], jobs: int, progress: Progress
         t0 = time.perf_counter()
         if seeds:  # traced and exported (or loaded): counted with the compilation
             campaign.program(campaign.Campaign(b.space.layout, b.sut, b.strategy,
-                                               b.plan.updates_per_chunk),
+                                               b.plan.updates_per_chunk, b.requirement),
                              campaign.args_for(b.space, b.sut_params, b.strategy_params,
-                                               sim.WORLD, b.plan.evaluations), 1)
+                                               sim.WORLD, b.plan.evaluations,
+                                               b.requirement_params), 1)
         prepare = time.perf_counter() - t0
         results = []
         for k, seed in enumerate(seeds):  # one call per seed: each seed's time is measured
             before = k * b.plan.evaluations
             results += campaign.run_seeds(
                 b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan, [seed],
+                requirement=b.requirement, requirement_params=b.requirement_params,
                 progress=lambda n, _r, label=label, before=before: tick(label, before + n),
                 stop=halted)
         wall = time.perf_counter() - t0
@@ -649,7 +664,7 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
              uniform_first_collision(truth["sampled"], truth["sampled_collisions"], b))
         by_budget.append({"budget": b, "uniform_first_collision": u, "rows": b_rows})
     result = {"space": sp.name, "space_seed": config.space_seed, "sut": config.sut,
-              "sut_params": dict(config.sut_params),
+              "sut_params": dict(config.sut_params), "requirement": config.requirement,
               "evaluations": config.evaluations, "seeds": config.seeds,
               "processes": num_processes, "jobs": jobs, **truth, "rows": rows,
               "budgets": by_budget,
@@ -751,6 +766,9 @@ def table_markdown(result: dict) -> str:
             "mean reward, last quarter (median) | overhead s / 1000 evaluations | "
             f"compile s | wall s (all seeds{side_by_side(result)}) |")
     lines = [head, "|" + "---|" * 13]
+    if result.get("requirement", "collision") != "collision":
+        lines = [f"Critical: violating `{result['requirement']}` (the columns' collisions are "
+                 "its violations, in the ground truth and in every search).", "", *lines]
     overhead = result.get("overhead", {})
     for r in result["rows"]:
         iqr = r["first_collision_iqr"]

@@ -358,7 +358,7 @@ class Falsifier:
             self.ckpt.save(len(self.records) - 1, self._flatten(self._carry), record, self.told)
             self._status("running", evaluations=self.budget, evaluations_done=self.told)
         self.progress.update(self.told, failures=int(sum(np.sum(x["violated"])
-                                                           for x in self.records)))
+                                                         for x in self.records)))
 
     def _column(self, name, x, dtype, n: int) -> np.ndarray:
         try:

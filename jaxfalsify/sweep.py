@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfalsify import cache, sim, store
+from jaxfalsify import cache, requirements, sim, store
 from jaxfalsify import config as cfg
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.distributed import agree, barrier, share
@@ -864,11 +864,30 @@ def sweep_arrays(space: Space, sut="carla-tm", sut_params=None, world: sim.World
 TRUTH_FIELDS = ("collision", "reward", "nonfinite")
 
 
+def _violation_truth(space: Space, s, sut_params, world, req, req_params) -> dict:
+    """:func:`ground_truth`'s arrays with ``collision`` the requirement's violations, chunk by
+    chunk (only the three arrays are kept)."""
+    calib = calibrations(s, sut_params or {})
+    rob = jax.jit(lambda o, p: requirements.robustness(req, o, p))
+    parts: dict[str, list] = {k: [] for k in TRUTH_FIELDS}
+    for _, _, cols in iter_sweep(space, calib, world, DEFAULT_CHUNK):
+        out = sim.Outcome(**{f: np.asarray(cols[f]) for f in OUTCOME_FIELDS})
+        nonfinite = np.asarray(cols["nonfinite"], bool)
+        parts["collision"].append((np.asarray(rob(out, req_params)) < 0) & ~nonfinite)
+        parts["reward"].append(np.asarray(cols["reward"]))
+        parts["nonfinite"].append(nonfinite)
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
 def ground_truth(space: Space, sut="carla-tm", sut_params=None,
-                 world: sim.World = sim.WORLD) -> dict[str, np.ndarray]:
+                 world: sim.World = sim.WORLD, requirement=None,
+                 requirement_params=None) -> dict[str, np.ndarray]:
     """``{collision, reward, nonfinite}`` ``(N,)`` of every scenario, from the per-user cache
     (keyed by the space's values, the SUT, its parameters, the world and the simulator's
-    source) or swept once and stored there."""
+    source) or swept once and stored there. With a ``requirement``
+    (:class:`jaxfalsify.requirements.Requirement` and its parameters), ``collision`` holds
+    its violations instead (robustness < 0 on a finite rollout), what a run with that
+    requirement calls critical."""
     import hashlib
 
     s = sut_lib.resolve(sut)
@@ -883,9 +902,13 @@ def ground_truth(space: Space, sut="carla-tm", sut_params=None,
                         "params": sut_lib.params_dict(params), "world": repr(world),
                         "code": cache.code_hash(), "jax": jax.__version__,
                         "backend": jax.default_backend(),
-                        "prng": str(jax.config.jax_default_prng_impl)})
+                        "prng": str(jax.config.jax_default_prng_impl),
+                        **({} if requirement is None else {
+                            "requirement": requirements.cache_key(requirement),
+                            "requirement_params": sut_lib.params_dict(requirement_params)})})
     path = cache.folder() / "truth" / f"{key}.npz"
-    use = cache.enabled() and code is not None
+    use = cache.enabled() and code is not None and (
+        requirement is None or requirements.cache_key(requirement) is not None)
     if use and path.is_file():
         try:
             with np.load(path) as z:
@@ -897,9 +920,9 @@ def ground_truth(space: Space, sut="carla-tm", sut_params=None,
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             pass  # a damaged entry (a flipped bit fails the zip's CRC) is swept again
         cache.stale(path)
-    got = sweep_arrays(space, s, None if params is None else
-                       {k: v for k, v in sut_lib.params_dict(params).items()},
-                       world, fields=TRUTH_FIELDS)
+    given = None if params is None else dict(sut_lib.params_dict(params))
+    got = (sweep_arrays(space, s, given, world, fields=TRUTH_FIELDS) if requirement is None
+           else _violation_truth(space, s, given, world, requirement, requirement_params))
     if use:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)

@@ -86,3 +86,47 @@ def test_the_closing_lines_count_violations(space, tmp_path, capsys):
     said = capsys.readouterr().out
     assert f"{s['n_violations']} violations of ttc" in said
     assert f"{s['n_collisions']} collisions" in said
+
+
+def test_compare_counts_the_requirements_violations(tmp_path, capsys, monkeypatch):
+    """compare --requirement clash: the ground truth's critical scenarios are the sweep's
+    scenarios whose minimum box gap is below epsilon (oracle: the sweep's own min_distance
+    column), and each seed's first critical evaluation is the one a run with that
+    requirement and seed records."""
+    from jaxfalsify import analysis, campaign, compare, sweep
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["compare", "--requirement", "clash", "--requirement-param", "epsilon=1.5",
+                 "--strategies", "random,cem", "--seeds", "2", "--evaluations", "200",
+                 "--space", str(space_path(tmp_path)), "--out", "cmp", "--quiet"]) == 0
+    result = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    b = runs.RunConfig(space=str(space_path(tmp_path)), requirement="clash",
+                       requirement_params={"epsilon": 1.5}).build()
+    cols = sweep.sweep_arrays(b.space, "carla-tm", fields=("min_distance", "nonfinite"))
+    want = (cols["min_distance"] < 1.5) & ~cols["nonfinite"]
+    assert result["requirement"] == "clash" and result["n_collisions"] == int(want.sum())
+    assert 0 < want.sum() < want.size
+    for row in result["rows"]:
+        rb = compare.CompareConfig(space=str(space_path(tmp_path)), requirement="clash",
+                                   requirement_params={"epsilon": 1.5},
+                                   evaluations=200).run_config(row["strategy"]).build()
+        for s in row["per_seed"]:
+            res = campaign.run(rb.space, rb.sut, rb.sut_params, rb.strategy,
+                               rb.strategy_params, rb.plan, s["seed"],
+                               requirement=rb.requirement,
+                               requirement_params=rb.requirement_params)
+            assert s["first_collision"] == analysis.first_critical(res.fields)
+            np.testing.assert_array_equal(
+                res.fields["violated"], (res.fields["min_distance"] < 1.5)
+                & ~res.fields["nonfinite"])
+    assert "Critical: violating `clash`" in (tmp_path / "cmp" / "compare.md").read_text()
+    capsys.readouterr()
+    assert main(["compare", "--suite", "x.toml", "--requirement", "clash"]) == 2
+    assert "drop --requirement" in capsys.readouterr().err
+
+
+def space_path(tmp_path):
+    p = tmp_path / "tiny.toml"
+    if not p.exists():
+        p.write_text(TINY_SPACE)
+    return p
