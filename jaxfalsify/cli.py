@@ -593,7 +593,7 @@ def _compare_suite(args, names, stop, startup) -> int:
     for flag, given in (("--space", args.space), ("--space-seed", args.space_seed is not None),
                         ("--sut", args.sut),
                         ("--sut-param", args.sut_param), ("--budgets", args.budgets),
-                        ("--requirement", args.requirement),
+                        ("--requirement", args.requirement),  # the suite file's entries say
                         ("--requirement-param", args.requirement_param),
                         ("--distributed", args.distributed),
                         ("--evaluations", args.evaluations is not None)):

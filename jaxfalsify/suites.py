@@ -37,6 +37,8 @@ class SuiteEntry:
     sut_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
     space_seed: int = 0
     exclude: tuple[str, ...] = ()  # strategies not run on this entry (grid on a huge space)
+    requirement: str = "collision"  # what is critical on this entry (compare's --requirement)
+    requirement_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,7 +65,9 @@ class SuiteConfig:
                              sut_params=dict(entry.sut_params), budgets=tuple(self.budgets),
                              strategy_params={s: dict(o) for s, o in self.strategy_params.items()
                                               if s in names},
-                             jobs=self.jobs, batch=self.batch)
+                             jobs=self.jobs, batch=self.batch,
+                             requirement=entry.requirement,
+                             requirement_params=dict(entry.requirement_params))
 
     def check(self) -> None:
         if not self.entries:
@@ -90,7 +94,8 @@ class SuiteConfig:
 
 
 _SUITE_KEYS = {"name", "budgets", "seeds", "strategies", "strategy_params", "entry", "batch"}
-_ENTRY_KEYS = {"space", "sut", "sut_params", "space_seed", "exclude"}
+_ENTRY_KEYS = {"space", "sut", "sut_params", "space_seed", "exclude", "requirement",
+               "requirement_params"}
 
 
 def _same_strategy(a: str, b: str) -> bool:
@@ -154,8 +159,15 @@ def load_suite(path: Path | str, seeds: int | None = None,
         exclude = e.get("exclude", [])
         if not isinstance(exclude, list) or not all(isinstance(x, str) for x in exclude):
             raise ValueError(f"{key}.exclude must be a list of strategy names")
+        req = e.get("requirement", "collision")
+        if not isinstance(req, str):
+            raise ValueError(f"{key}.requirement must be a requirement name or an import path")
+        req_params = e.get("requirement_params", {})
+        if not isinstance(req_params, dict):
+            raise ValueError(f"{key}.requirement_params must be a table of NAME = VALUE")
         out.append(SuiteEntry(sp, sut, sut_params,
-                              e.get("space_seed", 0), tuple(exclude)))
+                              e.get("space_seed", 0), tuple(exclude),
+                              sut_lib.recorded_spec(req, path.parent), req_params))
     if entries is not None:
         known = [entry_name(e) for e in out]
         for name in entries:
@@ -297,6 +309,9 @@ def suite_markdown(summary: dict) -> str:
             extra = (f"; global maximum {r['global_max_reward']:.4f} "
                      f"({_plural(r['global_max_ties'], 'scenario')}); {where}")
         sp = ", ".join(f"{k}={v:g}" for k, v in r.get("sut_params", {}).items())
+        req = r.get("requirement", "collision")
+        if req != "collision":  # the entry's counts are of violations
+            truth = f"critical: violating `{req}`; " + truth
         parts += ["", f"## {r['space']} x {r['sut']}{f' ({sp})' if sp else ''}", "",
                   truth + extra + ".", "", budgets_markdown(r)]
     return "\n".join(parts)

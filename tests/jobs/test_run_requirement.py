@@ -130,3 +130,26 @@ def space_path(tmp_path):
     if not p.exists():
         p.write_text(TINY_SPACE)
     return p
+
+
+def test_a_suite_entry_names_its_requirement(tmp_path):
+    from jaxfalsify import compare, suites, sweep
+
+    (tmp_path / "tiny.toml").write_text(TINY_SPACE)
+    suite = tmp_path / "suite.toml"
+    suite.write_text('name = "s"\nbudgets = [64]\nseeds = 1\nstrategies = ["random"]\n'
+                     '[[entry]]\nspace = "tiny.toml"\nrequirement = "clash"\n'
+                     '[entry.requirement_params]\nepsilon = 1.5\n')
+    entry = suites.load_suite(suite).entries[0]
+    config = suites.load_suite(suite).compare_config(entry)
+    assert config.requirement == "clash" and dict(config.requirement_params) == {"epsilon": 1.5}
+    result = compare.execute(config, tmp_path / "c")
+    b = config.run_config("random").build()
+    cols = sweep.sweep_arrays(b.space, "carla-tm", fields=("min_distance", "nonfinite"))
+    assert result["n_collisions"] == int(np.sum((cols["min_distance"] < 1.5)
+                                               & ~cols["nonfinite"]))
+    text = suites.suite_markdown({"suite": "s", "seeds": 1, "entries": [result]})
+    assert "critical: violating `clash`" in text
+    suite.write_text('name = "s"\n[[entry]]\nspace = "tiny.toml"\nrequirement = 3\n')
+    with pytest.raises(ValueError, match=r"entry.*requirement must be"):
+        suites.load_suite(suite)
