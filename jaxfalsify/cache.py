@@ -194,9 +194,10 @@ def user_code_hash(*objs) -> str | None:
     h = hashlib.sha256()
     for o in objs:
         try:
-            if not inspect.getsourcefile(o):
-                return None
+            src = inspect.getsourcefile(o)
         except (TypeError, OSError):
+            return None
+        if not src or not Path(src).is_file():  # python -c, a REPL, a notebook cell
             return None
         h.update(f"{o.__module__}.{o.__qualname__}".encode())
     files = {f for m in list(sys.modules.values()) if (f := _user_file(m))}

@@ -439,7 +439,8 @@ def _compare_evaluator(args, names, stop) -> int:
     from jaxfalsify import evaluators
 
     bad = [f for f in ("suite", "entries", "budgets", "sut", "sut_param", "jobs",
-                       "requirement", "requirement_param")
+                       "requirement", "requirement_param", "coordinator", "num_processes",
+                       "process_id", "coordinator_timeout")
            if getattr(args, f, None) is not None] + (["distributed"] if args.distributed else [])
     if bad:
         raise UsageError(f"--{bad[0].replace('_', '-')} cannot be combined with --evaluator "

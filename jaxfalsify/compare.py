@@ -665,6 +665,8 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
         by_budget.append({"budget": b, "uniform_first_collision": u, "rows": b_rows})
     result = {"space": sp.name, "space_seed": config.space_seed, "sut": config.sut,
               "sut_params": dict(config.sut_params), "requirement": config.requirement,
+              "requirement_params": sut_lib.params_dict(base.requirement_params)
+              if base.requirement is not None else {},
               "evaluations": config.evaluations, "seeds": config.seeds,
               "processes": num_processes, "jobs": jobs, **truth, "rows": rows,
               "budgets": by_budget,
@@ -755,6 +757,16 @@ TIME_NOTE = ("Search s: the seed's own search time, compilation excluded (compil
              "seconds for the budget, median.")
 
 
+def requirement_words(result: dict) -> str:
+    """```clash` (epsilon=1.5)`` of a comparison that names a requirement ("" without)."""
+    req = result.get("requirement", "collision")
+    if req == "collision":
+        return ""
+    params = result.get("requirement_params") or {}
+    return f"`{req}`" + (" (" + ", ".join(f"{k}={v:g}" for k, v in params.items()) + ")"
+                         if params else "")
+
+
 def table_markdown(result: dict) -> str:
     """The comparison as a Markdown table, with uniform random's analytic expectation."""
     budget = result["evaluations"]
@@ -766,9 +778,9 @@ def table_markdown(result: dict) -> str:
             "mean reward, last quarter (median) | overhead s / 1000 evaluations | "
             f"compile s | wall s (all seeds{side_by_side(result)}) |")
     lines = [head, "|" + "---|" * 13]
-    if result.get("requirement", "collision") != "collision":
-        lines = [f"Critical: violating `{result['requirement']}` (the columns' collisions are "
-                 "its violations, in the ground truth and in every search).", "", *lines]
+    if requirement_words(result):
+        lines = [f"Critical: violating {requirement_words(result)} (the columns' collisions "
+                 "are its violations, in the ground truth and in every search).", "", *lines]
     overhead = result.get("overhead", {})
     for r in result["rows"]:
         iqr = r["first_collision_iqr"]

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -151,7 +152,16 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
     check_settings(workers, timeout, retries, None)
     if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
         raise ValueError(f"seeds must be an integer >= 1 (got {seeds!r})")
+    from jaxfalsify import search
+
     strategy_params = dict(strategy_params or {})
+    seen: dict[str, str] = {}
+    for name in strategies:  # one row per strategy, as compare has it
+        c = search.canonical(name)
+        if c in seen:
+            raise ValueError(f"strategies: {name!r} given twice"
+                             + (f" ({seen[c]!r} names it too)" if seen[c] != name else ""))
+        seen[c] = name
     for name in strategy_params:
         if name not in strategies:
             raise ValueError(f"strategy_params: {name!r} is not among the strategies "
@@ -168,19 +178,29 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
     out = Path(out) if out is not None else Path("runs") / f"compare-{runs.timestamp()}"
     lk = store.open_folder(out, "compare", force=force)
     rows = {}
+    clock = Clock(0.0)
     try:
         lk.claim("compare")
         if force:
             store.clear(out, "compare")
+            shutil.rmtree(out / "runs", ignore_errors=True)  # an earlier comparison's runs
         out.mkdir(parents=True, exist_ok=True)
+        first = configs[strategies[0]].resolved()
         doc = {"kind": "compare", "evaluator": sut_recorded(evaluator),
                "strategies": list(strategies), "seeds": seeds,
-               "evaluations": evaluations or 0, "batch": batch or 0,
-               "space": configs[strategies[0]].resolved().space}
+               "evaluations": first.evaluations if evaluations is None else evaluations,
+               **({"batch": batch} if batch is not None else {}),
+               "strategy_params": {k: dict(v) for k, v in strategy_params.items()},
+               "pool": {k: v for k, v in (("workers", workers), ("timeout", timeout),
+                                          ("retries", retries),
+                                          ("scheduler", None if scheduler is None
+                                           else str(scheduler))) if v is not None},
+               "space": first.space}
         store.write_atomic(out / "config.toml", cfg.dumps_toml(doc))
         store.write_status(out, "compare", "running")
-        clock = Clock(0.0)
-        with make_pool(evaluator, workers, timeout, retries, None, scheduler) as pool:
+        with clock("workers_start"):
+            pool = make_pool(evaluator, workers, timeout, retries, None, scheduler)
+        with pool:
             for name, rc in configs.items():
                 per_seed = []
                 for seed in range(seeds):
@@ -194,6 +214,8 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
                         f.close()
                         raise
                     o = f.finish(figures=False)
+                    for phase in ("compile", "search", "evaluation", "checkpoint", "writing"):
+                        clock.add(phase, o.timing.get(f"{phase}_seconds", 0.0))
                     per_seed.append(seed_row(seed, o, f))
                 found = [r for r in per_seed if r["first_failure"] is not None]
                 rows[name] = {
@@ -219,6 +241,12 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
         store.write_status(out, "compare", "interrupted")
         raise store.Interrupted("compare", out, len(rows), len(configs), "strategies",
                                 resumable=False) from None
+    except BaseException as e:
+        try:  # status.json tells the truth
+            store.write_status(out, "compare", "failed", error=f"{type(e).__name__}: {e}"[:300])
+        except OSError:
+            pass
+        raise
     finally:
         lk.release()
     return result
@@ -257,10 +285,10 @@ def compare_markdown(result: dict) -> str:
             "search s to the first", "evaluation s to the first", "distinct failures (median)",
             "failed evaluations"]
     rows = [[name, str(r["batch"]), f"{r['found']}/{r['seeds']}",
-             num(r["first_failure_median"], ".0f"),
+             num(r["first_failure_median"], "g"),
              num(r["search_seconds_to_first_median"], ".3f"),
              num(r["evaluation_seconds_to_first_median"], ".3f"),
-             num(r["distinct_failures_median"], ".0f"), str(r["failed_evaluations"])]
+             num(r["distinct_failures_median"], "g"), str(r["failed_evaluations"])]
             for name, r in result["strategies"].items()]
     return "\n".join([f"# Strategies against the evaluator `{result['evaluator']}`", "",
                       f"Space {result['space']}, {result['seeds']} seeds; a seed without a "

@@ -291,10 +291,16 @@ def _told_figures(plt, save, run_dir: Path, ep: dict, rc) -> None:
         if not {"t", "distance", "evaluation"} <= set(z.files):
             return
         t, d, ev = z["t"], z["distance"], z["evaluation"]
-    told = np.isfinite(d).any(axis=1)
-    rows = [r for r in fig10_rows(ep, N_TRAJECTORIES - 2) if r < len(told) and told[r]]
-    if rows:
-        rows = np.asarray(rows)
+    n = len(np.asarray(ep["evaluation"]))
+    told = np.zeros(n, bool)
+    at = np.searchsorted(np.asarray(ep["evaluation"]), ev)  # rows of the stored histories
+    ok = at < n
+    told[at[ok]] = np.isfinite(d[ok]).any(axis=1)
+    kept = np.nonzero(told)[0]  # Fig. 9's rows chosen among the evaluations with a history
+    if kept.size:
+        sub = {k: np.asarray(v)[kept] for k, v in ep.items()
+               if k in ("collision", "violated", "nonfinite")}
+        rows = kept[fig10_rows(sub, N_TRAJECTORIES - 2)]
         idx = np.searchsorted(ev, np.asarray(ep["evaluation"])[rows])
         valid = np.isfinite(d[idx]) & np.isfinite(t[idx])
         save(distance_figure(plt, ep, rc, list(rows), t[idx], d[idx], valid),

@@ -34,8 +34,10 @@ class Results:
 
 def _assemble(B: int, done: dict[int, dict], errors: dict[int, str]) -> Results:
     keys = sorted({k for d in done.values() for k in d})
-    steps = {k: max(np.size(d[k]) for d in done.values() if k in d) for k in keys
-             if k.startswith("trajectory/")}  # (T,) per row; chunks may differ in T
+    longest = max((np.size(v) for d in done.values() for k, v in d.items()
+                   if k.startswith("trajectory/")), default=0)
+    steps = {k: longest for k in keys if k.startswith("trajectory/")}  # one T for every
+    # history (chunks may differ in T and in the histories they return: NaN-padded)
     outputs = {k: np.full((B, steps[k]), np.nan) if k in steps else
                np.full(B, False) if k == "collision" else np.full(B, np.nan) for k in keys}
     for row, d in done.items():

@@ -259,7 +259,8 @@ FIGURES = [  # a run's figures under figures/, with their captions in report.md
            ("distance_challenging.png", "Distance over time, best critical vs typical "
             "non-critical; red = high-risk (paper Fig. 7)"),
            ("high_risk_second_half.png", "High-risk share in the second half (paper Fig. 8)"),
-           ("distance_14_scenarios.png", "14 evaluated scenarios, collisions red (paper Fig. 9)"),
+           ("distance_14_scenarios.png", "14 evaluated scenarios, the critical ones red "
+            "(paper Fig. 9)"),
            ("critical_regions.png", "Critical regions from the exhaustive sweep, with a "
             "subsample of the evaluated scenarios (collisions as red crosses)"),
            ("search_distribution.png", "Where the search went: each parameter's values among "

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from jaxfalsify import config as cfg
-from jaxfalsify import search, store
+from jaxfalsify import requirements, search, store
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.compare import (
     DEFAULT_STRATEGIES,
@@ -21,6 +21,7 @@ from jaxfalsify.compare import (
     _share,
     budgets_markdown,
     execute,
+    requirement_words,
 )
 from jaxfalsify.problem import check_int
 from jaxfalsify.progress import Clock, Progress
@@ -82,7 +83,9 @@ class SuiteConfig:
         for k, e in enumerate(self.entries):
             try:  # the same search twice would only cost time (exclusions aside)
                 key = (e.space, e.sut, e.space_seed,
-                       tuple(sorted((n, float(v)) for n, v in e.sut_params.items())))
+                       tuple(sorted((n, float(v)) for n, v in e.sut_params.items())),
+                       e.requirement,
+                       tuple(sorted((n, float(v)) for n, v in e.requirement_params.items())))
             except (TypeError, ValueError):
                 key = (k,)  # a malformed value: named by the entry's own check below
             if key in seen:
@@ -165,6 +168,11 @@ def load_suite(path: Path | str, seeds: int | None = None,
         req_params = e.get("requirement_params", {})
         if not isinstance(req_params, dict):
             raise ValueError(f"{key}.requirement_params must be a table of NAME = VALUE")
+        try:
+            resolved_req = requirements.resolve(sut_lib.recorded_spec(req, path.parent))
+        except ValueError as err:
+            raise ValueError(f"{key}.requirement: {err}") from None
+        requirements.with_params(resolved_req, req_params, f"{key}.requirement_params")
         out.append(SuiteEntry(sp, sut, sut_params,
                               e.get("space_seed", 0), tuple(exclude),
                               sut_lib.recorded_spec(req, path.parent), req_params))
@@ -262,6 +270,10 @@ def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = 
                                              "exclude": list(e.exclude)})
             + ("" if not e.sut_params else "sut_params = { " + ", ".join(
                 f"{k} = {float(v)!r}" for k, v in e.sut_params.items()) + " }\n")
+            + ("" if e.requirement == "collision" else cfg.dumps_toml(
+                {"requirement": e.requirement}))
+            + ("" if not e.requirement_params else "requirement_params = { " + ", ".join(
+                f"{k} = {float(v)!r}" for k, v in e.requirement_params.items()) + " }\n")
             for e in config.entries))
         results = []
         for k, (e, (c, name, folder)) in enumerate(zip(config.entries, entries)):
@@ -309,9 +321,10 @@ def suite_markdown(summary: dict) -> str:
             extra = (f"; global maximum {r['global_max_reward']:.4f} "
                      f"({_plural(r['global_max_ties'], 'scenario')}); {where}")
         sp = ", ".join(f"{k}={v:g}" for k, v in r.get("sut_params", {}).items())
-        req = r.get("requirement", "collision")
-        if req != "collision":  # the entry's counts are of violations
-            truth = f"critical: violating `{req}`; " + truth
-        parts += ["", f"## {r['space']} x {r['sut']}{f' ({sp})' if sp else ''}", "",
+        req = requirement_words(r)
+        if req:  # the entry's counts are of violations
+            truth = f"critical: violating {req}; " + truth
+        parts += ["", f"## {r['space']} x {r['sut']}{f' ({sp})' if sp else ''}"
+                  f"{f', {req}' if req else ''}", "",
                   truth + extra + ".", "", budgets_markdown(r)]
     return "\n".join(parts)

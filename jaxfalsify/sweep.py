@@ -884,15 +884,20 @@ def ground_truth(space: Space, sut="carla-tm", sut_params=None,
                  requirement_params=None) -> dict[str, np.ndarray]:
     """``{collision, reward, nonfinite}`` ``(N,)`` of every scenario, from the per-user cache
     (keyed by the space's values, the SUT, its parameters, the world and the simulator's
-    source) or swept once and stored there. With a ``requirement``
-    (:class:`jaxfalsify.requirements.Requirement` and its parameters), ``collision`` holds
-    its violations instead (robustness < 0 on a finite rollout), what a run with that
-    requirement calls critical."""
+    source) or swept once and stored there. With a ``requirement`` (a name, an import path
+    or a :class:`jaxfalsify.requirements.Requirement`; ``requirement_params`` a table of its
+    parameters or their pytree), ``collision`` holds its violations instead (robustness < 0 on
+    a finite rollout), what a run with that requirement calls critical."""
     import hashlib
 
     s = sut_lib.resolve(sut)
     params = sut_lib.with_params(s, sut_params)
     code = sut_lib.cache_key(s)  # None (a closure, no source file): never cached
+    if requirement is not None:  # a name, an import path or a Requirement; its parameters
+        requirement = requirements.resolve(requirement)  # as a table or a pytree
+        requirement_params = requirements.with_params(requirement, requirement_params)
+        if requirement is requirements.REGISTRY["collision"]:
+            requirement = None  # the plain ground truth
     # the space by its parameters in their order (which numbers the scenarios) and the exact
     # float32 values; the code by jaxfalsify's whole source, the SUT's (its module and every
     # user module loaded: helpers), the jax version and the backend (float32 results differ)

@@ -1,4 +1,4 @@
-"""The worker process of :class:`jaxfalsify.evaluators.Pool`, and the evaluator's loading and
+"""The worker process of :class:`jaxfalsify.pools.Pool`, and the evaluator's loading and
 calling convention. Standard library and NumPy only: a worker is started as this file
 (``python worker.py FD``), so it imports neither JAX nor the user's script, only the
 evaluator's own module, and a restarted worker is ready in a fraction of a second."""

@@ -417,3 +417,18 @@ def test_a_bad_trajectory_fails_its_scenarios_with_the_reason(tmp_path):
     with pytest.raises(ValueError, match=r"trajectory 'speed'"):
         f.tell(a, a.values["ped_speed"] - 1.5, trajectory={"speed": np.zeros((4, 3))})
     f.close()
+
+
+def test_trajectories_of_other_lengths_and_names_share_one_length():
+    from jaxfalsify.pools import _assemble
+
+    done = {0: {"robustness": 1.0, "trajectory/distance": np.arange(8.0)},
+            1: {"robustness": 2.0, "trajectory/t": np.arange(5.0),
+                "trajectory/distance": np.arange(5.0)}}
+    res = _assemble(3, done, {2: "boom"})
+    assert res.outputs["trajectory/distance"].shape == (3, 8)
+    assert res.outputs["trajectory/t"].shape == (3, 8)
+    np.testing.assert_array_equal(res.outputs["trajectory/t"][1, :5], np.arange(5.0))
+    assert np.isnan(res.outputs["trajectory/t"][0]).all()
+    assert np.isnan(res.outputs["trajectory/t"][1, 5:]).all() and res.failed.tolist() == [
+        False, False, True]

@@ -153,3 +153,46 @@ def test_a_suite_entry_names_its_requirement(tmp_path):
     suite.write_text('name = "s"\n[[entry]]\nspace = "tiny.toml"\nrequirement = 3\n')
     with pytest.raises(ValueError, match=r"entry.*requirement must be"):
         suites.load_suite(suite)
+
+
+def test_ground_truth_takes_a_requirement_by_name_and_table():
+    """sweep.ground_truth(requirement="clash", requirement_params={...}) is the same as with
+    the resolved Requirement and its parameter pytree (oracle: the sweep's min gaps)."""
+    from jaxfalsify import requirements, sweep
+
+    sp = runs.build_space("paper", 0)
+    by_name = sweep.ground_truth(sp, requirement="clash", requirement_params={"epsilon": 0.5})
+    req = requirements.resolve("clash")
+    by_object = sweep.ground_truth(sp, requirement=req,
+                                   requirement_params=requirements.with_params(
+                                       req, {"epsilon": 0.5}))
+    cols = sweep.sweep_arrays(sp, "carla-tm", fields=("min_distance", "nonfinite"))
+    want = (cols["min_distance"] < 0.5) & ~cols["nonfinite"]
+    np.testing.assert_array_equal(by_name["collision"], want)
+    np.testing.assert_array_equal(by_object["collision"], want)
+    plain = sweep.ground_truth(sp, requirement="collision")
+    np.testing.assert_array_equal(plain["collision"], cols_collision(sp))
+
+
+def cols_collision(sp):
+    from jaxfalsify import sweep
+
+    return sweep.sweep_arrays(sp, "carla-tm", fields=("collision",))["collision"]
+
+
+def test_a_suite_may_compare_two_requirements_on_one_space(tmp_path):
+    from jaxfalsify import suites
+
+    (tmp_path / "tiny.toml").write_text(TINY_SPACE)
+    suite = tmp_path / "suite.toml"
+    suite.write_text('name = "s"\n[[entry]]\nspace = "tiny.toml"\n'
+                     '[[entry]]\nspace = "tiny.toml"\nrequirement = "clash"\n'
+                     '[[entry]]\nspace = "tiny.toml"\nrequirement = "clash"\n'
+                     '[entry.requirement_params]\nepsilon = 1.5\n')
+    s = suites.load_suite(suite)
+    s.check()
+    assert [e.requirement for e in s.entries] == ["collision", "clash", "clash"]
+    suite.write_text('name = "s"\n[[entry]]\nspace = "tiny.toml"\nrequirement = "clsh"\n')
+    with pytest.raises(ValueError, match=r"entry\[0\]\.requirement: ") as e:
+        suites.load_suite(suite)
+    assert "\n" not in str(e.value)
