@@ -205,7 +205,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="most scenarios per compiled batch (default 131072 on CPUs, "
                    "1048576 on GPUs/TPUs)")
     s.add_argument("--rows", choices=("all", "collisions", "none"),
-                   help="scenarios written to Parquet (default all; none: summary only)")
+                   help="scenarios written to Parquet (default all; none: summary only; "
+                   "collisions: the critical ones, a requirement's violations with one)")
+    s.add_argument("--requirement", help="also count this requirement's violations (clash, "
+                   "ttc, rss or an import path): a violated column and n_violations")
+    s.add_argument("--requirement-param", action="append", dest="requirement_param",
+                   metavar="NAME=VALUE", help="set a requirement parameter (repeatable)")
     s.add_argument("--out", type=_folder, help="output folder (default "
                    "sweeps/<space>-<sut>-s<space-seed>)")
     s.add_argument("--force", action="store_true", help="overwrite an existing sweep in --out")
@@ -468,6 +473,7 @@ def _late_signal(stop) -> int:
 
 
 SWEEP_FLAGS = ("space", "space_seed", "sut", "seed", "chunk", "rows", "out", "force",
+               "requirement", "requirement_param",
                "sut_param")
 
 
@@ -498,8 +504,10 @@ def cmd_sweep(args, stop, startup) -> int:
     else:
         config = sweep.SweepConfig(
             **{k: getattr(args, k) for k in ("space", "space_seed", "sut", "seed", "chunk",
-                                             "rows") if getattr(args, k) is not None},
-            sut_params=_assignments(args.sut_param, "--sut-param", many=True))
+                                             "rows", "requirement")
+               if getattr(args, k) is not None},
+            sut_params=_assignments(args.sut_param, "--sut-param", many=True),
+            requirement_params=_sut_values(args.requirement_param, "--requirement-param"))
         config.build()  # refused before any process waits for the others
         out = args.out  # None: sweeps/<space>-<sut>-s<space seed>
     pid, n_proc = _start_distributed(args)

@@ -303,11 +303,13 @@ class Reducer:
     """Running totals of a sweep per calibration: counts and the global maximum reward (the
     first scenario on ties) and how many scenarios reach it."""
 
-    FIELDS = ("n", "collisions", "nonfinite", "best_reward", "best_row", "best_ties")
+    FIELDS = ("n", "collisions", "nonfinite", "best_reward", "best_row", "best_ties",
+              "violations")
 
     def __init__(self, **state):
         self.n = 0
         self.collisions = 0
+        self.violations = 0  # of the sweep's requirement (rows with a "violated" column)
         self.nonfinite = 0
         self.best_reward = -math.inf
         self.best_row: dict | None = None
@@ -321,6 +323,8 @@ class Reducer:
     def add(self, cols: dict[str, np.ndarray]):
         self.n += len(cols["scenario"])
         self.collisions += int(np.sum(cols["collision"]))
+        if "violated" in cols:
+            self.violations += int(np.sum(cols["violated"]))
         self.nonfinite += int(np.sum(cols["nonfinite"]))
         r = np.where(np.isnan(cols["reward"]), -np.inf, cols["reward"]).astype(np.float64)
         i = int(np.argmax(r))
@@ -385,6 +389,22 @@ class SweepConfig:
     # the backend's default (sim.default_chunk), resolved by execute once any distributed
     # runtime is up (choosing it starts JAX's backend); config.toml records the value
     rows: str = "all"  # all, collisions or none (summary only)
+    requirement: str = "collision"  # also count its violations (a "violated" column; rows =
+    # "collisions" then keeps the violations)
+    requirement_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
+
+    def requirement_of(self):
+        """``(Requirement, its parameters)``, or ``(None, None)`` for collisions; one-line
+        ValueError for a bad name or parameter."""
+        if not isinstance(self.requirement, str):
+            raise ValueError("requirement must be a name or an import path")
+        req = requirements.resolve(self.requirement)
+        params = requirements.with_params(req, check_mapping("requirement_params",
+                                                             self.requirement_params))
+        requirements.check(req, params)
+        if req is requirements.REGISTRY["collision"]:
+            return None, None
+        return req, params
 
     def build(self) -> tuple[Space, Calibrations]:
         check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
@@ -397,13 +417,15 @@ class SweepConfig:
             raise ValueError(f"sut must be a name (got {self.sut!r})")
         sp = build_space(self.space, self.space_seed)
         sut = sut_lib.resolve(self.sut)
+        self.requirement_of()
         return sp, calibrations(sut, check_mapping("sut_params", self.sut_params))
 
     def resolved(self) -> "SweepConfig":
         """This config with the default chunk chosen for JAX's backend and a SUT file path
         made absolute (:func:`jaxfalsify.sut.recorded_spec`)."""
         return dataclasses.replace(self, chunk=self.chunk or sim.default_chunk(),
-                                   sut=sut_lib.recorded_spec(self.sut))
+                                   sut=sut_lib.recorded_spec(self.sut),
+                                   requirement=sut_lib.recorded_spec(self.requirement))
 
     def full_sut_params(self, space: Space) -> dict[str, Any]:
         """Every SUT parameter: its default, or the value (list of values) given; without
@@ -416,6 +438,9 @@ class SweepConfig:
         doc = {"kind": "sweep", "sut": self.sut, "space_seed": self.space_seed,
                "seed": self.seed, "chunk": self.chunk, "rows": self.rows,
                "processes": processes, "sut_params": self.full_sut_params(space),
+               **({"requirement": self.requirement,
+                   "requirement_params": dict(self.requirement_params)}
+                  if self.requirement != "collision" else {}),
                "space": space.describe()}
         return cfg.dumps_toml(doc)
 
@@ -448,6 +473,9 @@ def summary_lines(s: dict) -> list[str]:
                  if "calibration" in r else "")
         head = (f"{label}{r['n_scenarios']:,} scenarios, {r['n_collisions']:,} collisions "
                 f"({r['collision_rate']:.3g}); ")
+        if "n_violations" in r:
+            head += (f"{r['n_violations']:,} violations of {s.get('requirement')} "
+                     f"({r['violation_rate']:.3g}); ")
         if r["global_max_reward"] is None:
             lines.append(head + f"no finite reward: all {r['n_nonfinite']:,} rollouts "
                          "non-finite (the SUT returned NaN or inf)")
@@ -675,8 +703,11 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
                    + (f" x {calib.count} calibrations" if calib.count > 1 else ""))
     t0 = time.perf_counter()
     compile_s, started = 0.0, False
+    req, req_params = config.requirement_of()
+    violated = None if req is None else _violated_fn(req)
     try:
-        reduced = config.rows == "none"  # totals computed on the device
+        # totals computed on the device (a requirement's violations: on the host, from rows)
+        reduced = config.rows == "none" and req is None
         for c, (b, e, cols) in enumerate(iter_sweep(space, calib, world, config.chunk,
                                                     resumed_from, end, planned=planned,
                                                     key=sim.seed_key_data(config.seed),
@@ -688,10 +719,13 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
                                f"sweep {space.name} / {config.sut}"
                                + (f" [process {process_id}/{num_processes}]" if multi else ""))
                 started = True
+            if violated is not None:
+                cols["violated"] = violated(cols, req_params)
             fold(reds, space, calib, b, e, cols, reduced)
             if config.rows != "none":
-                if config.rows == "collisions":
-                    cols = {k: v[cols["collision"]] for k, v in cols.items()}
+                if config.rows == "collisions":  # the critical rows
+                    keep = cols["violated"] if violated is not None else cols["collision"]
+                    cols = {k: v[keep] for k, v in cols.items()}
                 rows_file = f"rows-{c:06d}.parquet"
                 files[rows_file] = {"sha256": store.write_parquet(ck / rows_file, cols),
                                     "chunk": c, "range": [b, e], "run": ident}
@@ -724,6 +758,7 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
                          for c in range(n_chunks)], out / name)
         part = {"process_id": process_id,
                 "totals": [{"n": r.n, "collisions": r.collisions, "nonfinite": r.nonfinite,
+                            "violations": r.violations,
                             "best_reward": r.best_reward, "best_ties": r.best_ties,
                             "best": _scenario_of(space, r.best_row)} for r in reds],
                 "clock": clock.summary()}
@@ -771,7 +806,11 @@ def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts
         best = next(t for (t, _), r in zip(ts, rewards) if r == top)  # lowest process first
         n = sum(t["n"] for t, _ in ts)
         col = sum(t["collisions"] for t, _ in ts)
+        viol = ({} if config.requirement == "collision" else
+                {"n_violations": sum(t.get("violations", 0) for t, _ in ts),
+                 "violation_rate": sum(t.get("violations", 0) for t, _ in ts) / max(n, 1)})
         return {"n_scenarios": n, "n_collisions": col, "collision_rate": col / max(n, 1),
+                **viol,
                 "n_nonfinite": sum(t["nonfinite"] for t, _ in ts),
                 "global_max_reward": best["best_reward"],
                 "global_max_ties": sum(t["best_ties"] for (t, _), r in zip(ts, rewards)
@@ -783,7 +822,10 @@ def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts
 
     rows = [merged(c) for c in range(calib.count)]
     summary = {"space": space.name, "space_seed": config.space_seed, "sut": config.sut,
-               "seed": config.seed}
+               "seed": config.seed,
+               **({"requirement": config.requirement,
+                   "requirement_params": sut_lib.params_dict(config.requirement_of()[1])}
+                  if config.requirement != "collision" else {})}
     if calib.count == 1:
         summary.update(rows[0])
         summary["sut_params"] = params(0)
@@ -864,18 +906,29 @@ def sweep_arrays(space: Space, sut="carla-tm", sut_params=None, world: sim.World
 TRUTH_FIELDS = ("collision", "reward", "nonfinite")
 
 
+def _violated_fn(req):
+    """``(columns, params) -> (n,) bool``: a chunk's violations of ``req`` (robustness < 0 on
+    a finite rollout), from its outcome columns; one compiled function per requirement."""
+    rob = jax.jit(lambda o, p: requirements.robustness(req, o, p))
+
+    def violated(cols: dict, params) -> np.ndarray:
+        out = sim.Outcome(**{f: np.asarray(cols[f]) for f in OUTCOME_FIELDS})
+        nonfinite = np.asarray(cols["nonfinite"], bool)
+        return (np.asarray(rob(out, params)) < 0) & ~nonfinite
+
+    return violated
+
+
 def _violation_truth(space: Space, s, sut_params, world, req, req_params) -> dict:
     """:func:`ground_truth`'s arrays with ``collision`` the requirement's violations, chunk by
     chunk (only the three arrays are kept)."""
     calib = calibrations(s, sut_params or {})
-    rob = jax.jit(lambda o, p: requirements.robustness(req, o, p))
+    violated = _violated_fn(req)
     parts: dict[str, list] = {k: [] for k in TRUTH_FIELDS}
     for _, _, cols in iter_sweep(space, calib, world, DEFAULT_CHUNK):
-        out = sim.Outcome(**{f: np.asarray(cols[f]) for f in OUTCOME_FIELDS})
-        nonfinite = np.asarray(cols["nonfinite"], bool)
-        parts["collision"].append((np.asarray(rob(out, req_params)) < 0) & ~nonfinite)
+        parts["collision"].append(violated(cols, req_params))
         parts["reward"].append(np.asarray(cols["reward"]))
-        parts["nonfinite"].append(nonfinite)
+        parts["nonfinite"].append(np.asarray(cols["nonfinite"], bool))
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 

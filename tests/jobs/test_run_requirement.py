@@ -196,3 +196,33 @@ def test_a_suite_may_compare_two_requirements_on_one_space(tmp_path):
     with pytest.raises(ValueError, match=r"entry\[0\]\.requirement: ") as e:
         suites.load_suite(suite)
     assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("rows", ["all", "collisions", "none"])
+def test_sweep_counts_a_requirements_violations(tmp_path, rows):
+    """jaxfalsify sweep --requirement clash: every row's violated flag and the summary's
+    count against the rows' own minimum gaps (a sweep without the requirement)."""
+    from jaxfalsify import sweep
+
+    p = space_path(tmp_path)
+    plain = sweep.sweep_arrays(runs.build_space(str(p), 0), "carla-tm",
+                               fields=("min_distance", "nonfinite", "scenario"))
+    want = (plain["min_distance"] < 1.5) & ~plain["nonfinite"]
+    assert 0 < want.sum() < want.size
+    assert main(["sweep", "--space", str(p), "--requirement", "clash", "--requirement-param",
+                 "epsilon=1.5", "--rows", rows, "--out", str(tmp_path / "s"), "--quiet"]) == 0
+    s = json.loads((tmp_path / "s" / "summary.json").read_text())
+    assert s["n_violations"] == int(want.sum()) and s["requirement"] == "clash"
+    assert s["requirement_params"] == {"epsilon": 1.5}
+    if rows != "none":
+        t = _table_of(tmp_path / "s" / "sweep.parquet")
+        got = dict(zip(t["scenario"].tolist(), t["violated"].tolist()))
+        if rows == "all":
+            assert [got[int(n)] for n in plain["scenario"]] == want.tolist()
+        else:
+            assert sorted(got) == sorted(int(n) for n in plain["scenario"][want])
+
+
+def _table_of(path):
+    t = pq.read_table(path).to_pydict()
+    return {k: np.asarray(v) for k, v in t.items()}
