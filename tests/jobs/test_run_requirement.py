@@ -226,3 +226,30 @@ def test_sweep_counts_a_requirements_violations(tmp_path, rows):
 def _table_of(path):
     t = pq.read_table(path).to_pydict()
     return {k: np.asarray(v) for k, v in t.items()}
+
+
+def test_a_users_requirement_file_through_run_sweep_and_estimate(tmp_path, monkeypatch):
+    """reqs.py:gap (box gap below 1.2 m) named by file path: the run's violations, the sweep's
+    count and the exact rate all against the rows' own minimum gaps."""
+    from jaxfalsify import estimate, sweep
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "reqs.py").write_text("def gap(outcome, params):\n"
+                                      "    return outcome.min_distance - 1.2\n")
+    p = space_path(tmp_path)
+    rows = sweep.sweep_arrays(runs.build_space(str(p), 0), "carla-tm",
+                              fields=("min_distance", "nonfinite"))
+    want = (rows["min_distance"] < 1.2) & ~rows["nonfinite"]
+    assert 0 < want.sum() < want.size
+    assert main(["sweep", "--space", str(p), "--requirement", "reqs.py:gap", "--out", "s",
+                 "--rows", "none", "--quiet"]) == 0
+    assert json.loads((tmp_path / "s" / "summary.json").read_text())["n_violations"] == \
+        int(want.sum())
+    assert main(["run", "--space", str(p), "--requirement", "reqs.py:gap", "--strategy",
+                 "random", "--evaluations", "64", "--out", "r", "--quiet",
+                 "--no-figures"]) == 0
+    t = _table(tmp_path / "r")
+    np.testing.assert_array_equal(t["violated"], (t["min_distance"] < 1.2) & ~t["nonfinite"])
+    r = estimate.estimate(estimate.EstimateConfig(space=str(p), requirement="reqs.py:gap",
+                                                  method="exact"))
+    assert r["estimate"] == pytest.approx(want.mean())
