@@ -35,6 +35,7 @@ from typing import Any, Callable
 import numpy as np
 
 from jaxfalsify import runs, store
+from jaxfalsify import sut as sut_lib
 from jaxfalsify.external import Asked, Falsifier
 from jaxfalsify.pools import (  # noqa: F401 - re-exported
     DaskPool,
@@ -186,7 +187,7 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
             shutil.rmtree(out / "runs", ignore_errors=True)  # an earlier comparison's runs
         out.mkdir(parents=True, exist_ok=True)
         first = configs[strategies[0]].resolved()
-        doc = {"kind": "compare", "evaluator": sut_recorded(evaluator),
+        doc = {"kind": "compare", "evaluator": sut_lib.recorded_spec(evaluator),
                "strategies": list(strategies), "seeds": seeds,
                "evaluations": first.evaluations if evaluations is None else evaluations,
                **({"batch": batch} if batch is not None else {}),
@@ -250,12 +251,6 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
     finally:
         lk.release()
     return result
-
-
-def sut_recorded(spec: str) -> str:
-    from jaxfalsify import sut as sut_lib
-
-    return sut_lib.recorded_spec(spec)
 
 
 def seed_row(seed: int, o, f: Falsifier) -> dict:

@@ -145,14 +145,7 @@ class RunConfig:
                                           **check_mapping("strategy_params",
                                                           self.strategy_params))
         evaluations = self.evaluations or search.default_evaluations(name)
-        if not isinstance(self.requirement, str):
-            raise ValueError("requirement must be a name or an import path")
-        req = requirements.resolve(self.requirement)
-        rparams = requirements.with_params(req, check_mapping("requirement_params",
-                                                              self.requirement_params))
-        requirements.check(req, rparams)
-        if req is requirements.REGISTRY["collision"]:
-            req = None  # the campaign's own collisions (the same flags, no extra work)
+        req, rparams = build_requirement(self.requirement, self.requirement_params)
         return Built(sp, sut, sut_params, strat, strat_params,
                      campaign.plan(evaluations, strat.batch, every=self.checkpoint_every),
                      req, rparams)
@@ -278,6 +271,18 @@ class RunConfig:
 
 
 CONFIG_KEYS = {f.name for f in dataclasses.fields(RunConfig)}
+
+
+def build_requirement(spec, params) -> tuple[Any, Any]:
+    """``(Requirement or None, its parameters)`` of a run's or sweep's ``requirement`` and
+    ``requirement_params``, checked (one-line ValueError); None for ``collision``: the
+    rollout's own collision flags, no extra work."""
+    if not isinstance(spec, str):
+        raise ValueError("requirement must be a name or an import path")
+    req = requirements.resolve(spec)
+    rparams = requirements.with_params(req, check_mapping("requirement_params", params))
+    requirements.check(req, rparams)
+    return (None if req is requirements.REGISTRY["collision"] else req), rparams
 
 
 def check_evaluator(spec) -> None:

@@ -43,6 +43,7 @@ from jaxfalsify import sut as sut_lib
 from jaxfalsify.distributed import agree, barrier, share
 from jaxfalsify.problem import (
     SEED_LIMIT,
+    build_requirement,
     build_space,
     check_int,
     check_mapping,
@@ -396,15 +397,8 @@ class SweepConfig:
     def requirement_of(self):
         """``(Requirement, its parameters)``, or ``(None, None)`` for collisions; one-line
         ValueError for a bad name or parameter."""
-        if not isinstance(self.requirement, str):
-            raise ValueError("requirement must be a name or an import path")
-        req = requirements.resolve(self.requirement)
-        params = requirements.with_params(req, check_mapping("requirement_params",
-                                                             self.requirement_params))
-        requirements.check(req, params)
-        if req is requirements.REGISTRY["collision"]:
-            return None, None
-        return req, params
+        req, params = build_requirement(self.requirement, self.requirement_params)
+        return (None, None) if req is None else (req, params)
 
     def build(self) -> tuple[Space, Calibrations]:
         check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
