@@ -36,6 +36,9 @@ SPACES = {
     "paper": ("paper", "carla-tm", {}),
     "strong-aeb": (SPACES_DIR / "strong-aeb.toml", "sensor-aeb",
                    {"ttc_full": 2.4, "ttc_partial": 3.4, "fov": 90.0, "range": 60.0}),
+    "fast-walkers": (SPACES_DIR / "fast-walkers.toml", "sensor-aeb",
+                     {"ttc_full": 2.4, "ttc_partial": 3.4, "fov": 90.0, "range": 60.0}),
+    "calibrated-aeb": (SPACES_DIR / "calibrated-aeb.toml", "sensor-aeb", {}),
 }
 
 

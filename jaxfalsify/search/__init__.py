@@ -128,7 +128,7 @@ def _typed(value, default, what: str):
 register("reinforce/default", BatchedReinforce, batch=4096, batch_accelerator=65536,
          evaluations=300 * 4096,
          doc="the Flax LSTM controller + REINFORCE (optax Adam) on thousands of scenarios per "
-         "update: a mixture of discretised Gaussians over the value ranks (cost independent of "
+         "update: a mixture of discretised logistics over the value ranks (cost independent of "
          "the number of values), rank-based advantages of the STL-robustness-shaped signal, a "
          "uniform floor, collisions already found count less (keeps looking for others)")
 register("reinforce/screened", AutoregressiveReinforce, batch=32, learners=1, queue=32,

@@ -7,21 +7,21 @@ the parameters, one step each, and each step's head describes that parameter; th
 which parameter it is and what the previous step's head said, so each parameter's description
 is conditioned on those before it. Instead of one softmax logit per value, a head gives ``K``
 components' mean and width over the parameter's value ranks, and a last head the components'
-weights: the policy is a mixture of ``K`` products of discretised truncated Gaussians with a
-uniform floor (:mod:`jaxfalsify.search.discretised`). The components are joint modes: each
-ties a value of every parameter to the others (a diagonal band of ``ego_offset`` x
+weights: the policy is a mixture of ``K`` products of discretised truncated logistic
+distributions with a uniform floor (:mod:`jaxfalsify.search.discretised`). The components are
+joint modes: each ties a value of every parameter to the others (a diagonal band of ``ego_offset`` x
 ``ped_speed`` is a chain of components, which independent per-parameter heads cannot hold). A
-scenario's probability costs ``O(K P)`` error functions whatever the number of values, and the
+scenario's probability costs ``O(K P)`` sigmoids whatever the number of values, and the
 LSTM runs once per update, not once per scenario.
 
-**The update** (Eq. 2-3 with a baseline): each update draws ``batch`` scenarios, the campaign
-rolls them out in the same compiled step, and the loss is ``-sum_i A_i log pi(a_i)`` with
-rank-based advantages of the shaped signal (the STL robustness until a collision is found,
-near misses told apart by their minimum time-to-collision, the paper's reward among
-collisions: :func:`jaxfalsify.search.base.shaped_signal`): the ``elite`` best fraction of the
-batch gets CMA-ES-style log-rank weights, every scenario minus the batch mean weight, so the
-advantages sum to zero. Adam (optax) with learning rate ``lr`` takes one step per update; an
-entropy bonus ``entropy x mean log sigma`` keeps the components from collapsing early.
+**The update** (Eq. 2-3): each update draws ``batch`` scenarios, the campaign rolls them out
+in the same compiled step, and the loss is ``-sum_j w_j log pi(a_j)`` over the ``elite`` best
+share of the batch by the shaped signal (the STL robustness until a collision is found, near
+misses told apart by their minimum time-to-collision, the paper's reward among collisions:
+:func:`jaxfalsify.search.base.shaped_signal`), ``w_j`` CMA-ES's log-rank weights summing to 1,
+the rest of the batch weight 0: non-negative rank utilities with baseline 0, unbiased as any
+constant baseline is. ``steps`` Adam steps (optax, learning rate ``lr``) follow it on the same
+batch; an entropy bonus ``entropy x mean log sigma`` keeps the components from collapsing early.
 
 The search keeps moving: a scenario that was in an earlier update's elite or collided is
 remembered (a hashed table in the state); drawn again, a collision loses ``novelty`` (0.5: it
@@ -47,9 +47,10 @@ from jaxfalsify.search import discretised
 from jaxfalsify.search.base import Strategy, near_miss_ttc, shaped_signal, uniform
 from jaxfalsify.search.controller import Linear, LSTMCell
 
-SIGMA_MIN_STEPS = 0.2  # narrowest component, in value steps (98.8 % of its mass on one value)
+SIGMA_MIN_STEPS = 0.1  # narrowest component's logistic scale, in value steps (98.7 % of its
+# mass on one value: S(5) - S(-5))
 LOG_SIGMA_MAX = 0.0  # widest component: sigma = 1 (the whole range)
-SIGMA_INIT = 0.3  # initial width, in rank units
+SIGMA_INIT = 0.165  # initial logistic scale, in rank units (a standard deviation of 0.3)
 CHUNK = 1024  # scenarios per chunk of the log-probabilities (see BatchedReinforce.log_prob)
 
 

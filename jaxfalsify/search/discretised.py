@@ -1,12 +1,14 @@
-"""A mixture of discretised truncated Gaussians over a discrete space: the distribution that
-``reinforce/default``'s LSTM controller outputs.
+"""A mixture of discretised truncated logistic distributions over a discrete space: the
+distribution that ``reinforce/default``'s LSTM controller outputs (PixelCNN++'s mixture of
+discretised logistics, Salimans et al., ICLR 2017, truncated to each parameter's range).
 
 Each parameter ``p`` with ``n_p`` values is seen through its values' ranks ``r_v = v / (n_p - 1)``
 in [0, 1]; value ``v`` owns the bin ``[r_v - h_p, r_v + h_p]``, ``h_p = 0.5 / (n_p - 1)``, so the
-bins tile ``[-h_p, 1 + h_p]``. A component ``k`` puts on value ``v`` the mass of a Gaussian
-``N(mu_kp, sigma_kp^2)`` over its bin, renormalised over the tiled interval:
+bins tile ``[-h_p, 1 + h_p]``. A component ``k`` puts on value ``v`` the mass of a logistic
+distribution of location ``mu_kp`` and scale ``sigma_kp`` (CDF ``S(x) = 1 / (1 + exp(-x))`` of
+the standardised value) over its bin, renormalised over the tiled interval:
 
-    m_kp(v) = (Phi(b) - Phi(a)) / (Phi(B) - Phi(A)),
+    m_kp(v) = (S(b) - S(a)) / (S(B) - S(A)),
     a, b = (r_v -+ h_p - mu_kp) / sigma_kp,
     A, B = (-h_p - mu_kp) / sigma_kp, (1 + h_p - mu_kp) / sigma_kp.
 
@@ -14,10 +16,16 @@ A scenario's probability is a mixture over ``K`` components, each a product over
 with a uniform floor of weight ``eps`` that keeps every scenario reachable:
     pi(a) = (1 - eps) sum_k w_k prod_p m_kp(a_p) + eps prod_p 1 / n_p.
 
-Its cost per scenario is ``O(K P)`` error functions whatever the number of values (a softmax
-head over the values costs ``O(n_p)``): a parameter with 4,000 values costs what one with 10
-does. Sampling is exact: the component by inverse CDF, then each parameter's value by the
-truncated Gaussian's inverse CDF, binned. One-value parameters have mass 1 on their value.
+Its cost per scenario is ``O(K P)`` sigmoids whatever the number of values (a softmax head
+over the values costs ``O(n_p)``): a parameter with 4,000 values costs what one with 10 does.
+Sampling is exact: the component by inverse CDF, then each parameter's value by the truncated
+logistic's inverse CDF (the logit), binned. One-value parameters have mass 1 on their value.
+
+Why logistic and not Gaussian: the logistic CDF is one exponential and its inverse a logarithm,
+where the Gaussian's needs ``erf``/``erfc`` and ``ndtri``. At batch 4096 on 2 CPU cores an
+update (sampling, log-probabilities, eight Adam steps) took 8.7 ms with discretised Gaussians
+and 2.8 ms with discretised logistics; the logistic's heavier tails also leave a little more
+mass away from each component.
 """
 
 from __future__ import annotations
@@ -25,7 +33,6 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.special import ndtr, ndtri
 
 from jaxfalsify.search.base import categorical_from_uniform
 
@@ -45,14 +52,14 @@ TINY = 1e-37  # smallest mass kept (log -85): the uniform floor dominates below 
 
 
 def log_mass(lo: jax.Array, hi: jax.Array) -> jax.Array:
-    """``log(Phi(hi) - Phi(lo))`` for ``lo < hi`` (standard normal), computed in the lower tail
-    (``Phi(hi) - Phi(lo) = Phi(-lo) - Phi(-hi)`` when ``lo > 0``), where ``Phi`` comes from
-    ``erfc`` with a small relative error, so a bin far from the mean keeps its small mass
-    instead of rounding to 0 (down to ``TINY``)."""
+    """``log(S(hi) - S(lo))`` for ``lo < hi`` (``S`` the standard logistic CDF, the sigmoid),
+    computed in the lower tail (``S(hi) - S(lo) = S(-lo) - S(-hi)`` when ``lo > 0``), where
+    ``S(x) ~ exp(x)`` keeps a small relative error, so a bin far from the location keeps its
+    small mass instead of rounding to 0 (down to ``TINY``)."""
     flip = lo > 0
     a = jnp.where(flip, -hi, lo)
     b = jnp.where(flip, -lo, hi)
-    return jnp.log(jnp.maximum(ndtr(b) - ndtr(a), TINY))
+    return jnp.log(jnp.maximum(jax.nn.sigmoid(b) - jax.nn.sigmoid(a), TINY))
 
 
 def log_normaliser(mu: jax.Array, log_sigma: jax.Array, shape: tuple[int, ...]) -> jax.Array:
@@ -98,9 +105,9 @@ def sample(mix_logits: jax.Array, mu: jax.Array, log_sigma: jax.Array, u: jax.Ar
     h = jnp.asarray(half_steps(shape), jnp.float32)
     k = categorical_from_uniform(u[1], jax.nn.softmax(mix_logits))
     m, s = mu[k], jnp.exp(log_sigma[k])
-    lo, hi = ndtr((-h - m) / s), ndtr((1.0 + h - m) / s)
+    lo, hi = jax.nn.sigmoid((-h - m) / s), jax.nn.sigmoid((1.0 + h - m) / s)
     q = jnp.clip(lo + u[2:] * (hi - lo), 1e-7, 1.0 - 1e-7)
-    x = m + s * ndtri(q)  # in [-h, 1 + h] up to rounding
+    x = m + s * (jnp.log(q) - jnp.log1p(-q))  # the logit; in [-h, 1 + h] up to rounding
     v = jnp.clip(jnp.round(x * span), 0, jnp.asarray(n - 1, jnp.float32))
     flat = jnp.minimum(jnp.floor(u[2:] * jnp.asarray(n, jnp.float32)),
                        jnp.asarray(n - 1, jnp.float32))

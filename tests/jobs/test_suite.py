@@ -280,3 +280,32 @@ def test_suite_strategy_options_from_the_file_and_the_command_line(tmp_path, cap
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and 'wrong.toml: strategy_params."cem": ' + what in err[0], err
         assert not out.exists()
+
+
+def test_the_shipped_spaces_load_with_their_stated_sizes():
+    """experiments/spaces/*.toml, as shipped: each builds under its file's name, with the shape
+    of its own TOML's sample counts, and the size its description states (to its one or two
+    significant figures)."""
+    import math
+    import re
+    import tomllib
+
+    folder = Path(__file__).parents[2] / "experiments" / "spaces"
+    files = sorted(folder.glob("*.toml"))
+    assert len(files) >= 4
+    for path in files:
+        doc = tomllib.loads(path.read_text())
+        space = jf.load_space(str(path))
+        assert space.name == path.stem == doc["name"]
+        specs = [spec for name, spec in doc["parameters"].items() if name != "sut"]
+        specs += list(doc["parameters"].get("sut", {}).values())
+        assert space.shape == tuple(spec.get("samples", len(spec.get("values", ())))
+                                    for spec in specs)
+        stated = re.search(r"(\d+(?:\.\d+)?)e(\d+) concrete scenarios",
+                           doc.get("description", ""))
+        if stated:
+            mantissa, exp = stated.groups()
+            size = math.prod(space.shape)
+            assert size / 10 ** int(exp) == pytest.approx(float(mantissa),
+                                                           abs=0.5 * 10 ** -len(
+                                                               mantissa.partition(".")[2]))
