@@ -78,7 +78,7 @@ def _np_log_prob(mix, mu, log_sigma, a, shape, eps):
 
 @pytest.fixture(scope="module")
 def strat():
-    s, p = search.make("reinforce/default", SHAPE, 64, hidden=8, components=3)
+    s, p = search.make("reinforce/default", SHAPE, 64, hidden=8, components=3, learners=1)
     state = s.init(jax.random.key(0), p)
     # move every weight off its initial value so the LSTM and heads all matter
     leaves, tree = jax.tree.flatten(state.params)
@@ -225,7 +225,7 @@ def test_a_collision_seen_before_counts_less():
     a collision has its signal lowered by ``novelty``, and told again without a collision by
     ``revisit``; a collision not seen before, and a scenario that was neither in the elite nor
     a collision, keep the shaped signal (oracle: base.shaped_signal)."""
-    s, p = search.make("reinforce/default", (50, 50), 4)
+    s, p = search.make("reinforce/default", (50, 50), 4, learners=1)
     state = s.init(jax.random.key(0), p)
     old, new, miss = jnp.array([10, 10]), jnp.array([40, 40]), jnp.array([25, 25])
     idx = jnp.stack([old, miss, miss, miss])
@@ -242,3 +242,66 @@ def test_a_collision_seen_before_counts_less():
     want[0] -= float(p.novelty)  # the collision seen before
     want[3] -= float(p.revisit)  # the same scenario, now not colliding: a revisit
     np.testing.assert_allclose(got, want, rtol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def learners3():
+    s, p = search.make("reinforce/default", SHAPE, 64, hidden=8, components=3, learners=3)
+    state = s.init(jax.random.key(2), p)
+    leaves, tree = jax.tree.flatten(state.params)
+    keys = jax.random.split(jax.random.key(3), len(leaves))
+    moved = [x + 0.3 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)]
+    return s, p, dataclasses.replace(state, params=jax.tree.unflatten(tree, moved))
+
+
+def test_several_learners_are_their_equal_mixture(learners3):
+    """With 3 learners, a scenario's log-probability is that of the equal mixture of the 3
+    controllers, each computed step by step in float64 NumPy from its own weights; the
+    probabilities of every scenario sum to 1; the learners' distributions differ."""
+    s, p, state = learners3
+    every = _every(SHAPE)
+    per = []
+    for i in range(3):
+        w = jax.tree.map(lambda x, i=i: x[i], state.params)
+        e_mix, e_mu, e_ls = _np_controller(w, SHAPE, 8, 3)
+        per.append([_np_log_prob(e_mix, e_mu, e_ls, a, SHAPE, float(p.eps)) for a in every])
+    per = np.asarray(per)
+    want = np.log(np.mean(np.exp(per), axis=0))
+    got = np.asarray(s.log_prob(state.params, jnp.asarray(every), p), np.float64)
+    np.testing.assert_allclose(got, want, atol=2e-5)
+    assert np.exp(got).sum() == pytest.approx(1.0, abs=1e-5)
+    assert np.max(np.abs(per[0] - per[1])) > 0.1
+
+
+def test_several_learners_sample_their_mixture():
+    """4 learners dividing a batch of 200,000: each scenario's frequency within 5 standard
+    errors of its probability under the equal mixture (oracle: the log-probabilities, which the
+    test above checks against NumPy)."""
+    s, p = search.make("reinforce/default", SHAPE, 200_000, hidden=8, components=3, learners=4)
+    state = s.init(jax.random.key(4), p)
+    every = _every(SHAPE)
+    prob = np.exp(np.asarray(s.log_prob(state.params, jnp.asarray(every), p), np.float64))
+    idx, _ = jax.jit(lambda k: s.ask(k, state, p))(jax.random.key(7))
+    assert idx.shape == (200_000, len(SHAPE))
+    flat = np.ravel_multi_index(np.asarray(idx).T, SHAPE)
+    freq = np.bincount(flat, minlength=len(every)) / len(flat)
+    order = np.ravel_multi_index(every.T, SHAPE)
+    se = np.sqrt(prob * (1 - prob) / len(flat))
+    assert np.all(np.abs(freq[order] - prob) <= 5 * se + 1e-6)
+
+
+def test_learners_that_do_not_divide_the_batch_each_learn_from_their_own_share():
+    """A batch of 10 for 4 learners: shares of 3, 3, 3 and 1 (the last cut short); ask gives
+    10 scenarios, and each learner's elite (the best share of 0.34 of 3 = 1) is the best of its
+    own share (oracle: the argmax of each share of the signal)."""
+    s, p = search.make("reinforce/default", (50, 50), 10, learners=4, elite=0.34)
+    state = s.init(jax.random.key(0), p)
+    idx, _ = s.ask(jax.random.key(1), state, p)
+    assert idx.shape == (10, 2)
+    signal = jnp.asarray(np.random.default_rng(5).normal(size=10), jnp.float32)
+    new, elite = s._learn(jax.random.key(2), state, idx, signal, p)
+    want = np.zeros(10, bool)
+    for lo, hi in ((0, 3), (3, 6), (6, 9), (9, 10)):
+        want[lo + int(np.argmax(np.asarray(signal)[lo:hi]))] = True
+    np.testing.assert_array_equal(np.asarray(elite), want)
+    assert int(new.told) == 10
