@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -15,11 +16,22 @@ from jaxfalsify import sim
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.campaign import RECORD_FIELDS, evaluation_key
 from jaxfalsify.problem import RunConfig
-from jaxfalsify.space import is_sut_parameter
+from jaxfalsify.space import Space, is_sut_parameter
 
 
-def load_run(run_dir: Path):
-    """(space, resolved config, summary, evaluations columns) of a finished run folder."""
+class RunFolder(NamedTuple):
+    """A finished run folder, read and checked (:func:`load_run`); unpacks as ``space,
+    config, summary, evaluations``."""
+
+    space: Space  # the run's discretised logical scenario
+    config: RunConfig  # config.toml, resolved
+    summary: dict  # summary.json
+    evaluations: dict  # evaluations.parquet: column name -> (N,) NumPy array
+
+
+def load_run(run_dir: Path) -> RunFolder:
+    """A finished run folder: its space, resolved config, summary and evaluations columns,
+    every file checked against the others (one-line ValueError naming the damaged file)."""
     import pyarrow.parquet as pq
 
     run_dir = Path(run_dir)
@@ -58,7 +70,7 @@ def load_run(run_dir: Path):
         if not np.issubdtype(i.dtype, np.integer) or i.min() < 0 or i.max() >= size:
             raise ValueError(f"{where} is damaged: column '{n}_idx' outside 0..{size - 1}")
     check_config_matches(run_dir, sp, rc, summary, ep)
-    return sp, rc, summary, ep
+    return RunFolder(sp, rc, summary, ep)
 
 
 def check_config_matches(run_dir: Path, sp, rc, summary: dict, ep: dict) -> None:

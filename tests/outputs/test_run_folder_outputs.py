@@ -709,3 +709,25 @@ def test_library_figures_and_replay_take_the_run_folders_lock(run_with_figures, 
     assert report == out / "report.md" and all(f.parent == out / "figures" for f in files)
     with pytest.raises(ValueError, match="not a finished run folder"):
         store.run_folder_lock(tmp_path, "figures")
+
+
+def test_a_run_folder_reads_back_as_its_own_files(run_with_figures):
+    """``rundir.load_run`` gives a typed RunFolder whose fields are the folder's own files
+    (oracle: summary.json and config.toml read directly, evaluations.parquet's row count in
+    the summary), and it still unpacks as (space, config, summary, evaluations)."""
+    import json
+    import tomllib
+
+    from jaxfalsify.rundir import RunFolder, load_run
+
+    folder = load_run(run_with_figures)
+    assert isinstance(folder, RunFolder)
+    assert folder.summary == json.loads((run_with_figures / "summary.json").read_text())
+    cfg = tomllib.loads((run_with_figures / "config.toml").read_text())
+    assert folder.config.seed == cfg["seed"] and folder.config.strategy == cfg["strategy"]
+    assert len(folder.evaluations["evaluation"]) == folder.summary["evaluations"]
+    assert folder.space.name == cfg["space"]["name"] == "paper"
+    assert folder.space.names == tuple(cfg["space"]["parameters"])
+    assert folder.space.shape == (10, 10, 25, 4, 10)  # the paper space's sample counts
+    sp, rc, summary, ep = folder
+    assert sp is folder.space and rc is folder.config and ep is folder.evaluations
