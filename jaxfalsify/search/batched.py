@@ -163,59 +163,64 @@ class BatchedReinforce(Strategy):
     def module(self) -> MixtureController:
         return MixtureController(tuple(self.shape), self.hidden, self.components)
 
-    def init(self, key, params):
+    def _each(self, f):
+        """``f`` over the learners: vmapped over a leading ``(L,)`` axis, or ``f`` itself for
+        one learner (whose state has no such axis)."""
+        return f if self.learners == 1 else jax.vmap(f)
+
+    def _shares(self, x, fill=0):
+        """``(B, ...) -> (L, share, ...)``: the learners' shares of a batch, the last padded
+        with ``fill`` when the learners do not divide it; ``x`` itself for one learner."""
         if self.learners == 1:
-            weights = self.module.init(key)["params"]
-            opt = optax.scale_by_adam().init(weights)
-        else:  # independent learners: a leading axis on every weight and Adam moment
-            weights = jax.vmap(lambda k: self.module.init(k)["params"])(
-                jax.random.split(key, self.learners))
-            opt = jax.vmap(optax.scale_by_adam().init)(weights)
+            return x
+        pad = self.learners * self.share - x.shape[0]
+        x = jnp.pad(x, ((0, pad),) + ((0, 0),) * (x.ndim - 1), constant_values=fill)
+        return x.reshape(self.learners, self.share, *x.shape[1:])
+
+    def _keys(self, key):
+        return key if self.learners == 1 else jax.random.split(key, self.learners)
+
+    def init(self, key, params):
+        # independent learners: a leading axis on every weight and Adam moment
+        weights = self._each(lambda k: self.module.init(k)["params"])(self._keys(key))
+        opt = self._each(optax.scale_by_adam().init)(weights)
         return BatchedState(weights, opt, jnp.zeros(self.table, jnp.uint32), jnp.int32(0))
 
     def distribution(self, state):
         """``(mix_logits (K,), mu (K, P), log_sigma (K, P))`` of the current policy; with
         ``learners`` > 1 each with a leading ``(L,)`` axis, one policy per learner."""
-        if self.learners == 1:
-            return self.module.apply({"params": state.params})
-        return jax.vmap(lambda w: self.module.apply({"params": w}))(state.params)
+        return self._each(lambda w: self.module.apply({"params": w}))(state.params)
 
     def probs(self, state, params=None) -> jax.Array:
         """``(P, max_n)`` each parameter's marginal probabilities under the current policy
         (with several learners, their equal mixture: what ``ask`` draws from when the learners
         divide the batch)."""
         eps = (params or self.default_params()).eps
-        if self.learners == 1:
-            return discretised.probs_table(*self.distribution(state), self.shape, eps)
-        return jnp.mean(jax.vmap(lambda m, u, s: discretised.probs_table(m, u, s, self.shape,
-                                                                         eps))(
-            *self.distribution(state)), axis=0)
+        p = self._each(lambda m, u, s: discretised.probs_table(m, u, s, self.shape, eps))(
+            *self.distribution(state))
+        return p if self.learners == 1 else jnp.mean(p, axis=0)
 
     def ask(self, key, state, params):
         def draw(dist, u):
             return jax.vmap(lambda ui: discretised.sample(*dist, ui, self.shape,
                                                           params.eps))(u)
 
-        if self.learners == 1:
-            # a barrier: fused into its consumers, the threefry draw was recomputed there (ask
-            # and gradient in one program: 68 ms instead of 5 ms per update at batch 4096 on 2
-            # cores)
-            u = jax.lax.optimization_barrier(uniform(key, (self.batch, self.n_params + 2)))
-            return draw(self.distribution(state), u), state
         # learner l draws the l-th share of the batch (the last share is cut short when the
-        # learners do not divide the batch)
-        L, per = self.learners, self.share
-        u = jax.lax.optimization_barrier(uniform(key, (L * per, self.n_params + 2)))
-        idx = jax.vmap(draw)(self.distribution(state), u.reshape(L, per, -1))
-        return idx.reshape(L * per, self.n_params)[:self.batch], state
+        # learners do not divide the batch). A barrier: fused into its consumers, the
+        # threefry draw was recomputed there (ask and gradient in one program: 68 ms instead
+        # of 5 ms per update at batch 4096 on 2 cores)
+        u = jax.lax.optimization_barrier(
+            uniform(key, (self.learners * self.share, self.n_params + 2)))
+        idx = self._each(draw)(self.distribution(state), self._shares(u))
+        return idx.reshape(-1, self.n_params)[:self.batch], state
 
     def log_prob(self, weights, indices, params) -> jax.Array:
         """``(B,)`` log pi of each scenario ``indices (B, P)`` under the policy ``weights``
         (with several learners, their equal mixture: what ``ask`` draws from when the learners
         divide the batch)."""
+        lp = self._each(lambda w: self._log_prob_one(w, indices, params))(weights)
         if self.learners == 1:
-            return self._log_prob_one(weights, indices, params)
-        lp = jax.vmap(lambda w: self._log_prob_one(w, indices, params))(weights)
+            return lp
         return jax.nn.logsumexp(lp, axis=0) - jnp.log(float(self.learners))
 
     def _log_prob_one(self, weights, indices, params) -> jax.Array:
@@ -281,22 +286,13 @@ class BatchedReinforce(Strategy):
 
     def _learn(self, key, state, indices, signal, params):
         """``(state, elite (B,) bool)``: each learner's update on its own share of the batch
-        (:meth:`_learn_one`)."""
-        if self.learners == 1:
-            weights, opt, elite = self._learn_one(key, state.params, state.opt, indices,
-                                                  signal, params)
-        else:
-            L, per = self.learners, self.share
-            pad = L * per - self.batch  # the last share's missing draws: never in an elite
-            indices = jnp.pad(indices, ((0, pad), (0, 0)))
-            signal = jnp.pad(signal, (0, pad), constant_values=-jnp.inf)
-            weights, opt, elite = jax.vmap(
-                lambda k, w, o, i, s: self._learn_one(k, w, o, i, s, params))(
-                jax.random.split(key, L), state.params, state.opt,
-                indices.reshape(L, per, -1), signal.reshape(L, per))
-            elite = elite.reshape(L * per)[:self.batch]
+        (:meth:`_learn_one`; a padded share's missing draws have signal -inf, never elite)."""
+        weights, opt, elite = self._each(
+            lambda k, w, o, i, s: self._learn_one(k, w, o, i, s, params))(
+            self._keys(key), state.params, state.opt, self._shares(indices),
+            self._shares(signal, -jnp.inf))
         return dataclasses.replace(state, params=weights, opt=opt,
-                                   told=state.told + self.batch), elite
+                                   told=state.told + self.batch), elite.reshape(-1)[:self.batch]
 
     def _learn_one(self, key, weights, opt, indices, signal, params):
         """``(weights, opt, elite (B,) bool)`` of one learner: ``steps`` Adam steps on

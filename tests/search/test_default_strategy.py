@@ -76,15 +76,21 @@ def _np_log_prob(mix, mu, log_sigma, a, shape, eps):
     return math.log((1 - eps) * comp + eps / np.prod(shape))
 
 
-@pytest.fixture(scope="module")
-def strat():
-    s, p = search.make("reinforce/default", SHAPE, 64, hidden=8, components=3, learners=1)
-    state = s.init(jax.random.key(0), p)
-    # move every weight off its initial value so the LSTM and heads all matter
+def _moved(learners, init_seed, move_seed):
+    """A small reinforce/default on SHAPE whose every weight is moved off its initial value,
+    so the LSTM and heads all matter."""
+    s, p = search.make("reinforce/default", SHAPE, 64, hidden=8, components=3,
+                       learners=learners)
+    state = s.init(jax.random.key(init_seed), p)
     leaves, tree = jax.tree.flatten(state.params)
-    keys = jax.random.split(jax.random.key(1), len(leaves))
+    keys = jax.random.split(jax.random.key(move_seed), len(leaves))
     moved = [x + 0.3 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)]
     return s, p, dataclasses.replace(state, params=jax.tree.unflatten(tree, moved))
+
+
+@pytest.fixture(scope="module")
+def strat():
+    return _moved(1, 0, 1)
 
 
 def _every(shape):
@@ -246,12 +252,7 @@ def test_a_collision_seen_before_counts_less():
 
 @pytest.fixture(scope="module")
 def learners3():
-    s, p = search.make("reinforce/default", SHAPE, 64, hidden=8, components=3, learners=3)
-    state = s.init(jax.random.key(2), p)
-    leaves, tree = jax.tree.flatten(state.params)
-    keys = jax.random.split(jax.random.key(3), len(leaves))
-    moved = [x + 0.3 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)]
-    return s, p, dataclasses.replace(state, params=jax.tree.unflatten(tree, moved))
+    return _moved(3, 2, 3)
 
 
 def test_several_learners_are_their_equal_mixture(learners3):
