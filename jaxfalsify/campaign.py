@@ -31,7 +31,7 @@ import numpy as np
 
 from jaxfalsify import cache, requirements, sim
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.search.base import Strategy, accepts_ttc
+from jaxfalsify.search.base import Strategy
 from jaxfalsify.space import Layout, Space
 
 RECORD_FIELDS = ("reward", "reward_rss", "reward_distance", "reward_collision", "collision",
@@ -136,7 +136,6 @@ def make_campaign(c: Campaign):
                 "eval_key": k_eval, "update": jnp.int32(0)}
 
     sharding = sim.local_batch_sharding() if B % jax.local_device_count() == 0 else None
-    takes_ttc = accepts_ttc(strategy)
 
     def one_update(carry, args: Args):
         key, k_ask, k_tell = jax.random.split(carry["key"], 3)
@@ -155,9 +154,9 @@ def make_campaign(c: Campaign):
             robustness = requirements.robustness(c.requirement, out, args.requirement_params)
             violated = (robustness < 0) & counted
         rob = jnp.where(counted & jnp.isfinite(robustness), robustness, jnp.inf)
-        extra = {"ttc": jnp.where(counted, out.min_ttc, jnp.inf)} if takes_ttc else {}
         state = strategy.tell_outcome(k_tell, state, idx, r, rob, violated,
-                                      args.strategy_params, **extra)
+                                      args.strategy_params,
+                                      ttc=jnp.where(counted, out.min_ttc, jnp.inf))
         rec = {"indices": idx, **{f: getattr(out, f) for f in RECORD_FIELDS
                                   if f != "violated"}, "violated": violated}
         new = {**carry, "state": state, "key": key, "update": carry["update"] + 1}

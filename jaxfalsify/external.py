@@ -39,7 +39,6 @@ from jaxfalsify import figures as figures_lib
 from jaxfalsify import report as report_lib
 from jaxfalsify.problem import RunConfig
 from jaxfalsify.progress import Clock, Progress
-from jaxfalsify.search.base import accepts_ttc
 from jaxfalsify.worker import SIGNALS, trajectory_arrays
 
 TRAJECTORIES = "trajectories.npz"  # an evaluator's run: the trajectories it told
@@ -150,7 +149,6 @@ class Falsifier:
     def _start(self, resume: bool, force: bool) -> None:
         b, rc, strat = self.built, self.config, self.strategy
         params = jax.tree.map(lambda x: np.asarray(x, np.float32), b.strategy_params)
-        takes_ttc = accepts_ttc(strat)
 
         def init(key_data):
             k_init, _, k_run = jax.random.split(jax.random.wrap_key_data(key_data), 3)
@@ -162,9 +160,8 @@ class Falsifier:
             return idx, {"state": state, "key": key}, k_tell
 
         def tell(carry, k_tell, idx, r, rob, violated, ttc):
-            extra = {"ttc": ttc} if takes_ttc else {}
             state = strat.tell_outcome(k_tell, carry["state"], idx, r, rob, violated, params,
-                                       **extra)
+                                       ttc=ttc)
             return {"state": state, "key": carry["key"]}
 
         self._ask, self._tell = jax.jit(ask), jax.jit(tell)

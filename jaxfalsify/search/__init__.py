@@ -16,7 +16,7 @@ import numpy as np
 
 from jaxfalsify import pytree
 from jaxfalsify.search.anneal import Anneal
-from jaxfalsify.search.base import Strategy
+from jaxfalsify.search.base import SIGNALS, Strategy, resolve_signal
 from jaxfalsify.search.batched import BatchedReinforce
 from jaxfalsify.search.cem import CEM
 from jaxfalsify.search.cmaes import CMAES
@@ -84,6 +84,12 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
             if x is None or not math.isfinite(x):
                 raise ValueError(f"{where}: {k}={v!r} is not a finite number")
             params[k] = x
+        elif k == "signal" and k in known_s:  # a name in SIGNALS or a function
+            try:
+                resolve_signal(v)
+            except ValueError as e:
+                raise ValueError(f"{where}: {e}") from None
+            static[k] = v
         elif k in known_s:
             static[k] = _typed(v, _default(cls, k), f"{where}: {k}={v!r}")
         else:
@@ -228,5 +234,6 @@ def make(name: str, shape: tuple[int, ...], batch: int | None = None, /,
     return strat, pytree.replace(strat.default_params(), **params)
 
 
-__all__ = ["Strategy", "REGISTRY", "register", "make", "canonical", "options", "check_options",
-           "default_batch", "default_evaluations", "names"]
+__all__ = ["Strategy", "SIGNALS", "resolve_signal", "REGISTRY", "register", "make",
+           "canonical", "options", "check_options", "default_batch", "default_evaluations",
+           "names"]

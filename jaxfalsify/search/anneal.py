@@ -7,6 +7,7 @@ at update k (rewards are in the paper's units, about -0.06..0.27).
 """
 
 import dataclasses
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -14,7 +15,7 @@ import jax.numpy as jnp
 from jaxfalsify import pytree
 from jaxfalsify.search.base import (
     Strategy,
-    check_signal,
+    resolve_signal,
     sample_uniform,
     uniform,
     uniform_indices,
@@ -44,12 +45,12 @@ class Anneal(Strategy):
     """Static: ``signal``, what it learns from: ``shaped`` (default,
     :func:`jaxfalsify.search.base.shaped_signal`) or ``reward`` (the paper's reward)."""
 
-    signal: str = "shaped"
+    signal: str | Callable = "shaped"
 
     Params = AnnealParams
 
     def __post_init__(self):
-        check_signal(self.signal)
+        resolve_signal(self.signal)  # a one-line error on a bad one
 
     def init(self, key, params):
         return AnnealState(sample_uniform(key, self.shape, self.batch),

@@ -9,11 +9,16 @@ over integer index vectors whose hyperparameters come in as a traced ``params`` 
 * ``ask(key, state, params) -> (indices (B, P) int32, state)``: a batch of scenarios to run;
 * ``tell(key, state, indices (B, P), rewards (B,), params) -> state``: learn from the rewards;
 * ``tell_outcome(key, state, indices, rewards, robustness (B,), collision (B,), params,
-  ttc=None)``: what
-  the campaign calls: ``tell`` with the batch's STL robustness (min distance - epsilon [m],
-  ``+inf`` where unknown), collision flags and minimum times-to-collision beside the rewards
-  (a strategy whose ``tell_outcome`` has no ``ttc`` keyword gets none). The default ignores them and
-  calls ``tell``; a strategy with ``signal = "shaped"`` learns from :func:`shaped_signal`.
+  ttc=None)``: what the campaign calls, with the batch's STL robustness (min distance -
+  epsilon [m], ``+inf`` where unknown), violation flags and minimum times-to-collision ``ttc``
+  [s] beside the rewards. The default turns them into the strategy's learning ``signal`` and
+  calls ``tell`` with it.
+
+**The learning signal is a function** (evosax's fitness shaping): ``signal(rewards,
+robustness, collision, ttc) -> (B,)``, higher is better. :data:`SIGNALS` names the shipped ones
+(``reward``: the paper's reward; ``shaped``: :func:`shaped_signal`); a strategy's ``signal``
+option takes one of those names (the CLI, config files) or any such function (Python), resolved
+by :func:`resolve_signal`.
 
 Rewards given to ``tell`` are finite or ``-inf``: the campaign replaces NaN (a non-finite
 rollout) and evaluations beyond the budget by ``-inf``, so they never rank as best. Every
@@ -24,7 +29,7 @@ and jits once at the edge. States are :func:`jaxfalsify.pytree.dataclass` pytree
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -45,6 +50,9 @@ class Strategy:
     batch: int
 
     Params: ClassVar[type] = NoParams
+    # what tell_outcome learns from: a name in SIGNALS or a signal function (a strategy that
+    # lets users choose declares a ``signal`` field)
+    signal: ClassVar[str | Callable] = "reward"
 
     def default_params(self):
         return self.Params()
@@ -60,13 +68,12 @@ class Strategy:
 
     def tell_outcome(self, key: jax.Array, state, indices: jax.Array, rewards: jax.Array,
                      robustness: jax.Array, collision: jax.Array, params, ttc=None):
-        """``tell`` given the outcomes too; learns from :func:`shaped_signal` when the strategy's
-        static ``signal`` option is ``"shaped"``, from the rewards otherwise. ``ttc (B,)``: each
-        scenario's minimum time-to-collision [s] (``inf``: never on a collision course), which
-        this default ignores (``reinforce/default``'s ``ttc_weight`` uses it)."""
-        if getattr(self, "signal", "reward") == "shaped":
-            rewards = shaped_signal(rewards, robustness, collision)
-        return self.tell(key, state, indices, rewards, params)
+        """``tell`` given the outcomes too: with the strategy's learning signal (its
+        ``signal``, :func:`resolve_signal`) in place of the rewards. ``ttc (B,)``: each
+        scenario's minimum time-to-collision [s] (``inf``: never on a collision course;
+        ``None``: not known)."""
+        signal = resolve_signal(self.signal)(rewards, robustness, collision, ttc)
+        return self.tell(key, state, indices, signal, params)
 
     @property
     def n_params(self) -> int:
@@ -79,19 +86,7 @@ class Strategy:
 
 # Weight of the STL robustness [reward units per metre] in the shaped signal.
 ROBUSTNESS_WEIGHT = 0.05
-SIGNALS = ("reward", "shaped")
 TTC_CAP = 20.0  # s: a longer (or infinite, or unknown) minimum time-to-collision counts as this
-
-
-def accepts_ttc(strategy) -> bool:
-    """Whether ``strategy.tell_outcome`` takes the ``ttc`` keyword (a user's strategy written
-    before it existed does not: the campaign then leaves it out)."""
-    import inspect
-
-    try:
-        return "ttc" in inspect.signature(strategy.tell_outcome).parameters
-    except (TypeError, ValueError):
-        return False
 
 
 def near_miss_ttc(robustness: jax.Array, ttc: jax.Array, weight, below) -> jax.Array:
@@ -105,11 +100,6 @@ def near_miss_ttc(robustness: jax.Array, ttc: jax.Array, weight, below) -> jax.A
     return jnp.where(robustness < below, robustness + weight * t, robustness)
 
 
-def check_signal(signal: str) -> None:
-    if signal not in SIGNALS:
-        raise ValueError(f"signal must be one of {', '.join(SIGNALS)} (got {signal!r})")
-
-
 def shaped_signal(rewards: jax.Array, robustness: jax.Array, collision: jax.Array) -> jax.Array:
     """The paper's reward, made dense where it is flat: a collision scores its reward, any
     other scenario ``-ROBUSTNESS_WEIGHT * robustness`` (STL robustness = min distance - 1 m: the
@@ -121,6 +111,32 @@ def shaped_signal(rewards: jax.Array, robustness: jax.Array, collision: jax.Arra
     dense = jnp.where(jnp.isfinite(robustness), -ROBUSTNESS_WEIGHT * robustness, rewards)
     shaped = jnp.where(collision, rewards, jnp.minimum(dense, ROBUSTNESS_WEIGHT))
     return jnp.where(jnp.isfinite(rewards), shaped, -jnp.inf).astype(jnp.float32)
+
+
+def reward_signal(rewards, robustness, collision, ttc=None) -> jax.Array:
+    """The signal ``reward``: the paper's reward (Eq. 1) as it is."""
+    return rewards
+
+
+def shaped(rewards, robustness, collision, ttc=None) -> jax.Array:
+    """The signal ``shaped``: :func:`shaped_signal`."""
+    return shaped_signal(rewards, robustness, collision)
+
+
+# The shipped learning signals by name: ``signal(rewards (B,), robustness (B,) [m],
+# collision (B,) bool, ttc (B,) [s] or None) -> (B,)``, higher is better.
+SIGNALS: dict[str, Callable] = {"reward": reward_signal, "shaped": shaped}
+
+
+def resolve_signal(signal) -> Callable:
+    """The learning-signal function ``signal`` names (a key of :data:`SIGNALS`), or ``signal``
+    itself when it is a function; one-line ValueError otherwise."""
+    if isinstance(signal, str) and signal in SIGNALS:
+        return SIGNALS[signal]
+    if callable(signal) and not isinstance(signal, str):
+        return signal
+    raise ValueError(f"signal must be one of {', '.join(SIGNALS)} or a function "
+                     f"(got {signal!r})")
 
 
 def centred_ranks(x: jax.Array, valid: jax.Array | None = None) -> jax.Array:

@@ -7,6 +7,7 @@ possible (Rubinstein & Kroese, *The Cross-Entropy Method*, 2004, smoothed update
 """
 
 import dataclasses
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -14,8 +15,8 @@ import jax.numpy as jnp
 from jaxfalsify import pytree
 from jaxfalsify.search.base import (
     Strategy,
-    check_signal,
     rank_order,
+    resolve_signal,
     sample_categorical,
     value_mask,
 )
@@ -40,12 +41,12 @@ class CEM(Strategy):
     """Static: ``signal``, what it learns from: ``shaped`` (default,
     :func:`jaxfalsify.search.base.shaped_signal`) or ``reward`` (the paper's reward)."""
 
-    signal: str = "shaped"
+    signal: str | Callable = "shaped"
 
     Params = CEMParams
 
     def __post_init__(self):
-        check_signal(self.signal)
+        resolve_signal(self.signal)  # a one-line error on a bad one
 
     def init(self, key, params):
         mask = value_mask(self.shape)

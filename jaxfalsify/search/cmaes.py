@@ -26,13 +26,14 @@ until a collision) or ``reward``.
 """
 
 import dataclasses
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
 from jax.scipy.special import ndtr, ndtri
 
 from jaxfalsify import pytree
-from jaxfalsify.search.base import Strategy, check_signal
+from jaxfalsify.search.base import Strategy, resolve_signal
 
 
 @pytree.dataclass
@@ -52,12 +53,12 @@ class CMAESState:
 
 @dataclasses.dataclass(frozen=True)
 class CMAES(Strategy):
-    signal: str = "shaped"
+    signal: str | Callable = "shaped"
 
     Params = CMAESParams
 
     def __post_init__(self):
-        check_signal(self.signal)
+        resolve_signal(self.signal)  # a one-line error on a bad one
         if self.batch < 2:  # one candidate has no parent to recombine: the mean turns NaN
             raise ValueError(f"batch={self.batch}: strategy 'cmaes' needs a population of at "
                              "least 2")

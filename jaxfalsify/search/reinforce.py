@@ -25,6 +25,7 @@ Evaluations the campaign marks -inf (NaN rollouts, beyond the budget) get zero w
 from __future__ import annotations
 
 import dataclasses
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -35,7 +36,7 @@ from jaxfalsify.search import controller
 from jaxfalsify.search.base import (
     Strategy,
     categorical_from_uniform,
-    check_signal,
+    resolve_signal,
     sample_uniform,
     uniform,
     uniform_indices,
@@ -82,13 +83,13 @@ class Reinforce(Strategy):
     hidden: int = 32
     chains: int = 0  # 0: one chain per episode of the batch
     advantage: str = "normalised"
-    signal: str = "reward"  # or "shaped": learn from base.shaped_signal (robustness + reward)
+    signal: str | Callable = "reward"  # or "shaped", or a function: base.resolve_signal
 
     Params = ReinforceParams
     RANGES = {"hidden": "[1, 1024]"}  # static sizes (see AutoregressiveReinforce.RANGES)
 
     def __post_init__(self):
-        check_signal(self.signal)
+        resolve_signal(self.signal)  # a one-line error on a bad one
         if self.advantage not in ("reward", "normalised"):
             raise ValueError(f"advantage must be 'reward' or 'normalised' "
                              f"(got {self.advantage!r})")

@@ -79,6 +79,7 @@ marked -inf (NaN rollouts, beyond the budget) get zero weight.
 from __future__ import annotations
 
 import dataclasses
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -91,9 +92,8 @@ from jaxfalsify.search.base import (
     Strategy,
     categorical_from_uniform,
     centred_ranks,
-    check_signal,
     near_miss_ttc,
-    shaped_signal,
+    resolve_signal,
     uniform,
     uniform_indices,
 )
@@ -217,7 +217,7 @@ class AutoregressiveReinforce(Strategy):
     hidden: int = 32
     learners: int = 4
     advantage: str = "rank"
-    signal: str = "shaped"
+    signal: str | Callable = "shaped"
     queue: int = 0
     anchored: bool = False
     resample: int = 1
@@ -236,7 +236,7 @@ class AutoregressiveReinforce(Strategy):
         if self.advantage not in ADVANTAGES:
             raise ValueError(f"advantage must be one of {', '.join(ADVANTAGES)} "
                              f"(got {self.advantage!r})")
-        check_signal(self.signal)
+        resolve_signal(self.signal)  # a one-line error on a bad one
         gp.check_kernel(self.kernel)
         if self.hidden < 1:
             raise ValueError(f"hidden must be >= 1 (got {self.hidden})")
@@ -460,8 +460,7 @@ class AutoregressiveReinforce(Strategy):
             before = jnp.repeat(~state.seen, self.per_learner)
             robustness = jnp.where(before, near_miss_ttc(robustness, ttc, params.ttc_weight,
                                                          params.ttc_below), robustness)
-        signal = (shaped_signal(rewards, robustness, collision) if self.signal == "shaped"
-                  else rewards)
+        signal = resolve_signal(self.signal)(rewards, robustness, collision, ttc)
         hit = jnp.any(collision.reshape(self.learners, -1), axis=-1)
         return self._update(state, indices, signal, state.seen | hit, params, collision)
 

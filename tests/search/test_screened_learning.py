@@ -498,8 +498,7 @@ def test_near_miss_ttc_by_hand():
 def test_default_learns_from_the_near_miss_ttc_signal():
     """reinforce/screened told the TTCs with ``ttc_weight`` > 0 (its default 0.05) ends in the
     state it reaches told the robustness combined by hand (NumPy); with ``ttc_weight`` 0, or
-    once the learner has seen a collision, the TTCs change nothing; and the campaign hands
-    them only to strategies that take them."""
+    once the learner has seen a collision, the TTCs change nothing."""
     shape = (6, 5, 4)
     strat, p = search.make("reinforce/screened", shape, 16, ttc_weight=0.05)
     st = strat.init(jax.random.key(0), p)
@@ -540,12 +539,6 @@ def test_default_learns_from_the_near_miss_ttc_signal():
                np.where(np.arange(16) >= 8, mixed, rob).astype(np.float32), hit, p2)
     for x, y in zip(jax.tree.leaves(g2), jax.tree.leaves(h2)):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-7)
-
-    class Old(base.Strategy):  # a user's strategy written before the ttc keyword
-        def tell_outcome(self, key, state, indices, rewards, robustness, collision, params):
-            return state
-
-    assert base.accepts_ttc(strat) and not base.accepts_ttc(Old((2,), 4))
 
 
 def _np_gp(x, y, z):

@@ -403,3 +403,32 @@ def test_flax_init_and_one_draw_init_give_the_same_tree():
     assert jax.tree.map(jnp.shape, mine) == jax.tree.map(jnp.shape, flax_tree)
     b = np.asarray(flax_tree["lstm1"]["b"])
     assert np.all(b[32:64] == 1.0) and np.all(b[:32] == 0) and np.all(b[64:] == 0)
+
+
+def test_the_learning_signal_is_a_function():
+    """A strategy's ``signal`` option takes a function of the outcomes as well as a shipped
+    name: ``tell_outcome`` with a user's function learns exactly what ``tell`` learns from that
+    function's values computed by hand (here from the minimum TTCs, which the campaign hands
+    every strategy), and the names resolve to the shipped functions."""
+    g = np.random.default_rng(3)
+    rewards = g.uniform(0, 1, 8).astype(np.float32)
+    rob = g.uniform(-1, 5, 8).astype(np.float32)
+    hit = rob < 0
+    ttc = g.uniform(0, 9, 8).astype(np.float32)
+
+    def by_ttc(r, robustness, collision, t):
+        return -t
+
+    own, p = search.make("cmaes", SHAPE, 8, signal=by_ttc)
+    plain, _ = search.make("cmaes", SHAPE, 8, signal="reward")
+    state = own.init(jax.random.key(0), p)
+    idx, state = own.ask(jax.random.key(1), state, p)
+    got = own.tell_outcome(jax.random.key(2), state, idx, rewards, rob, hit, p, ttc=ttc)
+    want = plain.tell(jax.random.key(2), state, idx, -ttc, p)
+    for x, y in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    shaped = search.resolve_signal("shaped")(rewards, rob, hit, None)
+    np.testing.assert_array_equal(
+        np.asarray(shaped), np.where(hit, rewards, np.minimum(-0.05 * rob, 0.05)))
+    with pytest.raises(ValueError, match="signal must be one of reward, shaped or a function"):
+        search.make("cem", SHAPE, signal=3)
