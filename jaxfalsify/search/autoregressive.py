@@ -18,7 +18,7 @@ about one value carry to its neighbours (the search moves towards a failure regi
 evolution strategy's mean would, instead of value by value); the free head sharpens onto the
 individual values that fail. The bump is at least ``s_min`` of the range wide
 (``log_sigma_min``; by default 0.05, the strategies' ``sigma_min`` option, e.g. 0.001 in
-``reinforce/default``) and never narrower than half a value step (a narrower one would move its
+``reinforce/screened``) and never narrower than half a value step (a narrower one would move its
 mass wholesale from value to value as its mean drifts). Heads start at zero
 (``sigma = 1``): the first proposals are close to uniform. Weights are padded to the widest
 parameter; on spaces with a few wide parameters (:func:`unrolled`) the steps are unrolled and

@@ -16,8 +16,8 @@ Registry entries (``jaxfalsify.search``):
   standard deviation) of the shaped signal (:func:`jaxfalsify.search.base.shaped_signal`), an
   entropy bonus, Adam lr 0.02, no epsilon exploration.
 
-(``reinforce/default`` is the autoregressive controller of
-:mod:`jaxfalsify.search.reinforce_ar`.)
+(``reinforce/default`` is the batched mixture controller of :mod:`jaxfalsify.search.batched`,
+``reinforce/screened`` the autoregressive controller of :mod:`jaxfalsify.search.reinforce_ar`.)
 
 Evaluations the campaign marks -inf (NaN rollouts, beyond the budget) get zero weight.
 """

@@ -1,4 +1,4 @@
-"""REINFORCE on an autoregressive LSTM controller: ``reinforce/default``.
+"""REINFORCE on an autoregressive LSTM controller: ``reinforce/screened``.
 
 The paper's method (a recurrent controller trained by the policy gradient, Eq. 2-3, with
 Adam), made strong where the original struggles: a factorised policy, a handful of updates,
@@ -28,7 +28,7 @@ a reward that is flat until the first collision, failures that are rare.
   distribution that no weight changes, so the policy gradient conditions on it (kept per draw
   in ``zooms``) and stays unbiased.
 * **Moves that partly stop at a bound** (``edge_mass``; 0 in this class, 0.2 in
-  ``reinforce/default``): that share of an anchored move's Gaussian mass beyond the first /
+  ``reinforce/screened``): that share of an anchored move's Gaussian mass beyond the first /
   last value goes to that value, the rest is renormalised inside the box (1: moves clipped to
   the box, as evolution strategies clip; 0: never). Helps where failures touch the box's faces
   (README: ``huge-aeb``, ``aeb-9e6``); a large share costs on interior failures (evaluations
@@ -49,12 +49,12 @@ a reward that is flat until the first collision, failures that are rare.
   (``resample`` per asked scenario) are asked: by GP-BUCB, the highest ``mean + kappa * std``
   first, each further pick's std shrunk as if the earlier ones had been observed, so a batch
   spreads over the promising candidates. The GP's prior mean ``prior_mean`` (standard
-  deviations from its data's mean; -0.5 in ``reinforce/default``) expects unexplored regions
+  deviations from its data's mean; -0.5 in ``reinforce/screened``) expects unexplored regions
   somewhat worse than the average evaluation, so far-away uncertain candidates stop crowding
   out those beside a promising plateau. One length scale per parameter, refined by marginal
   likelihood: every parameter's in turn at each of the first updates (as many as the
   parameters that vary), then one parameter per update; with ``kernel="auto"`` (in
-  ``reinforce/default``) each refinement also chooses between the squared exponential and the
+  ``reinforce/screened``) each refinement also chooses between the squared exponential and the
   Matern 5/2 correlation. The policy still proposes every candidate and learns from what is
   asked.
 * **Baseline**: centred ranks of the learning signal within the batch (``advantage="rank"``:
@@ -63,13 +63,13 @@ a reward that is flat until the first collision, failures that are rare.
 * **Dense signal**: with ``signal="shaped"`` (default) the learner ranks scenarios by
   :func:`jaxfalsify.search.base.shaped_signal`: STL robustness (min distance - epsilon) until
   a collision, the paper's reward among collisions (collisions always rank first); with
-  ``ttc_weight`` > 0 (0.05 in ``reinforce/default``) a near miss's robustness gains
+  ``ttc_weight`` > 0 (0.05 in ``reinforce/screened``) a near miss's robustness gains
   ``ttc_weight x min(TTC, 20 s)`` until the learner's first collision
   (:func:`jaxfalsify.search.base.near_miss_ttc`).
 * **Entropy** bonus ``entropy`` on the per-step entropies while the learner has seen no
   collision, ``entropy_found`` after (faded linearly to 0 at ``entropy_until`` evaluations
   of the search when that is > 0: explore among the failures, then converge; 0.1 faded out
-  at 2000 in ``reinforce/default``); learning rate ``lr``, then ``lr_found``.
+  at 2000 in ``reinforce/screened``); learning rate ``lr``, then ``lr_found``.
 * ``learners`` independent controllers (own weights, Adam moments, queue) may share the batch.
 
 Without ``anchored``/``resample`` this is a plain autoregressive REINFORCE learner. Evaluations

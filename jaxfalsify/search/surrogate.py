@@ -1,6 +1,6 @@
 """A small Gaussian-process surrogate of the learning signal, for choosing among candidates.
 
-``reinforce/default`` draws several candidates per scenario it asks; until it has a collision,
+``reinforce/screened`` draws several candidates per scenario it asks; until it has a collision,
 a GP fitted to its recent and best evaluations picks which of the new candidates are asked
 (README: "Surrogate screening"), one batch at a time by GP-BUCB: the highest upper confidence
 bound ``mean + kappa * std`` first, then each further pick with the variance shrunk as if the
@@ -10,17 +10,17 @@ so a batch spreads over the promising candidates instead of piling onto one. Eve
 is fixed-shape and jit-friendly: empty data slots are masked, not dropped.
 
 Model: a GP on the standardised signal with a constant prior mean ``prior`` (in standard
-deviations from the data's mean: 0 by default; ``reinforce/default`` uses -0.5, so a region
+deviations from the data's mean: 0 by default; ``reinforce/screened`` uses -0.5, so a region
 without data is expected somewhat worse than the average evaluation, and an uncertain candidate
 far from everything wins a pick only where the model sees little that is good nearby),
 a stationary kernel on the value ranks scaled to ``[0, 1]`` per parameter (squared exponential
 or Matern 5/2, :func:`kernel`, or ``auto``: whichever of the two the marginal likelihood prefers,
-chosen with the length scales; ``reinforce/default`` uses ``auto``), a nugget of ``NOISE``.
+chosen with the length scales; ``reinforce/screened`` uses ``auto``), a nugget of ``NOISE``.
 Length scales are chosen by the log marginal likelihood (Rasmussen & Williams, *Gaussian
 Processes for Machine Learning*, 2006, Alg. 2.1, Eq. 2.30): one for all parameters among
 ``LENGTH_SCALES`` (:func:`posterior`), or one per parameter (automatic relevance
 determination), refined one parameter at a time among
-``ARD_SCALES`` (:func:`refine`; ``reinforce/default`` refines every parameter in turn at each
+``ARD_SCALES`` (:func:`refine`; ``reinforce/screened`` refines every parameter in turn at each
 of its first updates, then one per update): a parameter that does not matter (CARLA's weather
 for the Traffic Manager) gets a long scale and stops spreading the candidates.
 """
