@@ -199,7 +199,7 @@ def _interval_gap(a0, a1, b0, b1):
 
 def tm_hazard_reference(ex, ey, v, px, py, pv, L, W, PL, PW, tm):
     """The collision stage's decision for a walker, NumPy (float64): the same rules as
-    ``jaxfalsify.sut.carla_tm_hazard``, written separately from CARLA's description."""
+    ``jaxfalsify.suts.carla_tm.carla_tm_hazard``, written separately from CARLA's description."""
     ex, v, py, pv = (np.asarray(a, np.float64) for a in (ex, v, py, pv))
     ext = _extension(np.atleast_1d(v), tm).reshape(v.shape)
     geo_ext = np.maximum(tm.leading_distance, ext)

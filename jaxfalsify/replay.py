@@ -44,6 +44,7 @@ from jaxfalsify import sut as sut_lib
 from jaxfalsify.config import plain
 from jaxfalsify.rundir import check_simulated, indices_of, load_run, resimulate
 from jaxfalsify.space import SUT_PREFIX, is_sut_parameter
+from jaxfalsify.suts import carla_tm
 
 RED, GREEN, BLUE, GREY = (220, 40, 40), (40, 160, 60), (40, 90, 220), (150, 150, 150)
 
@@ -323,7 +324,7 @@ def check_save_path(path: Path) -> Path:
 
 def _tm_polygons(rc, tr: dict, w, scenario: dict | None = None) -> tuple:
     """carla-tm's geodesic corridor and the walker's grown box at every recorded step, as
-    ``(x0, x1, y0, y1)`` arrays (the SUT's own geometry, see ``sut.tm_polygons``), with the
+    ``(x0, x1, y0, y1)`` arrays (the SUT's own geometry, ``suts.carla_tm.tm_polygons``), with the
     SUT parameters the scenario ran with: the run's ``sut_params`` and the scenario's
     ``sut.NAME`` values (``scenario``: one scenario's parameters, scalars or arrays of one
     value), as ``figures.resimulate`` simulates it."""
@@ -340,5 +341,5 @@ def _tm_polygons(rc, tr: dict, w, scenario: dict | None = None) -> tuple:
         ped_y=tr["ped_y"], ped_vx=full(0.0), ped_vy=tr["ped_speed"],
         ped_length=full(w.ped_length), ped_width=full(w.ped_width),
         road_right=full(w.road_right), road_left=full(w.road_left), weather=full(0))
-    _, geo, walker = sut_lib.tm_polygons(obs, params)
+    _, geo, walker = carla_tm.tm_polygons(obs, params)
     return tuple(tuple(np.asarray(a) for a in poly) for poly in (geo, walker))

@@ -10,7 +10,8 @@ from conftest import random_scenarios
 
 import jaxfalsify as jf
 from jaxfalsify import sim
-from jaxfalsify.sut import REGISTRY, SUT, CruiseParams, cruise_command, sensor_capability
+from jaxfalsify.sut import REGISTRY, SUT, CruiseParams, cruise_command
+from jaxfalsify.suts.sensor_aeb import sensor_capability
 
 W = jf.WORLD
 
@@ -103,14 +104,15 @@ def _aeb_steps(latency, demand_steps=8, ped_vy=0.0, ped_y=-1.5):
     """sensor-aeb's commands over ``demand_steps`` steps with a pedestrian standing (or
     walking at ``ped_vy``) in the ego's lane 3 m ahead at 6 m/s (TTC 0.5 s: a full-brake
     demand from the first step), the weather's extra latencies off."""
-    from jaxfalsify.sut import Observation, SensorAEBParams, _sensor_init, sensor_aeb_act
+    from jaxfalsify.sut import Observation, SensorAEBParams
+    from jaxfalsify.suts.sensor_aeb import sensor_aeb_act, sensor_init
     p = SensorAEBParams(latency=latency, dark_latency=0.0, rain_latency=0.0)
     f = lambda v: jnp.float32(v)  # noqa: E731
     obs = Observation(t=f(0), dt=f(0.1), ego_x=f(0), ego_y=f(-1.5), ego_speed=f(6.0),
                       ego_length=f(4.6), ego_width=f(2.1), ped_x=f(5.55), ped_y=f(ped_y),
                       ped_vx=f(0), ped_vy=f(ped_vy), ped_length=f(0.5), ped_width=f(0.6),
                       road_right=f(-9), road_left=f(3), weather=jnp.int32(0))
-    state, out = _sensor_init(None, p), []
+    state, out = sensor_init(None, p), []
     for _ in range(demand_steps):
         a, state = sensor_aeb_act(obs, state, p, None)
         out.append(float(a))
