@@ -20,8 +20,12 @@ share of the batch by the shaped signal (the STL robustness until a collision is
 misses told apart by their minimum time-to-collision, the paper's reward among collisions:
 :func:`jaxfalsify.search.base.shaped_signal`), ``w_j`` CMA-ES's log-rank weights summing to 1,
 the rest of the batch weight 0: non-negative rank utilities with baseline 0, unbiased as any
-constant baseline is. ``steps`` Adam steps (optax, learning rate ``lr``) follow it on the same
-batch; an entropy bonus ``entropy x mean log sigma`` keeps the components from collapsing early.
+constant baseline is. ``steps`` Adam steps (optax) follow it on the same batch, with learning
+rate ``lr_search`` (0.1) until the learner has drawn a collision and ``lr`` (0.03) from then on:
+large steps towards the failures while there are none, small ones to converge on the best
+failures once there are (Adam's steps have about the learning rate's size whatever the
+gradient's scale, so the learning rate is how far the policy moves per update). An entropy bonus
+``entropy x mean log sigma`` keeps the components from collapsing early.
 
 **Several learners** (``learners``, 4): independent controllers, each drawing an equal share
 of the batch and updated on its own share's elite, so one learner held on a plateau of near
@@ -113,7 +117,8 @@ def _initial_bias(shape, K):
 
 @pytree.dataclass
 class BatchedParams:
-    lr: float = 0.03  # Adam learning rate
+    lr: float = 0.03  # Adam learning rate once the learner has found a collision ...
+    lr_search: float = 0.1  # ... and until then
     eps: float = 0.01  # the uniform floor's weight in the policy
     entropy: float = 0.01  # bonus on the components' mean log-width
     novelty: float = 0.5  # signal taken off a collision seen before (elite or collision) ...
@@ -123,7 +128,7 @@ class BatchedParams:
     ttc_weight: float = 0.0  # near misses told apart by their min TTC [m per s] (0: off)
     ttc_below: float = -0.5  # ... below this robustness [m]
 
-    RANGES = {"lr": "[0, inf)", "eps": "(0, 1)", "entropy": "[0, inf)",
+    RANGES = {"lr": "[0, inf)", "lr_search": "[0, inf)", "eps": "(0, 1)", "entropy": "[0, inf)",
               "novelty": "[0, inf)", "revisit": "[0, inf)",
               "novelty_until": "[0, inf)", "ttc_weight": "[0, inf)", "ttc_below": "(-inf, inf)"}
 
@@ -134,6 +139,7 @@ class BatchedState:
     opt: object  # Adam's moments
     seen: jax.Array  # (table,) uint32 hashes of collisions evaluated (0: empty)
     told: jax.Array  # () int32 evaluations told
+    found: jax.Array  # (L,) bool (() for one learner): the learner has drawn a collision
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,7 +190,9 @@ class BatchedReinforce(Strategy):
         # independent learners: a leading axis on every weight and Adam moment
         weights = self._each(lambda k: self.module.init(k)["params"])(self._keys(key))
         opt = self._each(optax.scale_by_adam().init)(weights)
-        return BatchedState(weights, opt, jnp.zeros(self.table, jnp.uint32), jnp.int32(0))
+        found = jnp.zeros(() if self.learners == 1 else (self.learners,), bool)
+        return BatchedState(weights, opt, jnp.zeros(self.table, jnp.uint32), jnp.int32(0),
+                            found)
 
     def distribution(self, state):
         """``(mix_logits (K,), mu (K, P), log_sigma (K, P))`` of the current policy; with
@@ -232,13 +240,15 @@ class BatchedReinforce(Strategy):
                                                        params.eps, log_z))(indices)
 
     def tell(self, key, state, indices, rewards, params):
-        return self._learn(key, state, indices, rewards, params)[0]
+        return self._learn(key, state, indices, rewards, jnp.zeros(rewards.shape, bool),
+                           params)[0]
 
     def tell_outcome(self, key, state, indices, rewards, robustness, collision, params,
                      ttc=None):
         h = self._hash(indices)
         signal = self._signal(state, h, rewards, robustness, collision, params, ttc)
-        state, elite = self._learn(key, state, indices, signal, params)
+        state, elite = self._learn(key, state, indices, signal,
+                                   collision & jnp.isfinite(rewards), params)
         # remembered: this update's elite and its collisions (a later draw of one of them
         # counts less, see signal)
         keep = (collision & jnp.isfinite(rewards)) | elite
@@ -284,17 +294,19 @@ class BatchedReinforce(Strategy):
         share."""
         return max(1, min(self.share, round(self.elite * self.share)))
 
-    def _learn(self, key, state, indices, signal, params):
+    def _learn(self, key, state, indices, signal, collided, params):
         """``(state, elite (B,) bool)``: each learner's update on its own share of the batch
         (:meth:`_learn_one`; a padded share's missing draws have signal -inf, never elite)."""
+        found = state.found | jnp.any(self._shares(collided, False), axis=-1)
         weights, opt, elite = self._each(
-            lambda k, w, o, i, s: self._learn_one(k, w, o, i, s, params))(
+            lambda k, w, o, i, s, f: self._learn_one(k, w, o, i, s, params,
+                                                     jnp.where(f, params.lr, params.lr_search)))(
             self._keys(key), state.params, state.opt, self._shares(indices),
-            self._shares(signal, -jnp.inf))
-        return dataclasses.replace(state, params=weights, opt=opt,
-                                   told=state.told + self.batch), elite.reshape(-1)[:self.batch]
+            self._shares(signal, -jnp.inf), found)
+        return dataclasses.replace(state, params=weights, opt=opt, told=state.told + self.batch,
+                                   found=found), elite.reshape(-1)[:self.batch]
 
-    def _learn_one(self, key, weights, opt, indices, signal, params):
+    def _learn_one(self, key, weights, opt, indices, signal, params, lr):
         """``(weights, opt, elite (B,) bool)`` of one learner: ``steps`` Adam steps on
         ``-sum_j w_j log pi(a_j)`` over the ``top`` best scenarios of its batch (near ties
         broken at random), ``w_j`` CMA-ES's log-rank weights summing to 1: REINFORCE (Eq. 2)
@@ -319,7 +331,7 @@ class BatchedReinforce(Strategy):
             weights, opt = carry
             grads = jax.grad(loss)(weights)
             updates, opt = optax.scale_by_adam().update(grads, opt, weights)
-            updates = jax.tree.map(lambda u: -params.lr * u, updates)
+            updates = jax.tree.map(lambda u: -lr * u, updates)
             return (optax.apply_updates(weights, updates), opt), None
 
         (weights, opt), _ = jax.lax.scan(adam_step, (weights, opt), None, length=self.steps)

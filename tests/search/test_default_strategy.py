@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfalsify import search
+from jaxfalsify import pytree, search
 from jaxfalsify.search import base, batched, discretised
 
 SHAPE = (4, 1, 3, 5)  # a one-value parameter too
@@ -300,9 +300,32 @@ def test_learners_that_do_not_divide_the_batch_each_learn_from_their_own_share()
     idx, _ = s.ask(jax.random.key(1), state, p)
     assert idx.shape == (10, 2)
     signal = jnp.asarray(np.random.default_rng(5).normal(size=10), jnp.float32)
-    new, elite = s._learn(jax.random.key(2), state, idx, signal, p)
+    new, elite = s._learn(jax.random.key(2), state, idx, signal, jnp.zeros(10, bool), p)
     want = np.zeros(10, bool)
     for lo, hi in ((0, 3), (3, 6), (6, 9), (9, 10)):
         want[lo + int(np.argmax(np.asarray(signal)[lo:hi]))] = True
     np.testing.assert_array_equal(np.asarray(elite), want)
     assert int(new.told) == 10
+
+
+def test_each_learner_searches_with_lr_search_until_its_share_draws_a_collision():
+    """Learner 0's share holds a collision, learner 1's does not: learner 0 learns with ``lr``
+    (and is marked as having found one), learner 1 with ``lr_search`` (oracle: the same update
+    by two copies of the strategy whose learning rates are both ``lr``, both ``lr_search``);
+    a collision seen once keeps the learner on ``lr``."""
+    s, p, state = _moved(2, 0, 1)
+    idx, _ = s.ask(jax.random.key(1), state, p)
+    g = np.random.default_rng(7)
+    rewards = jnp.asarray(g.uniform(0.3, 0.6, 64), jnp.float32)
+    rob = jnp.asarray(g.uniform(-1, 3, 64), jnp.float32)
+    hit = jnp.asarray(np.arange(64) == 5)  # in learner 0's share (the first 32)
+    got = s.tell_outcome(jax.random.key(2), state, idx, rewards, rob, hit, p)
+    np.testing.assert_array_equal(np.asarray(got.found), [True, False])
+    for lr, learner in ((p.lr, 0), (p.lr_search, 1)):
+        q = pytree.replace(p, lr=lr, lr_search=lr)
+        want = s.tell_outcome(jax.random.key(2), state, idx, rewards, rob, hit, q)
+        for x, y in zip(jax.tree.leaves(got.params), jax.tree.leaves(want.params)):
+            np.testing.assert_array_equal(np.asarray(x)[learner], np.asarray(y)[learner])
+    assert p.lr != p.lr_search
+    later = s.tell_outcome(jax.random.key(3), got, idx, rewards, rob, jnp.zeros(64, bool), p)
+    np.testing.assert_array_equal(np.asarray(later.found), [True, False])
