@@ -25,15 +25,16 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import jaxfalsify as jf
-from jaxfalsify import campaign, runs, sweep
+from jaxfalsify import campaign, runs, sweep, sweep_chunks, sweep_config
 from jaxfalsify import sut as sut_lib
+from jaxfalsify.checkpoints import CampaignCheckpoint
 from jaxfalsify.config import versions
-from jaxfalsify.store import CampaignCheckpoint
 
 
 def plain_sweep(sp, out: Path) -> None:
     writer = None
-    for _, _, cols in sweep.iter_sweep(sp, sweep.calibrations(sut_lib.resolve("carla-tm"), {})):
+    calib = sweep_config.calibrations(sut_lib.resolve("carla-tm"), {})
+    for _, _, cols in sweep_chunks.iter_sweep(sp, calib):
         table = pa.table(cols)
         if writer is None:
             writer = pq.ParquetWriter(out / "sweep.parquet", table.schema)
@@ -69,7 +70,7 @@ def main() -> None:
 
     plain_sweep(sp, fresh("warm"))  # compile once
     t_plain = best_of(lambda: plain_sweep(sp, fresh("plain")), args.repeats)
-    cfg = sweep.SweepConfig(space=args.space)
+    cfg = sweep_config.SweepConfig(space=args.space)
     t_ckpt = best_of(lambda: sweep.execute(cfg, fresh("ckpt"), force=True), args.repeats)
 
     b = runs.RunConfig(evaluations=20_000, batch=250, checkpoint_every=1).build()

@@ -28,7 +28,7 @@ import jaxfalsify as jf
 from jaxfalsify import campaign, sim
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.runs import RunConfig
-from jaxfalsify.sweep import plan_chunks
+from jaxfalsify.sweep_chunks import plan_chunks
 
 SPACE = jf.load_space("paper-extended")
 STRIDE = 997

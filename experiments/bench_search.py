@@ -61,9 +61,9 @@ def truth_clusters(b, sut, sut_params):
     """``(labels (N,), count)``: the exhaustive sweep's failure clusters (value-grid
     neighbours, :func:`jaxfalsify.analysis.chebyshev_components`) over every scenario number
     of a sweepable space (label -1: no collision)."""
-    from jaxfalsify import sweep
+    from jaxfalsify import truth
 
-    gt = sweep.ground_truth(b.space, sut, sut_params)
+    gt = truth.ground_truth(b.space, sut, sut_params)
     hit = np.asarray(gt["collision"], bool) & ~np.asarray(gt["nonfinite"], bool)
     labels = np.full(hit.size, -1, np.int64)
     where = np.nonzero(hit)[0]
@@ -145,10 +145,10 @@ def controller_cost(space, sut, sut_params, batch, updates=20, repeats=3):
 def learning(seeds: int, batch: int, evaluations: int | None):
     """The paper space's learning target: per seed, the last update's mean reward over the
     global maximum (the exhaustive sweep's, cached per machine)."""
-    from jaxfalsify import sweep
+    from jaxfalsify import truth
 
     b = runs.RunConfig(batch=batch, evaluations=evaluations).build()
-    gmax = float(np.max(sweep.ground_truth(b.space, "carla-tm")["reward"]))
+    gmax = float(np.max(truth.ground_truth(b.space, "carla-tm")["reward"]))
     out = []
     for seed in range(seeds):
         res = campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan,

@@ -32,11 +32,12 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxfalsify as jf
-from jaxfalsify import sim, sweep
+from jaxfalsify import sim, sweep_chunks, sweep_totals
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.config import versions
 from jaxfalsify.reference import python_loop_evaluate, reference_evaluate
-from jaxfalsify.sweep import calibrations, plan_chunks
+from jaxfalsify.sweep_chunks import plan_chunks
+from jaxfalsify.sweep_config import calibrations
 
 SPACE = jf.load_space("paper-extended")
 STRIDE = 997  # prime, coprime with the space size; size * STRIDE < 2**31 (no int32 overflow)
@@ -116,9 +117,9 @@ def sweep_seconds(space_name: str) -> dict:
     res = {"space": space_name, "n": sp.size}
     for name, reduced in (("device", True), ("host", False)):
         def loop():
-            reds = [sweep.Reducer()]
-            for b, e, cols in sweep.iter_sweep(sp, calib, chunk=CHUNK, reduced=reduced):
-                sweep.fold(reds, sp, calib, b, e, cols, reduced)
+            reds = [sweep_totals.Reducer()]
+            for b, e, cols in sweep_chunks.iter_sweep(sp, calib, chunk=CHUNK, reduced=reduced):
+                sweep_totals.fold(reds, sp, calib, b, e, cols, reduced)
             return reds[0]
         t0 = time.perf_counter()
         red = loop()

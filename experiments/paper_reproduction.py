@@ -32,7 +32,7 @@ import jaxfalsify as jf
 from jaxfalsify import analysis, campaign
 from jaxfalsify.config import jsonable
 from jaxfalsify.runs import RunConfig
-from jaxfalsify.sweep import sweep_arrays
+from jaxfalsify.truth import sweep_arrays
 
 
 def plateau_episode(curve: np.ndarray, window: int = 100, tol: float = 0.05) -> int:

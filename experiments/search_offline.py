@@ -20,13 +20,13 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxfalsify as jf
-from jaxfalsify import compare, search
+from jaxfalsify import compare_stats, search
 
 
 def load_table(space, sut, sut_params, path):
     if path and os.path.exists(path):
         return dict(np.load(path))
-    from jaxfalsify.sweep import sweep_arrays
+    from jaxfalsify.truth import sweep_arrays
     g = sweep_arrays(space, sut, sut_params,
                      fields=("collision", "reward", "robustness", "min_ttc"))
     if path:
@@ -99,7 +99,7 @@ def main(argv=None):
     r = np.where(np.isnan(table["reward"]), -np.inf, table["reward"])
     gmax = r.max()
     n_c = int(table["collision"].sum())
-    u = compare.uniform_first_collision(sp.size, n_c, a.evaluations)
+    u = compare_stats.uniform_first_collision(sp.size, n_c, a.evaluations)
     print(f"{sp.name}: {n_c} collisions of {sp.size} (p={u['p']:.2e}), 1/p={u['expected']:.4g},"
           f" gmax={gmax:.4f}, uniform corners {2.0 ** sum(n > 1 for n in sp.shape) / sp.size:.2e}")
     configs = [(s, {}, None) for s in a.strategies.split(",") if s]
@@ -113,7 +113,7 @@ def main(argv=None):
         first = np.array([np.argmax(c) + 1 if c.any() else a.evaluations + 1 for c in cc])
         best = rr.max(1)
         reached = np.sum(best >= gmax - 1e-6)
-        corners = np.mean(compare.corner_mask(idx.reshape(-1, len(sp.shape)), sp.shape))
+        corners = np.mean(compare_stats.corner_mask(idx.reshape(-1, len(sp.shape)), sp.shape))
         tail = rr[:, -a.evaluations // 4:]
         fm = np.array([np.mean(t[np.isfinite(t)]) for t in tail])
         distinct = np.median([len(np.unique(i[c], axis=0)) for i, c in zip(idx, cc)])

@@ -64,7 +64,9 @@ _SUBMODULES = frozenset({
     "analysis", "cache", "campaign", "cli", "compare", "config", "distributed", "export",
     "figures", "metrics", "progress", "pytree", "reference", "replay", "report", "reward",
     "runs", "search", "sim", "space", "store", "sut", "sweep", "weather", "external",
-    "evaluators", "estimate", "requirements", "suites", "pools", "worker"})
+    "evaluators", "estimate", "requirements", "suites", "pools", "worker", "checkpoints",
+    "compare_stats", "compare_tables", "sweep_config", "sweep_chunks", "sweep_totals",
+    "sweep_merge", "truth"})
 _LAZY = {"Falsifier": "external", "RunConfig": "problem"}  # names loaded with their module
 
 

@@ -363,7 +363,7 @@ def drive(prog: cache.Program, seeds: list[int], args: Args, p: Plan, *, progres
     """Host loop over chunks of updates: ``(records, compile seconds, search seconds)``.
 
     ``progress(done, records)`` after each chunk (``done`` in evaluations); with a
-    checkpoint (:class:`jaxfalsify.store.CampaignCheckpoint`) each chunk is committed to it;
+    checkpoint (:class:`jaxfalsify.checkpoints.CampaignCheckpoint`) each chunk is committed to it;
     ``resumed = (carry, records)`` continues after the chunks those records hold;
     ``stop()`` is checked before each chunk: when true, raise :class:`Stopped` (everything
     done so far is committed).

@@ -1,6 +1,6 @@
 """The ``jaxfalsify`` command: a thin shell over the library.
 
-Each subcommand maps its flags to a config (``runs.RunConfig``, ``sweep.SweepConfig``,
+Each subcommand maps its flags to a config (``runs.RunConfig``, ``sweep_config.SweepConfig``,
 ``compare.CompareConfig``) and calls the library's ``execute``; exceptions become one line
 ``jaxfalsify: error: ...`` and an exit code: 2 for bad input (nothing written), 130 / 143 after
 SIGINT / SIGTERM (work committed, resumable), 1 for a failed write (disk full, permissions).
@@ -496,13 +496,14 @@ def _start_distributed(args) -> tuple[int, int]:
 
 def cmd_sweep(args, stop, startup) -> int:
     from jaxfalsify import sweep
+    from jaxfalsify.sweep_config import SweepConfig
 
     if args.resume is not None:
         _no_flags_with_resume(args, SWEEP_FLAGS)
         config, _ = sweep.resume_config(args.resume)
         out = args.resume
     else:
-        config = sweep.SweepConfig(
+        config = SweepConfig(
             **{k: getattr(args, k) for k in ("space", "space_seed", "sut", "seed", "chunk",
                                              "rows", "requirement")
                if getattr(args, k) is not None},
@@ -538,6 +539,7 @@ def _names(flag: str, value: str | None, what: str, example: str) -> tuple[str, 
 
 def cmd_compare(args, stop, startup) -> int:
     from jaxfalsify import compare
+    from jaxfalsify.compare_tables import budgets_markdown, table_markdown
     from jaxfalsify.progress import timing_line
 
     names = _names("--strategies", args.strategies, "strategy", "reinforce/default,cmaes")
@@ -586,10 +588,10 @@ def cmd_compare(args, stop, startup) -> int:
               f"{config.seeds} seeds; {result['n_scenarios']:.3g} scenarios (too many to "
               f"sweep): collision share estimated {result['collision_share']:.2g} from "
               f"{result['sampled']:,} uniform draws")
-    print(compare.table_markdown(result))
+    print(table_markdown(result))
     if budgets:
         print()
-        print(compare.budgets_markdown(result))
+        print(budgets_markdown(result))
     print(f"wall time {timing_line(result['timing'])}")
     print(f"wrote {result['out']}/compare.json, compare.md, config.toml, timing.json")
     return 0

@@ -1,23 +1,13 @@
 """``jaxfalsify compare``: strategies on the same space and SUT, many seeds, against the
 exhaustive sweep as ground truth (from the per-user cache, see
-:func:`jaxfalsify.sweep.ground_truth`).
+:func:`jaxfalsify.truth.ground_truth`). The comparison job: its configuration
+(:class:`CompareConfig`), the ground truth's summary (:func:`truth_summary`), the searches, the
+search-overhead timing and the files written (:func:`execute`).
 
-Per strategy (one compiled program, its seeds run through it one after another), see
-:func:`seed_stats` and :func:`strategy_row`:
+Per strategy (one compiled program, its seeds run through it one after another), the figures of
+:mod:`jaxfalsify.compare_stats` (:func:`~jaxfalsify.compare_stats.seed_stats`,
+:func:`~jaxfalsify.compare_stats.strategy_row`), and:
 
-* seeds that found a collision;
-* evaluations to the first collision, median and IQR over **all** seeds, a seed that found none
-  counting ``budget + 1`` (censored; a median above the budget means most seeds found none),
-  beside uniform random's analytic expectation (:func:`uniform_first_collision`);
-* search seconds to the first collision and distinct collisions per search second, per seed
-  and as medians, with the strategy's compile seconds apart (see *Search time* below);
-* the best reward, normalised as ``(best - global min) / (global max - global min)`` in [0, 1]
-  (1 = the global maximum; never negative, whatever the sign of the rewards), median over the
-  seeds with a finite best; and how many seeds reached the global maximum;
-* distinct collision scenarios found (median) over all of the space;
-* the share of evaluations on box corners (every parameter at its first or last value;
-  uniform random's share is ``2^P' / N``, P' the parameters with two or more values);
-* the mean reward of the last quarter of the evaluations (the last 1000 of 4000);
 * search overhead: seconds per 1000 evaluations the strategy's own ``ask``/``tell`` take without
   simulation (timed after all searches, one strategy at a time, on ``OVERHEAD_SEEDS`` seeds in
   one compiled call; ``result["overhead"]``);
@@ -45,7 +35,8 @@ last evaluation; updates a chunk runs past the budget are not counted) and
 the strategies share the machine while they search, so their seconds include that sharing;
 ``jobs = 1`` times each strategy alone.
 
-``compare.json`` holds every figure per seed (``per_seed`` rows).
+``compare.json`` holds every figure per seed (``per_seed`` rows); ``compare.md`` the tables
+of :mod:`jaxfalsify.compare_tables`.
 """
 
 from __future__ import annotations
@@ -60,16 +51,24 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from jaxfalsify import analysis, cache, campaign, requirements, search, sim, store
+from jaxfalsify import cache, campaign, requirements, search, sim, store
 from jaxfalsify import config as cfg
 from jaxfalsify import sut as sut_lib
+from jaxfalsify.compare_stats import (
+    TOL,
+    _median,
+    seed_stats,
+    strategy_row,
+    uniform_first_collision,
+)
+from jaxfalsify.compare_tables import budgets_markdown, table_markdown
 from jaxfalsify.distributed import agree, barrier, share
+from jaxfalsify.files import sha256, write_atomic, write_json
 from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.runs import Interrupted, RunConfig, check_int, check_strategy_memory, timestamp
 from jaxfalsify.space import MAX_SIZE
-from jaxfalsify.sweep import ground_truth
+from jaxfalsify.truth import ground_truth
 
-TOL = 1e-6  # reward equality with the global maximum (rewards are float32 sums)
 # the per-evaluation comparison at each strategy's own batch and the paper's budget: the
 # sample-efficient reinforce/screened stands for the REINFORCE family there (reinforce/default
 # asks 4096 per update: compare it with --batch 4096 and a budget of many updates)
@@ -174,153 +173,6 @@ class CompareConfig:
                                   if self.requirement != "collision" else {}),
                                "space": self.space if isinstance(self.space, Mapping)
                                else self.space})
-
-
-def uniform_first_collision(n_scenarios: int, n_collisions: int, budget: int) -> dict:
-    """Uniform random's evaluations to the first collision, analytically: sampling with
-    replacement from ``N`` scenarios of which ``C`` collide, the first collision is geometric
-    with ``p = C / N``: expectation ``(1 - p) / p + 1 = 1 / p`` (``inf`` if ``C = 0``), median
-    ``ceil(ln 0.5 / ln(1 - p))``; censored at ``budget + 1`` as the strategies' figures are
-    (no collision within the budget counts ``budget + 1``): ``E[min(X, B + 1)] =
-    (1 - (1 - p)^(B + 1)) / p`` and the median ``min(median, B + 1)``; and the probability
-    of at least one collision within the budget, ``1 - (1 - p)^B``."""
-    B = int(budget)
-    if n_collisions <= 0:
-        return {"p": 0.0, "expected": float("inf"), "median": float("inf"),
-                "expected_censored": float(B + 1), "median_censored": float(B + 1),
-                "found_probability": 0.0}
-    p = n_collisions / n_scenarios
-    if p >= 1.0:
-        return {"p": 1.0, "expected": 1.0, "median": 1.0, "expected_censored": 1.0,
-                "median_censored": 1.0, "found_probability": 1.0}
-    log_q = np.log1p(-p)
-    median = float(max(1.0, np.ceil(np.log(0.5) / log_q)))
-    return {"p": p, "expected": 1.0 / p, "median": median,
-            "expected_censored": float(-np.expm1((B + 1) * log_q) / p),
-            "median_censored": float(min(median, B + 1)),
-            "found_probability": float(-np.expm1(B * log_q))}
-
-
-def corner_mask(indices: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """``(N,)`` bool: the scenario is a corner of the index box (every parameter's index is
-    its first or last value; a one-value parameter is always both)."""
-    idx = np.asarray(indices)
-    last = np.asarray(shape) - 1
-    return np.all((idx == 0) | (idx == last), axis=-1)
-
-
-def truncate(r: campaign.Result, budget: int) -> campaign.Result:
-    """The first ``budget`` evaluations of a campaign: what a run with that budget evaluates
-    (no strategy's behaviour depends on the total budget)."""
-    if budget >= r.n:
-        return r
-    return dataclasses.replace(r, indices=r.indices[:budget],
-                               fields={k: v[:budget] for k, v in r.fields.items()})
-
-
-def seed_stats(seed: int, r: campaign.Result, truth: dict, budget: int | None = None) -> dict:
-    """One seed's figures (see the module docstring), over its first ``budget`` evaluations
-    (default all). ``truth``: :func:`truth_summary` (``global_max_reward`` None when the
-    space is too large to sweep). Times in seconds of search, compilation excluded
-    (:meth:`jaxfalsify.campaign.Result.search_seconds_at`): ``first_collision_seconds`` at the
-    end of the update holding the first collision (None without one), ``search_seconds`` at
-    the end of the update holding evaluation ``budget``, ``failures_per_second`` = distinct
-    collision scenarios / ``search_seconds`` (all three None when ``r`` was not timed)."""
-    budget = r.n if budget is None else int(budget)
-    r = truncate(r, budget)
-    gmax, gmin = truth["global_max_reward"], truth["global_min_reward"]
-    if gmax is None:  # no ground truth: normalise against nothing
-        gmax = gmin = None
-    ranked = analysis.ranked_reward(r.fields)
-    best = float(ranked.max()) if r.n else -np.inf
-    first = analysis.first_critical(r.fields)  # collisions, or the requirement's violations
-    tail = ranked[r.n - max(1, r.n // 4):] if r.n else ranked
-    tail = tail[np.isfinite(tail)]
-    distinct = len(analysis.distinct_critical(r.indices, r.fields))
-    searched = r.search_seconds_at(r.n) if r.n else None  # None: not timed
-    return {"seed": seed, "first_collision": first,
-            "first_collision_censored": first if first is not None else budget + 1,
-            "first_collision_seconds": (None if first is None or searched is None
-                                        else r.search_seconds_at(first)),
-            "search_seconds": searched,
-            "failures_per_second": (distinct / searched if searched else None),
-            "best": best if np.isfinite(best) else None,
-            "best_normalised": (None if gmax is None else
-                                float((best - gmin) / (gmax - gmin)) if np.isfinite(best)
-                                and gmax > gmin else (1.0 if np.isfinite(best) else None)),
-            "reached_global_max": (None if gmax is None else
-                                   bool(np.isfinite(best) and best >= gmax - TOL)),
-            "distinct": distinct,
-            "corner_share": float(np.mean(corner_mask(r.indices, r.space.shape)))
-            if r.n else 0.0,
-            "final_mean_reward": float(np.mean(tail)) if tail.size else None}
-
-
-def _median(xs) -> float:
-    xs = [x for x in xs if x is not None]
-    return float(np.median(xs)) if xs else float("nan")
-
-
-def _time_median(xs) -> float | None:
-    """Median of per-seed seconds or rates; None when any seed's is missing (not timed)."""
-    xs = list(xs)
-    return float(np.median(xs)) if xs and all(x is not None for x in xs) else None
-
-
-def first_collision_seconds_median(stats: list[dict]) -> float | None:
-    """Median over **all** seeds of the search seconds to the first collision, a seed that
-    found none counting as later than any (infinite): None when that median is not finite
-    (half or more of the seeds found none) or a seed was not timed."""
-    if not stats or any(s.get("search_seconds") is None for s in stats):
-        return None
-    t = [np.inf if s["first_collision_seconds"] is None else s["first_collision_seconds"]
-         for s in stats]
-    m = float(np.median(np.asarray(t, np.float64)))
-    return m if np.isfinite(m) else None
-
-
-def strategy_row(name: str, stats: list[dict], truth: dict, wall: float,
-                 compile_seconds: float | None = None) -> dict:
-    """A strategy's summary over its seeds (``stats``: :func:`seed_stats` rows); ``wall`` and
-    ``compile_seconds`` (lowering and compiling its program, apart from every seed's search
-    seconds) in seconds."""
-    first = np.array([s["first_collision_censored"] for s in stats], np.float64)
-    q = np.percentile(first, [25, 50, 75])
-    found = sum(s["first_collision"] is not None for s in stats)
-    best_norm = _median(s["best_normalised"] for s in stats)
-    return {"strategy": name, "seeds": len(stats),
-            "found_collision_share": found / len(stats),
-            "first_collision_median": float(q[1]),
-            "first_collision_iqr": [float(q[0]), float(q[2])],
-            "first_collision_seconds_median": first_collision_seconds_median(stats),
-            "search_seconds_median": _time_median(s.get("search_seconds") for s in stats),
-            "failures_per_second_median": _time_median(s.get("failures_per_second")
-                                                       for s in stats),
-            "compile_seconds": compile_seconds,
-            "best_normalised_median": best_norm,
-            "seeds_reaching_global_max": (None if any(s["reached_global_max"] is None
-                                                      for s in stats) else
-                                          int(sum(s["reached_global_max"] for s in stats))),
-            "distinct_critical_median": _median(s["distinct"] for s in stats),
-            "all_critical": truth["n_collisions"],
-            "corner_share_median": _median(s["corner_share"] for s in stats),
-            "final_mean_reward_median": _median(s["final_mean_reward"] for s in stats),
-            "wall_seconds": wall, "per_seed": stats}
-
-
-SEED_TIME_KEYS = ("first_collision_seconds", "search_seconds", "failures_per_second")
-ROW_TIME_KEYS = ("first_collision_seconds_median", "search_seconds_median",
-                 "failures_per_second_median", "compile_seconds", "wall_seconds")
-
-
-def without_times(row: dict) -> dict:
-    """A :func:`strategy_row` without its measured seconds and rates (:data:`ROW_TIME_KEYS`,
-    and :data:`SEED_TIME_KEYS` of every per-seed row): the figures that repeat exactly
-    between comparisons of the same configuration."""
-    out = {k: v for k, v in row.items() if k not in ROW_TIME_KEYS}
-    out["per_seed"] = [{k: v for k, v in s.items() if k not in SEED_TIME_KEYS}
-                       for s in row.get("per_seed", [])]
-    return out
 
 
 TRUTH_SAMPLE = 1_000_000  # uniform scenarios that estimate the collision share of a space
@@ -570,7 +422,7 @@ def execute(config: CompareConfig, out: Path | str | None, *, force: bool = Fals
     config.check(num_processes)
     base = config.run_config(config.strategies[0]).build()
 
-    agree("comparison configuration", store.sha256(json.dumps({  # not --jobs: per host
+    agree("comparison configuration", sha256(json.dumps({  # not --jobs: per host
         "strategies": list(config.strategies), "seeds": config.seeds,
         "evaluations": config.evaluations, "budgets": list(config.budgets),
         "overhead": config.overhead, "space": base.space.describe(),
@@ -636,7 +488,7 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
                         "small": {str(bb): v for bb, v in small.items()}}
     if num_processes > 1:
         out.mkdir(parents=True, exist_ok=True)
-        store.write_json(out / f".compare.part-{process_id:05d}.json", parts)
+        write_json(out / f".compare.part-{process_id:05d}.json", parts)
         barrier("jaxfalsify-compare-parts")
         all_parts = [json.loads((out / f".compare.part-{i:05d}.json").read_text())
                      for i in range(num_processes)]
@@ -675,192 +527,15 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
     if process_id == 0:
         with clock("writing"):
             out.mkdir(parents=True, exist_ok=True)
-            store.write_atomic(out / "config.toml", config.to_toml())
-            store.write_json(out / "compare.json", result, indent=2)
+            write_atomic(out / "config.toml", config.to_toml())
+            write_json(out / "compare.json", result, indent=2)
             md = table_markdown(result)
             if config.budgets:  # the smaller budgets' table too, not only on the console
                 md += "\n\n" + budgets_markdown(result)
-            store.write_atomic(out / "compare.md", md + "\n")
-            store.write_json(out / "timing.json", clock.summary(), indent=2)
+            write_atomic(out / "compare.md", md + "\n")
+            write_json(out / "timing.json", clock.summary(), indent=2)
         for i in range(num_processes if num_processes > 1 else 0):
             (out / f".compare.part-{i:05d}.json").unlink(missing_ok=True)
     result["timing"] = clock.summary()
     result["out"] = str(out)
     return result
-
-
-def _num(x, fmt: str) -> str:
-    return "-" if x is None or not np.isfinite(x) else format(x, fmt)
-
-
-def _frac(n, of) -> str:
-    return "-" if n is None else f"{n}/{of}"
-
-
-def _share(p: float | None) -> str:
-    """A collision share for humans: scientific notation (``8.4e-03``), ``0`` for none."""
-    if p is None or not np.isfinite(p):
-        return "-"
-    return "0" if p == 0 else f"{p:.1e}"
-
-
-def _percent(p: float | None) -> str:
-    """A share of evaluations in percent, two significant digits (``1.3%``, ``0.67%``,
-    ``0.0025%``), ``0`` for none: one format down a column."""
-    if p is None or not np.isfinite(p):
-        return "-"
-    if p == 0:
-        return "0"
-    x = 100 * p
-    return f"{x:.2g}%" if x >= 1e-4 else f"{x:.1e}%"
-
-
-def _plural(n: int, word: str) -> str:
-    return f"{n:,} {word}{'' if n == 1 else 's'}"
-
-
-def uniform_line(result: dict, u: dict, budget: int) -> str:
-    """Uniform random's analytic expectation (from the ground truth, or estimated from a
-    uniform sample of a space too large to sweep)."""
-    if result.get("n_collisions") is None:
-        lo, hi = result["collision_share_ci95"]
-        src = (f"estimated from {result['sampled']:,} uniform scenarios "
-               f"({result['sampled_collisions']} collided: p = {_share(u['p'])}, 95 % interval "
-               f"{lo:.2g}..{hi:.2g})")
-    else:
-        src = (f"{_plural(result['n_collisions'], 'collision')} in "
-               f"{_plural(result['n_scenarios'], 'scenario')}, p = {_share(u['p'])}")
-    return (f"Uniform random, analytically ({src}): expected evaluations to the first collision "
-            f"1/p = {_num(u['expected'], '.4g')} (median {_num(u['median'], '.4g')}); censored "
-            f"at {budget + 1}: expected {u['expected_censored']:.4g}, median "
-            f"{u['median_censored']:g}; a collision within {budget} evaluations with "
-            f"probability {u['found_probability']:.3f}. Uniform's share of evaluations on box "
-            f"corners: {_percent(result['uniform_corner_share'])}.")
-
-
-def side_by_side(result: dict) -> str:
-    """``", 2 strategies side by side"`` when the wall times were shared (else empty)."""
-    jobs = result.get("jobs", 1)
-    return f", {jobs} strategies side by side" if jobs > 1 else ""
-
-
-def _seconds(x) -> str:
-    """Seconds or a rate, three significant digits (``0.0312``, ``41.7``); ``-`` for none."""
-    return _num(x, ".3g")
-
-
-TIME_NOTE = ("Search s: the seed's own search time, compilation excluded (compile s, apart), "
-             "to the end of the update holding the first collision (chunks of updates timed "
-             "on the host, a chunk's time divided evenly among its updates); median over all "
-             "seeds, a seed without a collision counting as never (- when half or more found "
-             "none). Collisions per search s: distinct collision scenarios / the seed's search "
-             "seconds for the budget, median.")
-
-
-def requirement_words(result: dict) -> str:
-    """```clash` (epsilon=1.5)`` of a comparison that names a requirement ("" without)."""
-    req = result.get("requirement", "collision")
-    if req == "collision":
-        return ""
-    params = result.get("requirement_params") or {}
-    return f"`{req}`" + (" (" + ", ".join(f"{k}={v:g}" for k, v in params.items()) + ")"
-                         if params else "")
-
-
-def table_markdown(result: dict) -> str:
-    """The comparison as a Markdown table, with uniform random's analytic expectation."""
-    budget = result["evaluations"]
-    head = ("| strategy | seeds with a collision | evaluations to first collision, median "
-            f"[IQR] (none = {budget + 1}) | search s to first collision (median) | "
-            "collisions per search s (median) | best, normalised (median) | "
-            "seeds at global max | "
-            "distinct critical found (median) / all | evaluations on box corners (median) | "
-            "mean reward, last quarter (median) | overhead s / 1000 evaluations | "
-            f"compile s | wall s (all seeds{side_by_side(result)}) |")
-    lines = [head, "|" + "---|" * 13]
-    if requirement_words(result):
-        lines = [f"Critical: violating {requirement_words(result)} (the columns' collisions "
-                 "are its violations, in the ground truth and in every search).", "", *lines]
-    overhead = result.get("overhead", {})
-    for r in result["rows"]:
-        iqr = r["first_collision_iqr"]
-        first = f"{r['first_collision_median']:g} [{iqr[0]:g}, {iqr[1]:g}]"
-        lines.append(f"| {r['strategy']} | {r['found_collision_share'] * r['seeds']:.0f}/"
-                     f"{r['seeds']} | {first} | "
-                     f"{_seconds(r.get('first_collision_seconds_median'))} | "
-                     f"{_seconds(r.get('failures_per_second_median'))} | "
-                     f"{_num(r['best_normalised_median'], '.4f')} | "
-                     f"{_frac(r['seeds_reaching_global_max'], r['seeds'])} | "
-                     f"{_num(r['distinct_critical_median'], 'g')} / "
-                     f"{'-' if r['all_critical'] is None else r['all_critical']} | "
-                     f"{_percent(r['corner_share_median'])} | "
-                     f"{_num(r['final_mean_reward_median'], '.4f')} | "
-                     f"{_num(overhead.get(r['strategy']), '.3f')} | "
-                     f"{_num(r.get('compile_seconds'), '.1f')} | "
-                     f"{r['wall_seconds']:.1f} |")
-    lines += ["", TIME_NOTE + (f" With {result['jobs']} strategies side by side these seconds "
-                               "include sharing the machine (--jobs 1 times each alone)."
-                               if result.get("jobs", 1) > 1 else "")]
-    u = result.get("uniform_first_collision")
-    if u:
-        lines += ["", uniform_line(result, u, budget)]
-    if result.get("n_collisions") is None:
-        lines.append("No ground truth (the space is too large to sweep): no global maximum; "
-                     "the share of collisions is estimated from a uniform sample.")
-    elif result.get("global_max_reward") is None:
-        lines.append(f"No scenario of the space has a finite reward (all "
-                     f"{result['n_scenarios']:,} rollouts non-finite: the SUT returned NaN or "
-                     "inf): no global maximum to normalise against.")
-    else:
-        lines.append("Best, normalised: (best - global min) / (global max - global min) over "
-                     f"the space ({result['global_min_reward']:.4f} .. "
-                     f"{result['global_max_reward']:.4f}), median over seeds with a finite best.")
-    return "\n".join(lines)
-
-
-def budgets_markdown(result: dict) -> str:
-    """One table per comparison: per strategy and budget, seeds with a collision, evaluations
-    to the first collision (median [IQR] over all seeds, none = budget + 1), seeds at the
-    global maximum and the search seconds to the first collision (median over all seeds, see
-    :func:`first_collision_seconds_median`); at the largest budget the distinct failures and
-    the distinct collisions per search second (medians), the box-corner share, the search
-    overhead and the compile seconds; uniform random's expectation in the last row (its
-    collision chance within the budget and E[min(X, budget + 1)], X its evaluations to the
-    first collision, so it compares with the censored medians beside it)."""
-    blist = result["budgets"]
-    top = blist[-1]["budget"]
-    head = "| strategy | " + " | ".join(
-        f"{b['budget']}: collision / first [IQR] / global max / search s to first"
-        for b in blist) + \
-        (f" | distinct failures (median at {top}) | collisions per search s (median at {top}) | "
-         f"box corners (median at {top}) | overhead ms / evaluation | compile s |")
-    lines = [head, "|" + "---|" * (len(blist) + 6)]
-    overhead = result.get("overhead", {})
-    names = [r["strategy"] for r in blist[-1]["rows"]]
-    for k, name in enumerate(names):
-        cells = []
-        for b in blist:
-            r = b["rows"][k]
-            iqr = r["first_collision_iqr"]
-            cells.append(f"{r['found_collision_share'] * r['seeds']:.0f}/{r['seeds']} / "
-                         f"{r['first_collision_median']:g} [{iqr[0]:g}, {iqr[1]:g}] / "
-                         f"{_frac(r['seeds_reaching_global_max'], r['seeds'])} / "
-                         f"{_seconds(r.get('first_collision_seconds_median'))}")
-        last = blist[-1]["rows"][k]
-        o = overhead.get(name)
-        lines.append(f"| {name} | " + " | ".join(cells) +
-                     f" | {_num(last['distinct_critical_median'], 'g')} | "
-                     f"{_seconds(last.get('failures_per_second_median'))} | "
-                     f"{_percent(last['corner_share_median'])} | "
-                     f"{'-' if o is None else f'{o:.3f}'} | "
-                     f"{_num(last.get('compile_seconds'), '.1f')} |")
-    cells = []
-    for b in blist:
-        u = b["uniform_first_collision"]
-        cells.append(f"{u['found_probability']:.0%} / E[min(X, {b['budget'] + 1})] "
-                     f"{_num(u['expected_censored'], '.4g')}, median {u['median_censored']:g}")
-    estimated = ", p estimated from a uniform sample" if result.get("n_collisions") is None \
-        else ""
-    lines.append(f"| uniform random (analytic{estimated}) | " + " | ".join(cells) +
-                 f" | | | {_percent(result['uniform_corner_share'])} | | |")
-    return "\n".join(lines)

@@ -43,6 +43,7 @@ from jaxfalsify import config as cfg
 from jaxfalsify import requirements as req_lib
 from jaxfalsify import sim, store
 from jaxfalsify import sut as sut_lib
+from jaxfalsify.files import write_atomic, write_json
 from jaxfalsify.problem import (
     SEED_LIMIT,
     build_space,
@@ -450,12 +451,12 @@ def execute(config: EstimateConfig, out: Path | str, *, force: bool = False,
         if force:
             store.clear(out, "estimate")
         out.mkdir(parents=True, exist_ok=True)
-        store.write_atomic(out / "config.toml", config.to_toml(*built))
+        write_atomic(out / "config.toml", config.to_toml(*built))
         store.write_status(out, "estimate", "running")
         with clock("estimate"):
             summary = estimate(config, progress, stop)
-        store.write_json(out / "summary.json", summary)
-        store.write_json(out / "timing.json", clock.summary(), indent=2)
+        write_json(out / "summary.json", summary)
+        write_json(out / "timing.json", clock.summary(), indent=2)
         store.write_status(out, "estimate", "complete")
         return summary
     except BaseException as e:

@@ -37,6 +37,7 @@ import numpy as np
 from jaxfalsify import runs, store
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.external import Asked, Falsifier
+from jaxfalsify.files import write_atomic, write_json
 from jaxfalsify.pools import (  # noqa: F401 - re-exported
     DaskPool,
     Pool,
@@ -148,7 +149,7 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
     is a run folder ``OUT/runs/<strategy>-s<seed>/``; ``OUT/compare.json`` and ``compare.md``
     hold the table. Returns what ``compare.json`` holds."""
     from jaxfalsify import config as cfg
-    from jaxfalsify.compare import _median
+    from jaxfalsify.compare_stats import _median
 
     check_settings(workers, timeout, retries, None)
     if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
@@ -197,7 +198,7 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
                                           ("scheduler", None if scheduler is None
                                            else str(scheduler))) if v is not None},
                "space": first.space}
-        store.write_atomic(out / "config.toml", cfg.dumps_toml(doc))
+        write_atomic(out / "config.toml", cfg.dumps_toml(doc))
         store.write_status(out, "compare", "running")
         with clock("workers_start"):
             pool = make_pool(evaluator, workers, timeout, retries, None, scheduler)
@@ -234,9 +235,9 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
                     "per_seed": per_seed}
         result = {"evaluator": doc["evaluator"], "space": configs[strategies[0]].build()
                   .space.name, "seeds": seeds, "strategies": rows}
-        store.write_json(out / "compare.json", result, indent=2)
-        store.write_atomic(out / "compare.md", compare_markdown(result))
-        store.write_json(out / "timing.json", clock.summary(), indent=2)
+        write_json(out / "compare.json", result, indent=2)
+        write_atomic(out / "compare.md", compare_markdown(result))
+        write_json(out / "timing.json", clock.summary(), indent=2)
         store.write_status(out, "compare", "complete")
     except KeyboardInterrupt:
         store.write_status(out, "compare", "interrupted")

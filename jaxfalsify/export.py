@@ -71,9 +71,10 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfalsify import analysis, store
+from jaxfalsify import analysis
 from jaxfalsify import sut as sut_lib
 from jaxfalsify import weather as weather_lib
+from jaxfalsify.files import replace_files
 from jaxfalsify.rundir import check_simulated, indices_of, load_run, resimulate
 from jaxfalsify.sim import STILL, WINDOW, WORLD, start_positions
 from jaxfalsify.space import KNOWN_PARAMETERS, decimal_grid
@@ -748,7 +749,7 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
     try:
         with tempfile.TemporaryDirectory(dir=final, prefix=".export-") as tmp:
             files = _write_export(Path(tmp), sp, rc, ep, rows, which, ego, date)
-            store.replace_files(files, final, is_export_file)
+            replace_files(files, final, is_export_file)
     except BaseException:
         for a in created:
             try:

@@ -34,9 +34,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfalsify import cache, campaign, runs, store
+from jaxfalsify import cache, campaign, checkpoints, runs, store
 from jaxfalsify import figures as figures_lib
 from jaxfalsify import report as report_lib
+from jaxfalsify.files import save_npz, write_atomic, write_json, write_parquet
 from jaxfalsify.problem import RunConfig
 from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.worker import SIGNALS, trajectory_arrays
@@ -170,15 +171,15 @@ class Falsifier:
         template = jax.eval_shape(init, key_data)
         self._treedef = jax.tree.structure(template)
         self._is_key = [campaign._is_key(x) for x in jax.tree.leaves(template)]
-        self.ckpt = store.CampaignCheckpoint(self.out / "checkpoint", self._fingerprint())
+        self.ckpt = checkpoints.CampaignCheckpoint(self.out / "checkpoint", self._fingerprint())
         self.records: list[dict[str, np.ndarray]] = []
         carry = None
         if resume:
-            store.check_checkpoint_folder(self.ckpt.folder)
+            checkpoints.check_checkpoint_folder(self.ckpt.folder)
             on_disk = RunConfig.from_toml(self.out / "config.toml").resolved()
             if on_disk.to_toml() != rc.to_toml():
-                raise store.CheckpointError(f"--resume {self.out}: config.toml does not match "
-                                            "the run configuration given")
+                raise checkpoints.CheckpointError(f"--resume {self.out}: config.toml does not "
+                                                  "match the run configuration given")
             leaves_t = jax.eval_shape(
                 lambda kd: [jax.random.key_data(x) if k else x
                             for x, k in zip(jax.tree.leaves(init(kd)), self._is_key)],
@@ -190,7 +191,7 @@ class Falsifier:
             if force:
                 store.clear(self.out, "run")
             self.out.mkdir(parents=True, exist_ok=True)
-            store.write_atomic(self.out / "config.toml", rc.to_toml())
+            write_atomic(self.out / "config.toml", rc.to_toml())
         self.start_from = min(len(self.records) * self.batch, self.budget)
         # per update: the search's seconds (ask + tell) and the host's between ask and tell
         # (NaN for the updates a resumed run restored)
@@ -416,20 +417,19 @@ class Falsifier:
         try:
             with self.clock("writing"):
                 summary = summary_dict(res, self.config)
-                store.write_parquet(self.out / "evaluations.parquet",
-                                    runs.evaluations_table(res))
-                store.write_atomic(self.out / "critical.csv", runs.critical_csv(res))
-                store.write_json(self.out / "summary.json", summary, indent=2)
+                write_parquet(self.out / "evaluations.parquet", runs.evaluations_table(res))
+                write_atomic(self.out / "critical.csv", runs.critical_csv(res))
+                write_json(self.out / "summary.json", summary, indent=2)
                 traj = self.trajectories()
                 if traj:
-                    store.save_npz(self.out / TRAJECTORIES, traj)
+                    save_npz(self.out / TRAJECTORIES, traj)
             if figures:
                 with self.clock("figures"):
                     figures_lib.make_figures(self.out)
                     report_lib.write_report(self.out, timing={
                         **self.clock.summary(), "resumed_from_evaluation": self.start_from})
             timing = {**self.clock.summary(), "resumed_from_evaluation": self.start_from}
-            store.write_json(self.out / "timing.json", timing, indent=2)
+            write_json(self.out / "timing.json", timing, indent=2)
             self._status("complete", evaluations_done=res.n, evaluations=res.n)
             self.ckpt.remove()
         finally:

@@ -31,9 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfalsify import analysis, sim, store
+from jaxfalsify import analysis, sim
+from jaxfalsify.files import write_all_atomic
 from jaxfalsify.rundir import check_config_matches, indices_of, load_run, resimulate  # noqa: F401 - re-exported
-from jaxfalsify.sweep import ground_truth
+from jaxfalsify.truth import ground_truth
 
 FIGSIZE = (8, 4.5)
 MAX_POINTS = 200_000  # evaluations drawn in the reward figure (evenly thinned beyond)
@@ -196,7 +197,7 @@ def prepare(space, sut, sut_params, world) -> Prepared | None:
 def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) -> list[Path]:
     """Draw every figure into ``run_dir/figures``; returns the files written. The scenarios
     shown are re-simulated in one call; the critical-region map uses the cached ground truth
-    (:func:`jaxfalsify.sweep.ground_truth`) for spaces of up to 5e6 scenarios. ``prepared``:
+    (:func:`jaxfalsify.truth.ground_truth`) for spaces of up to 5e6 scenarios. ``prepared``:
     what :func:`prepare` built for this run (used only where it matches)."""
     world = world or sim.WORLD
     plt = _plt()
@@ -248,7 +249,7 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
     save(search_figure(plt, sp, ep, rc.strategy), "search_distribution.png")
     save(cluster_figure(plt, sp, ep), "failure_clusters.png")
     out.mkdir(exist_ok=True)
-    store.write_all_atomic(drawn)
+    write_all_atomic(drawn)
     return list(drawn)
 
 

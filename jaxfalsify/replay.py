@@ -42,6 +42,7 @@ import numpy as np
 from jaxfalsify import analysis, sim, store
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.config import plain
+from jaxfalsify.files import atomic_path
 from jaxfalsify.rundir import check_simulated, indices_of, load_run, resimulate
 from jaxfalsify.space import SUT_PREFIX, is_sut_parameter
 from jaxfalsify.suts import carla_tm
@@ -102,7 +103,7 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
     check_save_path(path)
 
     with _writing(run_dir, save, "replay"), \
-            store.atomic_path(path) as tmp:  # complete under its final name, or not at all
+            atomic_path(path) as tmp:  # complete under its final name, or not at all
         rec.save(tmp)
         _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row)
         rec.disconnect()  # closes the file sink
@@ -240,7 +241,7 @@ def record_campaign(run_dir: Path, save: Path | None = None, spawn: bool = False
     path = Path(save) if save else Path(run_dir) / "campaign.rrd"
     check_save_path(path)
 
-    with _writing(run_dir, save, "replay"), store.atomic_path(path) as tmp:
+    with _writing(run_dir, save, "replay"), atomic_path(path) as tmp:
         rec.save(tmp)
         _log_campaign(rec, sp, ep, window)
         rec.disconnect()

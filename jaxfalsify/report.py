@@ -8,8 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfalsify import analysis, store
+from jaxfalsify import analysis
 from jaxfalsify import sut as sut_lib
+from jaxfalsify.files import write_atomic
 from jaxfalsify.progress import timing_line
 from jaxfalsify.rundir import load_run
 from jaxfalsify.store import FIGURES
@@ -138,5 +139,5 @@ def write_report(run_dir: Path, timing: dict | None = None) -> Path:
               f"({int(np.sum(analysis.collided(fields)))} collisions, distinct ones ranked by "
               "reward).", ""]
     path = run_dir / "report.md"
-    store.write_atomic(path, "\n".join(lines))
+    write_atomic(path, "\n".join(lines))
     return path

@@ -5,7 +5,8 @@ A run folder holds:
 * ``config.toml`` — everything resolved (the space's full description, the SUT's and the
   strategy's full parameter sets), so ``jaxfalsify run --config RUN/config.toml`` repeats it;
 * ``status.json`` — ``running``, ``interrupted`` or ``complete``, and how to resume;
-* ``checkpoint/`` — while the run is unfinished (see :class:`jaxfalsify.store.CampaignCheckpoint`);
+* ``checkpoint/`` — while the run is unfinished (see
+  :class:`jaxfalsify.checkpoints.CampaignCheckpoint`);
 * ``evaluations.parquet`` — every evaluated concrete scenario;
 * ``summary.json`` — the run's outcome, bit-identical between runs of the same config and seed;
 * ``critical.csv`` — the distinct collision scenarios found, ranked by reward, with their
@@ -31,12 +32,13 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from jaxfalsify import analysis, cache, campaign, rundir, store
+from jaxfalsify import analysis, cache, campaign, checkpoints, rundir, store
 from jaxfalsify import config as cfg
 from jaxfalsify import figures as figures_lib
 from jaxfalsify import replay as replay_lib
 from jaxfalsify import report as report_lib
 from jaxfalsify import sut as sut_lib
+from jaxfalsify.files import write_atomic, write_json, write_parquet
 from jaxfalsify.problem import (  # noqa: F401 - the run's configuration, re-exported
     CONFIG_KEYS,
     PAPER_BUDGET,
@@ -146,9 +148,9 @@ def fingerprint(rc: RunConfig, b: Built) -> dict:
                                   "environment": campaign.environment()}))
 
 
-def restore(ckpt: store.CampaignCheckpoint, b: Built, seed: int):
+def restore(ckpt: checkpoints.CampaignCheckpoint, b: Built, seed: int):
     """``(carry, records)`` saved in ``ckpt`` for this run (``(None, [])`` if none yet);
-    raises :class:`~jaxfalsify.store.CheckpointError` if unusable."""
+    raises :class:`~jaxfalsify.checkpoints.CheckpointError` if unusable."""
     template = campaign.carry_avals(b.space, b.sut, b.sut_params, b.strategy,
                                     b.strategy_params, b.plan, requirement=b.requirement,
                                     requirement_params=b.requirement_params)
@@ -156,8 +158,8 @@ def restore(ckpt: store.CampaignCheckpoint, b: Built, seed: int):
     want = campaign.record_shapes(b.space, b.plan)
     if len(records) > b.plan.n_chunks or any(
             set(r) != set(want) or any(r[k].shape != want[k] for k in want) for r in records):
-        raise store.CheckpointError(f"checkpoint {ckpt.folder}: its records do not fit this "
-                                    "run's plan")
+        raise checkpoints.CheckpointError(f"checkpoint {ckpt.folder}: its records do not fit "
+                                          "this run's plan")
     return carry, records
 
 
@@ -286,7 +288,7 @@ def execute(config: RunConfig, out: Path | str | None, *, resume: bool = False,
       :class:`RunOutcome` (results in memory, the summary and the timing written).
     Raises:
       ValueError (a :class:`~jaxfalsify.store.FolderError` or
-      :class:`~jaxfalsify.store.CheckpointError` among them) before anything is written;
+      :class:`~jaxfalsify.checkpoints.CheckpointError` among them) before anything is written;
       :class:`Interrupted`.
     """
     cfg.check_type(config, RunConfig, "config")
@@ -320,21 +322,21 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
              force: bool, progress: Progress, stop, figures: bool, rerun: bool,
              clock: Clock) -> RunOutcome:
     lk.claim("run")  # the holder's pid is readable from the moment the lock is held
-    ckpt = store.CampaignCheckpoint(out / "checkpoint", fingerprint(rc, b))
+    ckpt = checkpoints.CampaignCheckpoint(out / "checkpoint", fingerprint(rc, b))
     resumed = None
     if resume:
-        store.check_checkpoint_folder(ckpt.folder)
+        checkpoints.check_checkpoint_folder(ckpt.folder)
         on_disk = RunConfig.from_toml(out / "config.toml").resolved()
         if on_disk.to_toml() != rc.to_toml():
-            raise store.CheckpointError(f"--resume {out}: config.toml does not match the run "
-                                        "configuration given")
+            raise checkpoints.CheckpointError(f"--resume {out}: config.toml does not match the "
+                                              "run configuration given")
         resumed = restore(ckpt, b, rc.seed)
     start_from = b.plan.done_after(len(resumed[1])) if resumed else 0
     if resumed is None:
         if force:
             store.clear(out, "run")
         out.mkdir(parents=True, exist_ok=True)
-        store.write_atomic(out / "config.toml", rc.to_toml())
+        write_atomic(out / "config.toml", rc.to_toml())
     store.write_status(out, "run", "running", evaluations=b.plan.evaluations,
                        resumed_from_evaluation=start_from)
     if start_from:
@@ -399,9 +401,9 @@ def _finish(b: Built, rc: RunConfig, out: Path, res: campaign.Result, ckpt, star
     """Write the results, figures, timing, and finally ``status.json`` = complete."""
     with clock("writing"):
         summary = summary_dict(res, rc)
-        store.write_parquet(out / "evaluations.parquet", evaluations_table(res))
-        store.write_atomic(out / "critical.csv", critical_csv(res))
-        store.write_json(out / "summary.json", summary, indent=2)
+        write_parquet(out / "evaluations.parquet", evaluations_table(res))
+        write_atomic(out / "critical.csv", critical_csv(res))
+        write_json(out / "summary.json", summary, indent=2)
     if figures:
         progress.phase("drawing figures")
 
@@ -415,7 +417,7 @@ def _finish(b: Built, rc: RunConfig, out: Path, res: campaign.Result, ckpt, star
             report_lib.write_report(out, timing={**clock.summary(),
                                                  "resumed_from_evaluation": start_from})
     timing = {**clock.summary(), "resumed_from_evaluation": start_from}
-    store.write_json(out / "timing.json", timing, indent=2)
+    write_json(out / "timing.json", timing, indent=2)
     store.write_status(out, "run", "complete", evaluations_done=res.n, evaluations=res.n)
     ckpt.remove()
     return RunOutcome(out, rc, res, summary, timing)

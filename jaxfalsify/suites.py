@@ -13,16 +13,15 @@ from typing import Any, Mapping
 from jaxfalsify import config as cfg
 from jaxfalsify import requirements, search, store
 from jaxfalsify import sut as sut_lib
-from jaxfalsify.compare import (
-    DEFAULT_STRATEGIES,
+from jaxfalsify.compare import DEFAULT_STRATEGIES, CompareConfig, execute
+from jaxfalsify.compare_tables import (
     TIME_NOTE,
-    CompareConfig,
     _plural,
     _share,
     budgets_markdown,
-    execute,
     requirement_words,
 )
+from jaxfalsify.files import write_atomic, write_json
 from jaxfalsify.problem import check_int
 from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.runs import timestamp
@@ -260,7 +259,7 @@ def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = 
         lk.claim("suite")
         out.mkdir(parents=True, exist_ok=True)
         options = {k: dict(v) for k, v in config.strategy_params.items()}
-        store.write_atomic(out / "config.toml", cfg.dumps_toml({
+        write_atomic(out / "config.toml", cfg.dumps_toml({
             "kind": "suite", "name": config.name, "budgets": list(config.budgets),
             "seeds": config.seeds, "strategies": list(config.strategies),
             "strategy_params": options or None,
@@ -284,8 +283,8 @@ def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = 
                    "seeds": config.seeds, "strategies": list(config.strategies),
                    "strategy_params": options, "entries": results, "versions": cfg.versions()}
         with clock("writing"):
-            store.write_json(out / "suite.json", summary, indent=2)
-            store.write_atomic(out / "suite.md", suite_markdown(summary) + "\n")
+            write_json(out / "suite.json", summary, indent=2)
+            write_atomic(out / "suite.md", suite_markdown(summary) + "\n")
         summary["timing"] = clock.summary()
         summary["out"] = str(out)
         return summary

@@ -80,7 +80,7 @@ def table_ii():
 @pytest.fixture(scope="session")
 def paper_sweep():
     """The exhaustive sweep of the paper space (100,000 scenarios, default SUT)."""
-    from jaxfalsify.sweep import sweep_arrays
+    from jaxfalsify.truth import sweep_arrays
     return sweep_arrays(jf.load_space("paper"))
 
 

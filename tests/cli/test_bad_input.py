@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from conftest import TINY_SPACE
 
-from jaxfalsify import runs, sweep
+from jaxfalsify import runs, sweep, sweep_config
 from jaxfalsify.cli import main
 
 
@@ -172,7 +172,8 @@ def world(tmp_path_factory):
         damage(w / name)
     # an unfinished sweep (1 of 98 chunks committed) and a corrupted copy
     with pytest.raises(runs.Interrupted):
-        sweep.execute(sweep.SweepConfig(chunk=1024), w / "sweep_unfinished", stop=_stopper(1))
+        sweep.execute(sweep_config.SweepConfig(chunk=1024), w / "sweep_unfinished",
+                      stop=_stopper(1))
     shutil.copytree(w / "sweep_unfinished", w / "sweep_corrupt")
     (w / "sweep_corrupt" / "checkpoint" / "state.json").write_text('{"format": 1}')
     return w
@@ -504,7 +505,8 @@ def test_library_misuse_gives_one_line_errors_naming_the_argument(tmp_path):
     from jaxfalsify import compare, search
     from jaxfalsify.sut import CarlaTMParams, SensorAEBParams
 
-    for fn, cls in ((runs.execute, "problem.RunConfig"), (sweep.execute, "sweep.SweepConfig"),
+    for fn, cls in ((runs.execute, "problem.RunConfig"),
+                    (sweep.execute, "sweep_config.SweepConfig"),
                     (compare.execute, "compare.CompareConfig")):
         with pytest.raises(ValueError, match=f"config must be a {cls} \\(got dict\\)"):
             fn({"strategy": "cem"}, tmp_path / "never")

@@ -109,7 +109,7 @@ def test_compare_against_sweep_ground_truth(tmp_path, capsys):
     assert main(["compare", "--strategies", "random,cem", "--seeds", "2", "--evaluations",
                  "60", "--space", str(space), "--out", str(out), "--quiet"]) == 0
     result = json.loads((out / "compare.json").read_text())
-    from jaxfalsify.sweep import sweep_arrays
+    from jaxfalsify.truth import sweep_arrays
     truth = sweep_arrays(jf.load_space(str(space)))
     assert result["n_collisions"] == int(truth["collision"].sum()) > 0
     assert [r["strategy"] for r in result["rows"]] == ["random", "cem"]

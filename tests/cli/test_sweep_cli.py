@@ -14,7 +14,10 @@ from conftest import space_file_fixture
 import jaxfalsify as jf
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.cli import main
-from jaxfalsify.sweep import Reducer, SweepConfig, calibrations, fold, iter_sweep, sweep_arrays
+from jaxfalsify.sweep_chunks import iter_sweep
+from jaxfalsify.sweep_config import SweepConfig, calibrations
+from jaxfalsify.sweep_totals import Reducer, fold
+from jaxfalsify.truth import sweep_arrays
 
 SMALL = """
 name = "small"
@@ -206,7 +209,7 @@ def test_chunks_never_exceed_the_chunk_given():
     import itertools
     import math
 
-    from jaxfalsify.sweep import plan_chunks
+    from jaxfalsify.sweep_chunks import plan_chunks
 
     for size, chunk in itertools.product((1, 7, 255, 1000, 60_000, 100_000, 1_000_003),
                                          (1, 3, 100, 256, 1024, 20_000, 131_072)):
@@ -221,7 +224,7 @@ def test_default_folder_keeps_the_whole_space_name():
     """``exp.v1`` and ``exp.v2`` sweep into folders of their own (the name was cut at its
     last dot, so the second found the first's results)."""
     from jaxfalsify.space import space_from_dict
-    from jaxfalsify.sweep import default_out
+    from jaxfalsify.sweep_config import default_out
 
     doc = {"parameters": {"ped_speed": {"values": [1.0, 2.0]}}}
     names = [default_out(space_from_dict({**doc, "name": n}), "carla-tm", 0).name

@@ -12,8 +12,8 @@ import pytest
 from conftest import space_file_fixture
 
 import jaxfalsify as jf
+from jaxfalsify import checkpoints, runs, sim, space, sweep, sweep_config, truth
 from jaxfalsify import config as cfg
-from jaxfalsify import runs, sim, space, store, sweep
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.cli import main
 
@@ -66,8 +66,8 @@ def test_resume_with_sut_params_in_non_declared_order_equals_uninterrupted(fix_s
     names = sut_lib.param_names(sut_lib.resolve("sensor-aeb"))
     assert names.index("ttc_full") > names.index("latency")  # the order given differs
     given = {"ttc_full": [0.8, 1.2], "latency": [0.1, 0.3]}
-    conf = sweep.SweepConfig(space=str(fix_space), sut="sensor-aeb", sut_params=given,
-                             chunk=1024, rows=rows)
+    conf = sweep_config.SweepConfig(space=str(fix_space), sut="sensor-aeb", sut_params=given,
+                                    chunk=1024, rows=rows)
     whole, part = tmp_path / "whole", tmp_path / "part"
     sweep.execute(conf, whole)
     res = _interrupted_then_resumed(conf, part)
@@ -78,7 +78,7 @@ def test_resume_with_sut_params_in_non_declared_order_equals_uninterrupted(fix_s
     sp = jf.load_space(fix_space)
     seen = set()
     for c in b["calibrations"]:
-        alone = sweep.sweep_arrays(sp, "sensor-aeb", {"ttc_full": c["ttc_full"],
+        alone = truth.sweep_arrays(sp, "sensor-aeb", {"ttc_full": c["ttc_full"],
                                                       "latency": c["latency"]})
         assert c["n_collisions"] == int(alone["collision"].sum())
         r = np.where(np.isnan(alone["reward"]), -np.inf, alone["reward"])
@@ -100,8 +100,8 @@ def test_resume_with_sut_params_in_non_declared_order_equals_uninterrupted(fix_s
 
 def test_calibration_order_does_not_depend_on_the_order_given():
     s = sut_lib.resolve("sensor-aeb")
-    a = sweep.calibrations(s, {"ttc_full": [0.8, 1.2], "latency": [0.1, 0.3]})
-    b = sweep.calibrations(s, {"latency": [0.1, 0.3], "ttc_full": [0.8, 1.2]})
+    a = sweep_config.calibrations(s, {"ttc_full": [0.8, 1.2], "latency": [0.1, 0.3]})
+    b = sweep_config.calibrations(s, {"latency": [0.1, 0.3], "ttc_full": [0.8, 1.2]})
     assert a.instances == b.instances and a.swept == b.swept
     # C order over the declared order: the last declared (ttc_full) fastest
     order = [(sut_lib.params_dict(p)["latency"], sut_lib.params_dict(p)["ttc_full"])
@@ -112,23 +112,23 @@ def test_calibration_order_does_not_depend_on_the_order_given():
 def test_resume_refuses_a_checkpoint_of_other_calibrations(fix_space, tmp_path, monkeypatch):
     """The calibration list is part of the checkpoint's fingerprint: calibrations numbered
     otherwise on resume are refused, nothing mixed."""
-    conf = sweep.SweepConfig(space=str(fix_space), sut="sensor-aeb",
-                             sut_params={"ttc_full": [0.8, 1.2], "latency": [0.1, 0.3]},
-                             chunk=1024, rows="none")
+    conf = sweep_config.SweepConfig(space=str(fix_space), sut="sensor-aeb",
+                                    sut_params={"ttc_full": [0.8, 1.2], "latency": [0.1, 0.3]},
+                                    chunk=1024, rows="none")
     out = tmp_path / "ck"
     calls = iter(range(1, 10**6))
     with pytest.raises(runs.Interrupted):
         sweep.execute(conf, out, stop=lambda: next(calls) >= 1)
     state = (out / "checkpoint" / "state.json").read_text()
-    real = sweep.calibrations
+    real = sweep_config.calibrations
 
     def reversed_calibrations(s, params):
         c = real(s, params)
-        return sweep.Calibrations(c.sut, c.instances[::-1], c.swept)
+        return sweep_config.Calibrations(c.sut, c.instances[::-1], c.swept)
 
-    monkeypatch.setattr(sweep, "calibrations", reversed_calibrations)
+    monkeypatch.setattr(sweep_config, "calibrations", reversed_calibrations)
     again, _ = sweep.resume_config(out)
-    with pytest.raises(store.CheckpointError):
+    with pytest.raises(checkpoints.CheckpointError):
         sweep.execute(again, out, resume=True)
     assert (out / "checkpoint" / "state.json").read_text() == state
 
@@ -190,10 +190,10 @@ def test_numpy_sut_params_write_a_resumable_config(fix_space, tmp_path):
              "fov": np.float64(50.0), "ttc_partial": np.float32(1.7)}
     plain = {"ttc_full": [0.8, 1.2], "latency": [0.1, 0.3], "fov": 50.0, "ttc_partial": 1.7}
     ref, out = tmp_path / "ref", tmp_path / "np"
-    sweep.execute(sweep.SweepConfig(space=str(fix_space), sut="sensor-aeb", sut_params=plain,
-                                    chunk=1024, rows="none"), ref)
-    conf = sweep.SweepConfig(space=str(fix_space), sut="sensor-aeb", sut_params=given,
-                             chunk=1024, rows="none")
+    sweep.execute(sweep_config.SweepConfig(space=str(fix_space), sut="sensor-aeb",
+                                           sut_params=plain, chunk=1024, rows="none"), ref)
+    conf = sweep_config.SweepConfig(space=str(fix_space), sut="sensor-aeb", sut_params=given,
+                                    chunk=1024, rows="none")
     _interrupted_then_resumed(conf, out)
     recorded = tomllib.loads((out / "config.toml").read_text())["sut_params"]
     assert recorded == tomllib.loads((ref / "config.toml").read_text())["sut_params"]
@@ -227,7 +227,7 @@ def test_space_sut_parameters_outside_the_sut_ranges_are_refused(tmp_path, capsy
         assert len(err.splitlines()) == 1, err
         assert "sut.ttc_full" in err and "-5" in err and not out.exists()
     with pytest.raises(ValueError, match="sut.ttc_full"):
-        sweep.execute(sweep.SweepConfig(space=str(f), sut="sensor-aeb"), tmp_path / "lib")
+        sweep.execute(sweep_config.SweepConfig(space=str(f), sut="sensor-aeb"), tmp_path / "lib")
     assert not (tmp_path / "lib").exists()
     # values inside the ranges (a closed bound included) pass
     s = sut_lib.resolve("sensor-aeb")
@@ -284,7 +284,7 @@ def test_sut_param_values_equal_in_float32_are_refused(tmp_path, capsys):
     with pytest.raises(ValueError):  # a space's values are refused alike
         space.space_from_dict({"parameters": {"sut": {"ttc_full": {"values": [a, b]}}}})
     with pytest.raises(ValueError, match=r"sut_params\.ttc_full.*float32"):
-        sweep.calibrations(sut_lib.resolve("sensor-aeb"), {"ttc_full": [a, b]})
+        sweep_config.calibrations(sut_lib.resolve("sensor-aeb"), {"ttc_full": [a, b]})
     out = tmp_path / "out"
     assert main(["sweep", "--sut", "sensor-aeb", "--sut-param", f"ttc_full={a},{b}",
                  "--out", str(out), "--quiet"]) == 2
@@ -293,13 +293,13 @@ def test_sut_param_values_equal_in_float32_are_refused(tmp_path, capsys):
     # distinct in float32: accepted
     c = 0.1000001
     assert np.float32(a) != np.float32(c)
-    assert sweep.calibrations(sut_lib.resolve("sensor-aeb"), {"ttc_full": [a, c]}).count == 2
+    assert sweep_config.calibrations(sut_lib.resolve("sensor-aeb"), {"ttc_full": [a, c]}).count == 2
 
 
 def test_too_many_calibrations_refused_before_building_them():
     params = {n: [1.0 + i / 10 for i in range(10)] for n in ("kp", "ki", "kd", "range", "fov")}
     with pytest.raises(ValueError, match="100000 calibrations"):
-        sweep.calibrations(sut_lib.resolve("sensor-aeb"), params)
+        sweep_config.calibrations(sut_lib.resolve("sensor-aeb"), params)
 
 
 # --- 8. ped_offset's doc says what the simulator does

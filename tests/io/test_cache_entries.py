@@ -10,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfalsify import cache, sweep
+from jaxfalsify import cache, sim, truth
+from jaxfalsify import sut as sut_lib
 from jaxfalsify.space import space_from_dict
 
 
@@ -67,17 +68,17 @@ SPACE = {"name": "tiny-truth", "parameters": {
 def test_a_ground_truth_of_another_space_under_this_name_is_swept_again(own_cache, capsys):
     s0, s1 = space_from_dict(SPACE, seed=0), space_from_dict(SPACE, seed=1)
     assert not all(np.array_equal(a, b) for a, b in zip(s0.values, s1.values))
-    sweep.ground_truth(s0)
-    other = sweep.ground_truth(s1)
+    truth.ground_truth(s0)
+    other = truth.ground_truth(s1)
     entries = sorted((own_cache / "truth").glob("*.npz"), key=lambda p: p.stat().st_mtime)
     assert len(entries) == 2
     shutil.copy(entries[1], entries[0])  # seed 1's entry under seed 0's name
-    want = sweep.sweep_arrays(s0, sweep.sut_lib.resolve("carla-tm"), None, sweep.sim.WORLD,
-                              fields=sweep.TRUTH_FIELDS)
-    assert any(not np.array_equal(other[k], want[k]) for k in sweep.TRUTH_FIELDS)  # power
+    want = truth.sweep_arrays(s0, sut_lib.resolve("carla-tm"), None, sim.WORLD,
+                              fields=truth.TRUTH_FIELDS)
+    assert any(not np.array_equal(other[k], want[k]) for k in truth.TRUTH_FIELDS)  # power
     capsys.readouterr()
-    got = sweep.ground_truth(s0)
+    got = truth.ground_truth(s0)
     said = capsys.readouterr().err.splitlines()
     assert len(said) == 1 and str(entries[0]) in said[0] and "rebuilding" in said[0]
-    for k in sweep.TRUTH_FIELDS:
+    for k in truth.TRUTH_FIELDS:
         np.testing.assert_array_equal(got[k], want[k], err_msg=k)

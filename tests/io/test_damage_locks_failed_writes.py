@@ -34,8 +34,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import jaxfalsify as jf
-from jaxfalsify import runs, store, sweep
+from jaxfalsify import runs, sweep, sweep_config
+from jaxfalsify.checkpoints import CampaignCheckpoint, write_commit
 from jaxfalsify.cli import main
+from jaxfalsify.files import atomic_path, replace_files, write_atomic
 
 FAST = settings(max_examples=25, deadline=None, derandomize=True,
                 suppress_health_check=list(HealthCheck))
@@ -186,9 +188,9 @@ def checkpoints(tmp_path_factory):
                  figures=False)
     for seed, name in ((0, "sweep"), (1, "foreign_sweep")):
         with pytest.raises(runs.Interrupted):
-            sweep.execute(sweep.SweepConfig(chunk=4096, seed=seed), base / name,
+            sweep.execute(sweep_config.SweepConfig(chunk=4096, seed=seed), base / name,
                           stop=_stopper(5))
-    sweep.execute(sweep.SweepConfig(chunk=4096), base / "sweep_ref")
+    sweep.execute(sweep_config.SweepConfig(chunk=4096), base / "sweep_ref")
     made["base"] = base
     return made
 
@@ -243,8 +245,8 @@ def damage(folder: Path, foreign: Path, kind: str, rng: np.random.Generator) -> 
         doc = json.loads((ck / "state.json").read_text())
         name = pick(sorted(doc["files"]))
         doc["files"][name]["sha256"] = "0" * 64
-        store.write_commit(ck / "state.json", {k: v for k, v in doc.items()
-                                               if k not in ("sha256", "format")})
+        write_commit(ck / "state.json", {k: v for k, v in doc.items()
+                                         if k not in ("sha256", "format")})
         return f"resealed state.json with a wrong hash for {name}"
     if kind == "reseal_edit":  # a consistent forgery of the numbers, seal recomputed
         doc = json.loads((ck / "state.json").read_text())
@@ -262,8 +264,8 @@ def damage(folder: Path, foreign: Path, kind: str, rng: np.random.Generator) -> 
             what = pick([k for k in ("chunks_done", "evaluations_done", "scenarios_done")
                          if k in doc])
             doc[what] += int(rng.choice([-1, 1]))
-        store.write_commit(ck / "state.json", {k: v for k, v in doc.items()
-                                               if k not in ("sha256", "format")})
+        write_commit(ck / "state.json", {k: v for k, v in doc.items()
+                                         if k not in ("sha256", "format")})
         return f"edited {what} in state.json and resealed it"
     if kind == "delete":
         f = pick(every)
@@ -333,7 +335,7 @@ def test_resealed_forged_best_row_is_refused(checkpoints, name):
     doc = json.loads(ck.read_text())
     row = doc["totals"][0]["best_row"]
     row[name] = (not row[name]) if isinstance(row[name], bool) else 0.9
-    store.write_commit(ck, {k: v for k, v in doc.items() if k not in ("sha256", "format")})
+    write_commit(ck, {k: v for k, v in doc.items() if k not in ("sha256", "format")})
     code, err = cli(["sweep", "--resume", tmp / "sweep", "--quiet"])
     assert_one_line_error(code, err)
     assert "totals disagree with its rows files" in err, err
@@ -390,7 +392,7 @@ def test_a_full_disk_gives_one_line_and_a_truthful_status(tmp_path, monkeypatch,
     def full(path, columns):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
-    monkeypatch.setattr(store, "write_parquet", full)
+    monkeypatch.setattr(runs, "write_parquet", full)
     out = tmp_path / "r"
     assert main(["run", "--strategy", "random", "--evaluations", "40", "--batch", "20",
                  "--out", str(out), "--quiet", "--no-figures"]) == 1
@@ -404,7 +406,7 @@ def test_a_full_disk_gives_one_line_and_a_truthful_status(tmp_path, monkeypatch,
 def test_a_full_disk_during_the_search_marks_the_run_failed(tmp_path, monkeypatch, capsys):
     """ENOSPC while committing a checkpoint (during the search, not at the end): one line,
     exit 1, and status.json says failed, not running."""
-    real = store.CampaignCheckpoint.save
+    real = CampaignCheckpoint.save
     calls = iter(range(100))
 
     def full_on_second(self, *a, **kw):
@@ -412,7 +414,7 @@ def test_a_full_disk_during_the_search_marks_the_run_failed(tmp_path, monkeypatc
             raise OSError(errno.ENOSPC, "No space left on device", str(self.folder))
         return real(self, *a, **kw)
 
-    monkeypatch.setattr(store.CampaignCheckpoint, "save", full_on_second)
+    monkeypatch.setattr(CampaignCheckpoint, "save", full_on_second)
     out = tmp_path / "r"
     assert main(["run", "--strategy", "random", "--evaluations", "80", "--batch", "20",
                  "--checkpoint-every", "1", "--out", str(out), "--quiet",
@@ -456,7 +458,7 @@ def test_a_damaged_cached_program_is_rebuilt_not_run(tmp_path, monkeypatch):
 
 
 def test_a_damaged_ground_truth_entry_is_swept_again(tmp_path, monkeypatch):
-    from jaxfalsify.sweep import ground_truth
+    from jaxfalsify.truth import ground_truth
 
     monkeypatch.setenv("JAXFALSIFY_CACHE_DIR", str(tmp_path))
     space = tmp_path / "tiny.toml"
@@ -542,12 +544,12 @@ def test_a_failed_write_names_its_file(tmp_path, monkeypatch):
     real = os.fdopen
     monkeypatch.setattr(os, "fdopen", lambda fd, mode: (os.close(fd), Full())[1])
     with pytest.raises(OSError) as e:
-        store.write_atomic(tmp_path / "summary.json", "{}")
+        write_atomic(tmp_path / "summary.json", "{}")
     assert e.value.filename == str(tmp_path / "summary.json") and e.value.errno == errno.ENOSPC
     monkeypatch.setattr(os, "fdopen", real)
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(OSError) as e:
-        with store.atomic_path(tmp_path / "figure.png"):
+        with atomic_path(tmp_path / "figure.png"):
             raise OSError(errno.ENOSPC, "No space left on device")
     assert e.value.filename == str(tmp_path / "figure.png")
     assert list(tmp_path.iterdir()) == []
@@ -623,7 +625,7 @@ def test_a_cached_program_is_not_reused_under_another_prng(tmp_path):
 
 
 def test_replace_files_publishes_a_set_or_puts_the_earlier_one_back(tmp_path):
-    """store.replace_files (the export's swap): the earlier set goes, other files stay, the
+    """replace_files (the export's swap): the earlier set goes, other files stay, the
     new set appears; when a move fails half-way the earlier set is back byte for byte and
     none of the new files is left."""
     folder = tmp_path / "out"
@@ -635,7 +637,7 @@ def test_replace_files_publishes_a_set_or_puts_the_earlier_one_back(tmp_path):
     stage = Path(tempfile.mkdtemp(dir=folder, prefix=".stage-"))
     (stage / "a.xosc").write_text("new a")
     (stage / "c.xosc").write_text("new c")
-    got = store.replace_files([stage / "a.xosc", stage / "c.xosc"], folder, is_old)
+    got = replace_files([stage / "a.xosc", stage / "c.xosc"], folder, is_old)
     assert got == [folder / "a.xosc", folder / "c.xosc"]
     assert {p.name: p.read_text() for p in folder.iterdir() if p.is_file()} == {
         "a.xosc": "new a", "c.xosc": "new c", "notes.txt": "mine"}
@@ -643,13 +645,13 @@ def test_replace_files_publishes_a_set_or_puts_the_earlier_one_back(tmp_path):
     # a staged file that is gone makes the second move fail: everything as before
     (stage / "d.xosc").write_text("new d")
     with pytest.raises(FileNotFoundError):
-        store.replace_files([stage / "d.xosc", stage / "missing.xosc"], folder, is_old)
+        replace_files([stage / "d.xosc", stage / "missing.xosc"], folder, is_old)
     assert {p.name: p.read_text() for p in folder.iterdir() if p.is_file()} == {
         "a.xosc": "new a", "c.xosc": "new c", "notes.txt": "mine"}
     assert [p.name for p in stage.iterdir()] == []
     assert sorted(p.name for p in folder.iterdir() if p.is_dir()) == [stage.name]
     with pytest.raises(ValueError, match="no files to publish"):  # would only delete
-        store.replace_files([], folder, is_old)
+        replace_files([], folder, is_old)
     # an earlier file that cannot be put back is kept aside, and the error says where
     (stage / "e.xosc").write_text("new e")
     real = os.replace
@@ -661,9 +663,9 @@ def test_replace_files_publishes_a_set_or_puts_the_earlier_one_back(tmp_path):
         return real(src, dst)
 
     with pytest.MonkeyPatch.context() as m:
-        m.setattr(store.os, "replace", flaky)
+        m.setattr(os, "replace", flaky)
         with pytest.raises(OSError, match="could not be put back; they are in") as e:
-            store.replace_files([stage / "e.xosc", stage / "missing.xosc"], folder, is_old)
+            replace_files([stage / "e.xosc", stage / "missing.xosc"], folder, is_old)
     kept = Path(str(e.value).rsplit(" ", 1)[-1])
     assert kept.parent == folder and (kept / "c.xosc").read_text() == "new c"
     assert (folder / "a.xosc").read_text() == "new a" and not (folder / "e.xosc").exists()

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from jaxfalsify import campaign, runs, store
+from jaxfalsify.files import write_atomic
 
 
 def test_a_second_writer_is_told_the_holders_pid_not_to_resume(tmp_path):
@@ -18,7 +19,7 @@ def test_a_second_writer_is_told_the_holders_pid_not_to_resume(tmp_path):
     out = tmp_path / "run"
     holder = store.open_folder(out, "run")  # this process holds the lock, as a run would
     try:
-        store.write_atomic(out / "config.toml", "kind = \"run\"\n")
+        write_atomic(out / "config.toml", "kind = \"run\"\n")
         store.write_status(out, "run", "running", evaluations=10)
         with pytest.raises(store.FolderError) as e:
             store.open_folder(out, "run")

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from jaxfalsify import campaign, compare, suites
+from jaxfalsify import campaign, compare_stats, compare_tables, suites
 
 
 class _Space:
@@ -26,15 +26,15 @@ TRUTH = {"global_max_reward": 0.26, "global_min_reward": -0.04, "n_collisions": 
 
 
 def test_uniform_first_collision_by_hand():
-    u = compare.uniform_first_collision(100, 1, 50)
+    u = compare_stats.uniform_first_collision(100, 1, 50)
     assert u["p"] == 0.01 and u["expected"] == pytest.approx(100.0)  # (1 - p) / p + 1
     assert u["median"] == 69  # ceil(ln 0.5 / ln 0.99) = ceil(68.97)
     assert u["median_censored"] == 51  # beyond the budget: budget + 1
     assert u["expected_censored"] == pytest.approx((1 - 0.99 ** 51) / 0.01)
     assert u["found_probability"] == pytest.approx(1 - 0.99 ** 50)
-    none = compare.uniform_first_collision(100, 0, 50)
+    none = compare_stats.uniform_first_collision(100, 0, 50)
     assert math.isinf(none["expected"]) and none["expected_censored"] == 51
-    assert compare.uniform_first_collision(10, 10, 5)["expected"] == 1.0
+    assert compare_stats.uniform_first_collision(10, 10, 5)["expected"] == 1.0
 
 
 def test_seed_stats_and_row_by_hand_with_a_failed_seed():
@@ -48,7 +48,7 @@ def test_seed_stats_and_row_by_hand_with_a_failed_seed():
         _result(idx, [-0.02, -0.04, np.nan, -0.03, -0.01, -0.02, -0.02, -0.03],
                 [0] * 8),  # none: counts budget + 1 = 9
     ]
-    st = [compare.seed_stats(s, r, TRUTH, budget=8) for s, r in enumerate(seeds)]
+    st = [compare_stats.seed_stats(s, r, TRUTH, budget=8) for s, r in enumerate(seeds)]
     assert [s["first_collision"] for s in st] == [3, 8, None]
     assert [s["first_collision_censored"] for s in st] == [3, 8, 9]
     assert [s["reached_global_max"] for s in st] == [True, False, False]
@@ -61,7 +61,7 @@ def test_seed_stats_and_row_by_hand_with_a_failed_seed():
     # the last quarter (2 evaluations): mean of 0.2, 0.26; of -0.02, -0.03
     assert st[0]["final_mean_reward"] == pytest.approx(0.23)
     assert st[2]["final_mean_reward"] == pytest.approx(-0.025)
-    row = compare.strategy_row("x", st, TRUTH, wall=1.0)
+    row = compare_stats.strategy_row("x", st, TRUTH, wall=1.0)
     assert row["found_collision_share"] == pytest.approx(2 / 3)
     # over all seeds, 9 for the failed one: [3, 8, 9] -> median 8, IQR 5.5 .. 8.5
     assert row["first_collision_median"] == 8.0
@@ -70,11 +70,11 @@ def test_seed_stats_and_row_by_hand_with_a_failed_seed():
     assert row["seeds_reaching_global_max"] == 1
     assert row["distinct_critical_median"] == 1.0
     assert row["corner_share_median"] == pytest.approx(5 / 8)
-    md = compare.table_markdown({"rows": [row], "evaluations": 8, "overhead": {"x": 0.002},
-                                 "n_collisions": 5, "n_scenarios": 24,
-                                 "uniform_first_collision":
-                                     compare.uniform_first_collision(24, 5, 8),
-                                 "uniform_corner_share": 8 / 24, **TRUTH})
+    md = compare_tables.table_markdown({"rows": [row], "evaluations": 8, "overhead": {"x": 0.002},
+                                        "n_collisions": 5, "n_scenarios": 24,
+                                        "uniform_first_collision":
+                                            compare_stats.uniform_first_collision(24, 5, 8),
+                                        "uniform_corner_share": 8 / 24, **TRUTH})
     # not timed (a hand-built result): the search-time columns read "-", never 0
     assert "| x | 2/3 | 8 [5.5, 8.5] | - | - | 0.9333 | 1/3 |" in md
     assert "1/p = 4.8" in md
@@ -83,9 +83,9 @@ def test_seed_stats_and_row_by_hand_with_a_failed_seed():
 def test_shares_print_in_one_format_per_column():
     """Corner shares in percent with two significant digits whatever their size (a column
     never mixes 1.3% and 6.7e-03); collision shares in scientific notation; none is 0."""
-    assert [compare._percent(x) for x in (0.013, 6.7e-3, 2.5e-5, 0.0)] == \
+    assert [compare_tables._percent(x) for x in (0.013, 6.7e-3, 2.5e-5, 0.0)] == \
         ["1.3%", "0.67%", "0.0025%", "0"]
-    assert [compare._share(x) for x in (8.4e-3, 0.0)] == ["8.4e-03", "0"]
+    assert [compare_tables._share(x) for x in (8.4e-3, 0.0)] == ["8.4e-03", "0"]
 
 
 def test_suite_section_of_a_space_without_collisions():
@@ -95,7 +95,8 @@ def test_suite_section_of_a_space_without_collisions():
              "collision_share": 0.0, "global_max_reward": -0.05, "global_max_ties": 1,
              "failures_interior": False, "overhead": {}, "uniform_corner_share": 0.5,
              "budgets": [{"budget": 4, "rows": [],
-                          "uniform_first_collision": compare.uniform_first_collision(8, 0, 4)}]}
+                          "uniform_first_collision":
+                              compare_stats.uniform_first_collision(8, 0, 4)}]}
     text = suites.suite_markdown({"suite": "t", "seeds": 2, "entries": [entry]})
     assert "0 collisions of 8 scenarios (p = 0); global maximum -0.0500 (1 scenario); " \
         "no collision anywhere in the space." in text
@@ -105,7 +106,7 @@ def test_suite_section_of_a_space_without_collisions():
 
 
 def test_corner_mask_one_value_parameter_is_always_a_corner():
-    m = compare.corner_mask(np.array([[0, 0, 4], [0, 0, 2], [2, 0, 0]]), (3, 1, 5))
+    m = compare_stats.corner_mask(np.array([[0, 0, 4], [0, 0, 2], [2, 0, 0]]), (3, 1, 5))
     assert m.tolist() == [True, False, True]
 
 
@@ -118,21 +119,23 @@ def test_smaller_budgets_are_the_first_evaluations_by_hand():
         _result(idx, [0.0, 0.01, 0.25, 0.26, 0.0, 0.1, 0.2, 0.26], [0, 0, 1, 1, 0, 0, 0, 1]),
         _result(idx, [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.24], [0, 0, 0, 0, 0, 0, 0, 1]),
     ]
-    st4 = [compare.seed_stats(s, r, TRUTH, budget=4) for s, r in enumerate(seeds)]
+    st4 = [compare_stats.seed_stats(s, r, TRUTH, budget=4) for s, r in enumerate(seeds)]
     assert [s["first_collision_censored"] for s in st4] == [3, 5]
     assert [s["reached_global_max"] for s in st4] == [True, False]
     assert [s["distinct"] for s in st4] == [2, 0]
     assert st4[0]["corner_share"] == pytest.approx(3 / 4)  # rows 0, 1, 3
-    row4 = compare.strategy_row("x", st4, TRUTH, wall=1.0)
+    row4 = compare_stats.strategy_row("x", st4, TRUTH, wall=1.0)
     assert row4["first_collision_median"] == 4.0 and row4["seeds_reaching_global_max"] == 1
-    row8 = compare.strategy_row("x", [compare.seed_stats(s, r, TRUTH, 8)
-                                      for s, r in enumerate(seeds)], TRUTH, wall=1.0)
+    row8 = compare_stats.strategy_row("x", [compare_stats.seed_stats(s, r, TRUTH, 8)
+                                            for s, r in enumerate(seeds)], TRUTH, wall=1.0)
     result = {"budgets": [{"budget": 4, "rows": [row4],
-                           "uniform_first_collision": compare.uniform_first_collision(24, 5, 4)},
+                           "uniform_first_collision":
+                               compare_stats.uniform_first_collision(24, 5, 4)},
                           {"budget": 8, "rows": [row8],
-                           "uniform_first_collision": compare.uniform_first_collision(24, 5, 8)}],
+                           "uniform_first_collision":
+                               compare_stats.uniform_first_collision(24, 5, 8)}],
               "overhead": {"x": 0.5}, "uniform_corner_share": 8 / 24}
-    md = compare.budgets_markdown(result)
+    md = compare_tables.budgets_markdown(result)
     assert "| x | 1/2 / 4 [3.5, 4.5] / 1/2 / - | 2/2 / 5.5 [4.25, 6.75] / 1/2 / - |" in md
     # uniform: p = 5/24; within 4 evaluations with probability 1 - (19/24)^4
     assert f"{1 - (19 / 24) ** 4:.0%}" in md.splitlines()[-1]
@@ -142,10 +145,10 @@ def test_no_ground_truth_rows():
     """A space too large to sweep: no global maximum, so nothing is normalised against it."""
     truth = {"global_max_reward": None, "global_min_reward": None, "n_collisions": None}
     r = _result([[0, 0, 0], [1, 1, 1]], [0.0, 0.25], [0, 1])
-    st = compare.seed_stats(0, r, truth, budget=2)
+    st = compare_stats.seed_stats(0, r, truth, budget=2)
     assert st["first_collision"] == 2 and st["best"] == pytest.approx(0.25)
     assert st["best_normalised"] is None and st["reached_global_max"] is None
-    row = compare.strategy_row("x", [st], truth, wall=1.0)
+    row = compare_stats.strategy_row("x", [st], truth, wall=1.0)
     assert row["seeds_reaching_global_max"] is None and row["all_critical"] is None
 
 
@@ -197,7 +200,7 @@ def test_strategies_side_by_side_give_the_same_results(tmp_path):
     three = _tiny_compare(tmp_path, "three", jobs=3)
     assert one["jobs"] == 1 and three["jobs"] == 3
     assert [r["strategy"] for r in three["rows"]] == ["random", "cem", "anneal"]
-    drop = lambda rows: [compare.without_times(r) for r in rows]  # noqa: E731
+    drop = lambda rows: [compare_stats.without_times(r) for r in rows]  # noqa: E731
     assert drop(one["rows"]) == drop(three["rows"])
     for a, b in zip(one["budgets"], three["budgets"]):
         assert drop(a["rows"]) == drop(b["rows"])
@@ -208,7 +211,7 @@ def test_strategies_side_by_side_give_the_same_results(tmp_path):
     md = (tmp_path / "three" / "compare.md").read_text()
     assert "3 strategies side by side" in md
     # the smaller budget's table is in the file, not only on the console, cell for cell
-    assert compare.budgets_markdown(three) in md
+    assert compare_tables.budgets_markdown(three) in md
     assert "| 16: collision / first [IQR] / global max / search s to first | 48: " in md
     assert json.loads((tmp_path / "one" / "compare.json").read_text())["rows"][0]["per_seed"]
 

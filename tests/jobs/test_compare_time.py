@@ -11,7 +11,7 @@ import pytest
 from conftest import TINY_SPACE, run_campaign
 
 import jaxfalsify as jf
-from jaxfalsify import campaign, compare, suites
+from jaxfalsify import campaign, compare, compare_stats, compare_tables, suites
 from jaxfalsify.progress import Progress
 
 NO_COLLISION_SPACE = TINY_SPACE.replace("values = [7, 9]", "values = [1, 2]", 1)  # carla-tm:
@@ -69,24 +69,24 @@ def test_seed_stats_time_figures_by_hand():
     seconds are those to the end of update 1."""
     truth = {"global_max_reward": 0.0, "global_min_reward": 0.0}
     r = _result([0.3, 0.6, 0.9], batch=4, per_chunk=3, n=36, collision_at=(10, 30))
-    st = compare.seed_stats(0, r, truth)
+    st = compare_stats.seed_stats(0, r, truth)
     assert st["first_collision"] == 10
     assert st["first_collision_seconds"] == pytest.approx(0.3)
     assert st["search_seconds"] == pytest.approx(1.8)
     assert st["distinct"] == 2 and st["failures_per_second"] == pytest.approx(2 / 1.8)
-    early = compare.seed_stats(0, r, truth, budget=8)
+    early = compare_stats.seed_stats(0, r, truth, budget=8)
     assert early["first_collision"] is None and early["first_collision_seconds"] is None
     assert early["search_seconds"] == pytest.approx(0.2) and early["failures_per_second"] == 0
-    untimed = compare.seed_stats(0, _result(None, 4, 3, 36, collision_at=(10,)), truth)
+    untimed = compare_stats.seed_stats(0, _result(None, 4, 3, 36, collision_at=(10,)), truth)
     assert untimed["first_collision"] == 10
-    assert all(untimed[k] is None for k in compare.SEED_TIME_KEYS)
+    assert all(untimed[k] is None for k in compare_stats.SEED_TIME_KEYS)
 
 
 def test_the_median_time_to_the_first_collision_counts_seeds_without_one_as_never():
     def seed(first_s, search_s=2.0):
         return {"first_collision_seconds": first_s, "search_seconds": search_s}
 
-    med = compare.first_collision_seconds_median
+    med = compare_stats.first_collision_seconds_median
     assert med([seed(0.5), seed(1.5), seed(None)]) == 1.5  # [0.5, 1.5, never]
     assert med([seed(0.5), seed(None)]) is None  # half found none: the median is never
     assert med([seed(None)] * 3) is None
@@ -222,10 +222,10 @@ def test_compare_times_each_seed_and_reports_its_first_collision(compared):
     for row in doc["rows"]:
         line = next(x for x in md.splitlines() if x.startswith(f"| {row['strategy']} | 3/3 |"))
         cells = [c.strip() for c in line.split("|")[1:-1]]
-        assert cells[3] == compare._seconds(row["first_collision_seconds_median"])
-        assert cells[4] == compare._seconds(row["failures_per_second_median"])
+        assert cells[3] == compare_tables._seconds(row["first_collision_seconds_median"])
+        assert cells[4] == compare_tables._seconds(row["failures_per_second_median"])
         assert cells[-2] == f"{row['compile_seconds']:.1f}"
-    assert compare.TIME_NOTE in md
+    assert compare_tables.TIME_NOTE in md
 
 
 def test_the_suite_tables_show_the_times(compared):
@@ -234,16 +234,16 @@ def test_the_suite_tables_show_the_times(compared):
     compile seconds at the largest budget."""
     res = compared[0]
     text = suites.suite_markdown({"suite": "t", "seeds": 3, "entries": [res]})
-    assert compare.TIME_NOTE in text
+    assert compare_tables.TIME_NOTE in text
     for k, name in enumerate(["random", "cem"]):
         line = next(x for x in text.splitlines() if x.startswith(f"| {name} |"))
         cells = [c.strip() for c in line.split("|")[1:-1]]
         for j, b in enumerate(res["budgets"]):
             row = b["rows"][k]
             assert cells[1 + j].endswith(
-                " / " + compare._seconds(row["first_collision_seconds_median"]))
+                " / " + compare_tables._seconds(row["first_collision_seconds_median"]))
         top = res["budgets"][-1]["rows"][k]
-        assert cells[len(res["budgets"]) + 2] == compare._seconds(
+        assert cells[len(res["budgets"]) + 2] == compare_tables._seconds(
             top["failures_per_second_median"])
         assert cells[-1] == f"{top['compile_seconds']:.1f}"
 
@@ -252,7 +252,7 @@ def test_a_strategy_that_finds_nothing_reports_no_time(tmp_path):
     """A space without a collision: every seed's time to the first collision is null (not 0),
     so is the median, and the table says "-"; the seeds were timed all the same (search
     seconds a number, zero failures per second)."""
-    from jaxfalsify.sweep import sweep_arrays
+    from jaxfalsify.truth import sweep_arrays
 
     space = tmp_path / "safe.toml"
     space.write_text(NO_COLLISION_SPACE)
@@ -268,6 +268,6 @@ def test_a_strategy_that_finds_nothing_reports_no_time(tmp_path):
         assert s["first_collision"] is None and s["first_collision_seconds"] is None
         assert isinstance(s["search_seconds"], float) and s["failures_per_second"] == 0.0
     assert row["failures_per_second_median"] == 0.0
-    line = next(x for x in compare.table_markdown(res).splitlines()
+    line = next(x for x in compare_tables.table_markdown(res).splitlines()
                 if x.startswith("| random |"))
     assert line.split("|")[4].strip() == "-"

@@ -18,8 +18,8 @@ from conftest import TINY_SPACE, run_campaign  # noqa: F401
 
 import jaxfalsify as jf
 from jaxfalsify import campaign, runs, search
+from jaxfalsify.checkpoints import CampaignCheckpoint
 from jaxfalsify.cli import main
-from jaxfalsify.store import CampaignCheckpoint
 
 FAST_RESUME = ("random",)  # the rest in the slow pass (test_trust resumes reinforce/default)
 

@@ -93,7 +93,7 @@ def test_compare_counts_the_requirements_violations(tmp_path, capsys, monkeypatc
     scenarios whose minimum box gap is below epsilon (oracle: the sweep's own min_distance
     column), and each seed's first critical evaluation is the one a run with that
     requirement and seed records."""
-    from jaxfalsify import analysis, campaign, compare, sweep
+    from jaxfalsify import analysis, campaign, compare, truth
 
     monkeypatch.chdir(tmp_path)
     assert main(["compare", "--requirement", "clash", "--requirement-param", "epsilon=1.5",
@@ -102,7 +102,7 @@ def test_compare_counts_the_requirements_violations(tmp_path, capsys, monkeypatc
     result = json.loads((tmp_path / "cmp" / "compare.json").read_text())
     b = runs.RunConfig(space=str(space_path(tmp_path)), requirement="clash",
                        requirement_params={"epsilon": 1.5}).build()
-    cols = sweep.sweep_arrays(b.space, "carla-tm", fields=("min_distance", "nonfinite"))
+    cols = truth.sweep_arrays(b.space, "carla-tm", fields=("min_distance", "nonfinite"))
     want = (cols["min_distance"] < 1.5) & ~cols["nonfinite"]
     assert result["requirement"] == "clash" and result["n_collisions"] == int(want.sum())
     assert 0 < want.sum() < want.size
@@ -133,7 +133,7 @@ def space_path(tmp_path):
 
 
 def test_a_suite_entry_names_its_requirement(tmp_path):
-    from jaxfalsify import compare, suites, sweep
+    from jaxfalsify import compare, suites, truth
 
     (tmp_path / "tiny.toml").write_text(TINY_SPACE)
     suite = tmp_path / "suite.toml"
@@ -145,7 +145,7 @@ def test_a_suite_entry_names_its_requirement(tmp_path):
     assert config.requirement == "clash" and dict(config.requirement_params) == {"epsilon": 1.5}
     result = compare.execute(config, tmp_path / "c")
     b = config.run_config("random").build()
-    cols = sweep.sweep_arrays(b.space, "carla-tm", fields=("min_distance", "nonfinite"))
+    cols = truth.sweep_arrays(b.space, "carla-tm", fields=("min_distance", "nonfinite"))
     assert result["n_collisions"] == int(np.sum((cols["min_distance"] < 1.5)
                                                & ~cols["nonfinite"]))
     text = suites.suite_markdown({"suite": "s", "seeds": 1, "entries": [result]})
@@ -156,28 +156,28 @@ def test_a_suite_entry_names_its_requirement(tmp_path):
 
 
 def test_ground_truth_takes_a_requirement_by_name_and_table():
-    """sweep.ground_truth(requirement="clash", requirement_params={...}) is the same as with
+    """truth.ground_truth(requirement="clash", requirement_params={...}) is the same as with
     the resolved Requirement and its parameter pytree (oracle: the sweep's min gaps)."""
-    from jaxfalsify import requirements, sweep
+    from jaxfalsify import requirements, truth
 
     sp = runs.build_space("paper", 0)
-    by_name = sweep.ground_truth(sp, requirement="clash", requirement_params={"epsilon": 0.5})
+    by_name = truth.ground_truth(sp, requirement="clash", requirement_params={"epsilon": 0.5})
     req = requirements.resolve("clash")
-    by_object = sweep.ground_truth(sp, requirement=req,
+    by_object = truth.ground_truth(sp, requirement=req,
                                    requirement_params=requirements.with_params(
                                        req, {"epsilon": 0.5}))
-    cols = sweep.sweep_arrays(sp, "carla-tm", fields=("min_distance", "nonfinite"))
+    cols = truth.sweep_arrays(sp, "carla-tm", fields=("min_distance", "nonfinite"))
     want = (cols["min_distance"] < 0.5) & ~cols["nonfinite"]
     np.testing.assert_array_equal(by_name["collision"], want)
     np.testing.assert_array_equal(by_object["collision"], want)
-    plain = sweep.ground_truth(sp, requirement="collision")
+    plain = truth.ground_truth(sp, requirement="collision")
     np.testing.assert_array_equal(plain["collision"], cols_collision(sp))
 
 
 def cols_collision(sp):
-    from jaxfalsify import sweep
+    from jaxfalsify import truth
 
-    return sweep.sweep_arrays(sp, "carla-tm", fields=("collision",))["collision"]
+    return truth.sweep_arrays(sp, "carla-tm", fields=("collision",))["collision"]
 
 
 def test_a_suite_may_compare_two_requirements_on_one_space(tmp_path):
@@ -202,10 +202,10 @@ def test_a_suite_may_compare_two_requirements_on_one_space(tmp_path):
 def test_sweep_counts_a_requirements_violations(tmp_path, rows):
     """jaxfalsify sweep --requirement clash: every row's violated flag and the summary's
     count against the rows' own minimum gaps (a sweep without the requirement)."""
-    from jaxfalsify import sweep
+    from jaxfalsify import truth
 
     p = space_path(tmp_path)
-    plain = sweep.sweep_arrays(runs.build_space(str(p), 0), "carla-tm",
+    plain = truth.sweep_arrays(runs.build_space(str(p), 0), "carla-tm",
                                fields=("min_distance", "nonfinite", "scenario"))
     want = (plain["min_distance"] < 1.5) & ~plain["nonfinite"]
     assert 0 < want.sum() < want.size
@@ -231,13 +231,13 @@ def _table_of(path):
 def test_a_users_requirement_file_through_run_sweep_and_estimate(tmp_path, monkeypatch):
     """reqs.py:gap (box gap below 1.2 m) named by file path: the run's violations, the sweep's
     count and the exact rate all against the rows' own minimum gaps."""
-    from jaxfalsify import estimate, sweep
+    from jaxfalsify import estimate, truth
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "reqs.py").write_text("def gap(outcome, params):\n"
                                       "    return outcome.min_distance - 1.2\n")
     p = space_path(tmp_path)
-    rows = sweep.sweep_arrays(runs.build_space(str(p), 0), "carla-tm",
+    rows = truth.sweep_arrays(runs.build_space(str(p), 0), "carla-tm",
                               fields=("min_distance", "nonfinite"))
     want = (rows["min_distance"] < 1.2) & ~rows["nonfinite"]
     assert 0 < want.sum() < want.size

@@ -12,7 +12,7 @@ from conftest import TINY_SPACE, run_campaign, space_file_fixture
 import jaxfalsify as jf
 from jaxfalsify import compare, runs, suites
 from jaxfalsify.cli import main
-from jaxfalsify.sweep import sweep_arrays
+from jaxfalsify.truth import sweep_arrays
 
 SUT_SPACE = TINY_SPACE + """[parameters.sut.ttc_full]
 values = [0.5, 0.9, 2.0]

@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 import pytest
 
 import jaxfalsify as jf
-from jaxfalsify.sweep import sweep_arrays
+from jaxfalsify.truth import sweep_arrays
 
 # the processes run on CPUs (gloo collectives); a bit-for-bit comparison with this process
 # needs it on the same backend (float32 last bits differ between a GPU and the CPU)
@@ -138,7 +138,7 @@ def test_two_process_compare_equals_single_process(tmp_path):
     single = json.loads((tmp_path / "single" / "compare.json").read_text())
     multi = json.loads((tmp_path / "multi" / "compare.json").read_text())
     assert multi["processes"] == 2
-    from jaxfalsify.compare import without_times
+    from jaxfalsify.compare_stats import without_times
 
     for a, b in zip(single["rows"], multi["rows"]):
         a, b = without_times(a), without_times(b)  # measured seconds differ between runs

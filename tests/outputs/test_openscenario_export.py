@@ -415,7 +415,6 @@ def test_a_failed_export_leaves_the_folder_as_it_was(sut_run, tmp_path, monkeypa
     from pathlib import Path
 
     from jaxfalsify import export as ex
-    from jaxfalsify import store
 
     def broken(*a, **k):
         raise OSError(28, "No space left on device")
@@ -447,7 +446,7 @@ def test_a_failed_export_leaves_the_folder_as_it_was(sut_run, tmp_path, monkeypa
         return real(src, dst)
 
     with monkeypatch.context() as m:
-        m.setattr(store.os, "replace", fails_late)  # (the os module: store publishes)
+        m.setattr(os, "replace", fails_late)  # (the os module: files publishes)
         with pytest.raises(OSError, match="Input/output"):
             ex.export(sut_run, out, which="best", ego="replay", force=True)
     assert len(calls) == 3

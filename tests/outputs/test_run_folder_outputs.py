@@ -43,7 +43,7 @@ def test_figure_content_units_values_and_drawing_order(run_with_figures):
     decimals), the colour scale is fitted to the data, collisions are drawn on top."""
     from jaxfalsify import analysis
     from jaxfalsify.figures import _plt, critical_region_figure, load_run, search_figure
-    from jaxfalsify.sweep import ground_truth
+    from jaxfalsify.truth import ground_truth
 
     plt = _plt()
     sp, rc, _, ep = load_run(run_with_figures)

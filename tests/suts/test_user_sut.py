@@ -14,7 +14,7 @@ import jaxfalsify as jf
 from jaxfalsify import report
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.cli import main
-from jaxfalsify.sweep import sweep_arrays
+from jaxfalsify.truth import sweep_arrays
 
 EXAMPLE = Path(__file__).parents[2] / "experiments" / "example_aeb.py"
 SPEC = f"{EXAMPLE}:AEB"
@@ -114,7 +114,7 @@ def test_a_relative_sut_path_resumes_from_another_folder(tiny, tmp_path, monkeyp
     for f in ("config.toml", "summary.json", "evaluations.parquet"):
         assert (tmp_path / "cut" / f).read_bytes() == (tmp_path / "whole" / f).read_bytes(), f
     # a sweep records it the same way
-    from jaxfalsify.sweep import SweepConfig
+    from jaxfalsify.sweep_config import SweepConfig
 
     monkeypatch.chdir(EXAMPLE.parent)
     assert SweepConfig(sut="example_aeb.py:AEB").resolved().sut == SPEC
@@ -174,7 +174,7 @@ def test_resume_after_the_suts_code_changed_is_refused(tiny, tmp_path):
     """A checkpoint records the code it was written under (jaxfalsify's and the SUT's file):
     resuming after the SUT's file changed is refused instead of joining two versions'
     results; unchanged, the resume completes."""
-    from jaxfalsify import runs, store
+    from jaxfalsify import checkpoints, runs
 
     mine = tmp_path / "my_aeb.py"
     mine.write_text(EXAMPLE.read_text())
@@ -186,7 +186,7 @@ def test_resume_after_the_suts_code_changed_is_refused(tiny, tmp_path):
             runs.execute(rc, tmp_path / name, stop=lambda: next(calls) >= 2, figures=False)
         calls = iter(range(100))
     mine.write_text(EXAMPLE.read_text().replace("brake: float = 7.0", "brake: float = 3.5"))
-    with pytest.raises(store.CheckpointError, match="the SUT's or jaxfalsify's source"):
+    with pytest.raises(checkpoints.CheckpointError, match="the SUT's or jaxfalsify's source"):
         runs.execute(rc, tmp_path / "edited", resume=True, figures=False)
     mine.write_text(EXAMPLE.read_text())
     assert runs.execute(rc, tmp_path / "kept", resume=True, figures=False).result.n == 32
@@ -279,7 +279,7 @@ def test_ground_truths_and_fingerprints_follow_helpers_and_parameter_order(tmp_p
     the user's SUT imports changes (a stale truth or a resume joining two versions' results
     was possible), and two spaces listing the same parameters in another order (another
     scenario numbering) get their own truths: each equals a fresh sweep of its own space."""
-    from jaxfalsify import cache, sweep
+    from jaxfalsify import cache, truth
     from jaxfalsify.space import space_from_dict
 
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -294,15 +294,15 @@ def test_ground_truths_and_fingerprints_follow_helpers_and_parameter_order(tmp_p
     assert sp.names != swapped.names and sp.shape != swapped.shape
     sut = sut_lib.resolve("gt_sut:AEB")
     for space in (sp, swapped):
-        got = sweep.ground_truth(space, sut)
-        np.testing.assert_array_equal(got["reward"], sweep.sweep_arrays(space, sut)["reward"])
+        got = truth.ground_truth(space, sut)
+        np.testing.assert_array_equal(got["reward"], truth.sweep_arrays(space, sut)["reward"])
     before = cache.source_hash(sut.act, sut.init)
     truths = set((cache.folder() / "truth").iterdir())
-    sweep.ground_truth(sp, sut)
+    truth.ground_truth(sp, sut)
     assert set((cache.folder() / "truth").iterdir()) == truths  # the same code: cached
     (tmp_path / "gt_helper.py").write_text("DECEL = 0.5\n")  # only the helper changes
     assert cache.source_hash(sut.act, sut.init) != before  # a resume would be refused
-    sweep.ground_truth(sp, sut)  # and the truth is swept anew, under a key of its own
+    truth.ground_truth(sp, sut)  # and the truth is swept anew, under a key of its own
     assert len(set((cache.folder() / "truth").iterdir()) - truths) == 1
 
 
@@ -360,7 +360,7 @@ def test_a_space_varying_a_sut_parameter_round_trips(tmp_path):
     figures re-simulate rows of different calibrations (each equal to simulating that
     calibration alone), ``--config`` repeats it, and an interrupted sweep resumes: the
     recorded config.toml leaves the varied parameter to the space."""
-    from jaxfalsify import figures, runs, sweep
+    from jaxfalsify import figures, runs, sweep, sweep_config
 
     space = tmp_path / "sutdim.toml"
     space.write_text(SUT_DIM_SPACE)
@@ -387,7 +387,7 @@ def test_a_space_varying_a_sut_parameter_round_trips(tmp_path):
                  str(tmp_path / "again"), "--quiet", "--no-figures"]) == 0
     assert (tmp_path / "again" / "summary.json").read_bytes() == \
         (tmp_path / "r" / "summary.json").read_bytes()
-    sc = sweep.SweepConfig(space=str(space), sut="sensor-aeb", chunk=768)  # 3 chunks x 3
+    sc = sweep_config.SweepConfig(space=str(space), sut="sensor-aeb", chunk=768)  # 3 chunks x 3
     calls = iter(range(100))
     with pytest.raises(runs.Interrupted):
         sweep.execute(sc, tmp_path / "s", stop=lambda: next(calls) == 1)
