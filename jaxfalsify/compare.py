@@ -56,7 +56,7 @@ from jaxfalsify import config as cfg
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.compare_stats import (
     TOL,
-    _median,
+    median,
     seed_stats,
     strategy_row,
     uniform_first_collision,
@@ -64,6 +64,7 @@ from jaxfalsify.compare_stats import (
 from jaxfalsify.compare_tables import budgets_markdown, table_markdown
 from jaxfalsify.distributed import agree, barrier, share
 from jaxfalsify.files import sha256, write_atomic, write_json
+from jaxfalsify.lifecycle import sut_raised
 from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.runs import Interrupted, RunConfig, check_int, check_strategy_memory, timestamp
 from jaxfalsify.space import MAX_SIZE
@@ -443,7 +444,7 @@ def execute(config: CompareConfig, out: Path | str | None, *, force: bool = Fals
         lk.claim("compare")
         return _execute(config, out, base, progress, process_id, num_processes, clock, stop)
     except BaseException as e:
-        if num_processes == 1 and sut_lib.callback_error(e) is not None:
+        if num_processes == 1 and sut_raised(e):
             store.discard(out, "compare", lk, existed)  # the SUT raised: nothing to keep
         raise
     finally:
@@ -496,7 +497,7 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
         merged = {k: {"stats": sum((p[k]["stats"] for p in all_parts), []),
                       "wall": max(p[k]["wall"] for p in all_parts),
                       "compile": max(p[k]["compile"] for p in all_parts),
-                      "overhead": _median(p[k].get("overhead") for p in all_parts),
+                      "overhead": median(p[k].get("overhead") for p in all_parts),
                       "small": {b: sum((p[k]["small"][b] for p in all_parts), [])
                                 for b in parts[k]["small"]}}
                   for k in parts}

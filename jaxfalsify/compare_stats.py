@@ -110,7 +110,7 @@ def seed_stats(seed: int, r: campaign.Result, truth: dict, budget: int | None = 
             "final_mean_reward": float(np.mean(tail)) if tail.size else None}
 
 
-def _median(xs) -> float:
+def median(xs) -> float:
     xs = [x for x in xs if x is not None]
     return float(np.median(xs)) if xs else float("nan")
 
@@ -141,7 +141,7 @@ def strategy_row(name: str, stats: list[dict], truth: dict, wall: float,
     first = np.array([s["first_collision_censored"] for s in stats], np.float64)
     q = np.percentile(first, [25, 50, 75])
     found = sum(s["first_collision"] is not None for s in stats)
-    best_norm = _median(s["best_normalised"] for s in stats)
+    best_norm = median(s["best_normalised"] for s in stats)
     return {"strategy": name, "seeds": len(stats),
             "found_collision_share": found / len(stats),
             "first_collision_median": float(q[1]),
@@ -155,10 +155,10 @@ def strategy_row(name: str, stats: list[dict], truth: dict, wall: float,
             "seeds_reaching_global_max": (None if any(s["reached_global_max"] is None
                                                       for s in stats) else
                                           int(sum(s["reached_global_max"] for s in stats))),
-            "distinct_critical_median": _median(s["distinct"] for s in stats),
+            "distinct_critical_median": median(s["distinct"] for s in stats),
             "all_critical": truth["n_collisions"],
-            "corner_share_median": _median(s["corner_share"] for s in stats),
-            "final_mean_reward_median": _median(s["final_mean_reward"] for s in stats),
+            "corner_share_median": median(s["corner_share"] for s in stats),
+            "final_mean_reward_median": median(s["final_mean_reward"] for s in stats),
             "wall_seconds": wall, "per_seed": stats}
 
 

@@ -16,7 +16,7 @@ def _frac(n, of) -> str:
     return "-" if n is None else f"{n}/{of}"
 
 
-def _share(p: float | None) -> str:
+def share_text(p: float | None) -> str:
     """A collision share for humans: scientific notation (``8.4e-03``), ``0`` for none."""
     if p is None or not np.isfinite(p):
         return "-"
@@ -34,7 +34,7 @@ def _percent(p: float | None) -> str:
     return f"{x:.2g}%" if x >= 1e-4 else f"{x:.1e}%"
 
 
-def _plural(n: int, word: str) -> str:
+def plural(n: int, word: str) -> str:
     return f"{n:,} {word}{'' if n == 1 else 's'}"
 
 
@@ -44,11 +44,11 @@ def uniform_line(result: dict, u: dict, budget: int) -> str:
     if result.get("n_collisions") is None:
         lo, hi = result["collision_share_ci95"]
         src = (f"estimated from {result['sampled']:,} uniform scenarios "
-               f"({result['sampled_collisions']} collided: p = {_share(u['p'])}, 95 % interval "
+               f"({result['sampled_collisions']} collided: p = {share_text(u['p'])}, 95 % interval "
                f"{lo:.2g}..{hi:.2g})")
     else:
-        src = (f"{_plural(result['n_collisions'], 'collision')} in "
-               f"{_plural(result['n_scenarios'], 'scenario')}, p = {_share(u['p'])}")
+        src = (f"{plural(result['n_collisions'], 'collision')} in "
+               f"{plural(result['n_scenarios'], 'scenario')}, p = {share_text(u['p'])}")
     return (f"Uniform random, analytically ({src}): expected evaluations to the first collision "
             f"1/p = {_num(u['expected'], '.4g')} (median {_num(u['median'], '.4g')}); censored "
             f"at {budget + 1}: expected {u['expected_censored']:.4g}, median "

@@ -44,6 +44,7 @@ from jaxfalsify import requirements as req_lib
 from jaxfalsify import sim, store
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.files import write_atomic, write_json
+from jaxfalsify.lifecycle import Status, sut_raised
 from jaxfalsify.problem import (
     SEED_LIMIT,
     build_space,
@@ -452,21 +453,19 @@ def execute(config: EstimateConfig, out: Path | str, *, force: bool = False,
             store.clear(out, "estimate")
         out.mkdir(parents=True, exist_ok=True)
         write_atomic(out / "config.toml", config.to_toml(*built))
-        store.write_status(out, "estimate", "running")
+        status = Status(out, "estimate")
+        status.running()
         with clock("estimate"):
             summary = estimate(config, progress, stop)
         write_json(out / "summary.json", summary)
         write_json(out / "timing.json", clock.summary(), indent=2)
-        store.write_status(out, "estimate", "complete")
+        status.complete()
         return summary
     except BaseException as e:
-        if sut_lib.callback_error(e) is not None:
+        if sut_raised(e):
             store.discard(out, "estimate", lk, existed)
         elif (out / "config.toml").exists():
-            try:
-                store.write_status(out, "estimate", "failed", error=f"{type(e).__name__}")
-            except OSError:
-                pass
+            Status(out, "estimate").failed(e)
         raise
     finally:
         lk.release()

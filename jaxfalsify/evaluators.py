@@ -38,6 +38,7 @@ from jaxfalsify import runs, store
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.external import Asked, Falsifier
 from jaxfalsify.files import write_atomic, write_json
+from jaxfalsify.lifecycle import Status
 from jaxfalsify.pools import (  # noqa: F401 - re-exported
     DaskPool,
     Pool,
@@ -149,7 +150,7 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
     is a run folder ``OUT/runs/<strategy>-s<seed>/``; ``OUT/compare.json`` and ``compare.md``
     hold the table. Returns what ``compare.json`` holds."""
     from jaxfalsify import config as cfg
-    from jaxfalsify.compare_stats import _median
+    from jaxfalsify.compare_stats import median
 
     check_settings(workers, timeout, retries, None)
     if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
@@ -199,7 +200,8 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
                                            else str(scheduler))) if v is not None},
                "space": first.space}
         write_atomic(out / "config.toml", cfg.dumps_toml(doc))
-        store.write_status(out, "compare", "running")
+        status = Status(out, "compare")
+        status.running()
         with clock("workers_start"):
             pool = make_pool(evaluator, workers, timeout, retries, None, scheduler)
         with pool:
@@ -223,13 +225,13 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
                 rows[name] = {
                     "batch": configs[name].build().strategy.batch,
                     "found": len(found), "seeds": seeds,
-                    "first_failure_median": _median(
+                    "first_failure_median": median(
                         [r["first_failure"] or r["evaluations"] + 1 for r in per_seed]),
-                    "search_seconds_to_first_median": _median(
+                    "search_seconds_to_first_median": median(
                         [r["search_seconds_to_first"] for r in found]) if found else None,
-                    "evaluation_seconds_to_first_median": _median(
+                    "evaluation_seconds_to_first_median": median(
                         [r["evaluation_seconds_to_first"] for r in found]) if found else None,
-                    "distinct_failures_median": _median([r["distinct_failures"]
+                    "distinct_failures_median": median([r["distinct_failures"]
                                                          for r in per_seed]),
                     "failed_evaluations": sum(r["n_failed"] for r in per_seed),
                     "per_seed": per_seed}
@@ -238,16 +240,13 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
         write_json(out / "compare.json", result, indent=2)
         write_atomic(out / "compare.md", compare_markdown(result))
         write_json(out / "timing.json", clock.summary(), indent=2)
-        store.write_status(out, "compare", "complete")
+        status.complete()
     except KeyboardInterrupt:
-        store.write_status(out, "compare", "interrupted")
+        Status(out, "compare").interrupted()
         raise store.Interrupted("compare", out, len(rows), len(configs), "strategies",
                                 resumable=False) from None
     except BaseException as e:
-        try:  # status.json tells the truth
-            store.write_status(out, "compare", "failed", error=f"{type(e).__name__}: {e}"[:300])
-        except OSError:
-            pass
+        Status(out, "compare").failed(e)
         raise
     finally:
         lk.release()

@@ -38,6 +38,7 @@ from jaxfalsify import cache, campaign, checkpoints, runs, store
 from jaxfalsify import figures as figures_lib
 from jaxfalsify import report as report_lib
 from jaxfalsify.files import save_npz, write_atomic, write_json, write_parquet
+from jaxfalsify.lifecycle import Status
 from jaxfalsify.problem import RunConfig
 from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.worker import SIGNALS, trajectory_arrays
@@ -219,8 +220,8 @@ class Falsifier:
         if self.config.evaluator == "python" and state != "complete":
             extra["resume"] = (f"Falsifier(..., out={str(self.out)!r}, resume=True) with the "
                                "settings of its config.toml")
-        store.write_status(self.out, "run", state, **extra, evaluator=self.config.evaluator,
-                           **self.status_extra)
+        Status(self.out, "run", evaluator=self.config.evaluator, **self.status_extra).write(
+            state, **extra)
 
     def _fingerprint(self) -> dict:
         return json.loads(json.dumps({

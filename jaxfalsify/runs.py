@@ -37,8 +37,8 @@ from jaxfalsify import config as cfg
 from jaxfalsify import figures as figures_lib
 from jaxfalsify import replay as replay_lib
 from jaxfalsify import report as report_lib
-from jaxfalsify import sut as sut_lib
 from jaxfalsify.files import write_atomic, write_json, write_parquet
+from jaxfalsify.lifecycle import Status, sut_raised
 from jaxfalsify.problem import (  # noqa: F401 - the run's configuration, re-exported
     CONFIG_KEYS,
     PAPER_BUDGET,
@@ -311,7 +311,7 @@ def execute(config: RunConfig, out: Path | str | None, *, resume: bool = False,
     try:
         return _execute(b, rc, out, lk, resume, force, progress, stop, figures, rerun, clock)
     except BaseException as e:
-        if not resume and sut_lib.callback_error(e) is not None:  # the SUT raised: nothing
+        if not resume and sut_raised(e):  # the SUT raised: nothing
             store.discard(out, "run", lk, existed)  # of this run is worth keeping
         raise
     finally:
@@ -337,8 +337,8 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
             store.clear(out, "run")
         out.mkdir(parents=True, exist_ok=True)
         write_atomic(out / "config.toml", rc.to_toml())
-    store.write_status(out, "run", "running", evaluations=b.plan.evaluations,
-                       resumed_from_evaluation=start_from)
+    status = Status(out, "run")
+    status.running(evaluations=b.plan.evaluations, resumed_from_evaluation=start_from)
     if start_from:
         progress.message(f"resuming {out} at evaluation {start_from} of {b.plan.evaluations}")
     try:
@@ -364,40 +364,27 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
     except (campaign.Stopped, KeyboardInterrupt):
         progress.close()
         done = ckpt.evaluations_done()
-        store.write_status(out, "run", "interrupted", evaluations_done=done,
-                           evaluations=b.plan.evaluations)
+        status.interrupted(evaluations_done=done, evaluations=b.plan.evaluations)
         raise Interrupted("run", out, done, b.plan.evaluations, "evaluations") from None
     except BaseException as e:
         progress.close()
-        try:  # status.json tells the truth: the search failed
-            store.write_status(out, "run", "failed", evaluations_done=ckpt.evaluations_done(),
-                               evaluations=b.plan.evaluations,
-                               error=_error_text(e))
-        except OSError:
-            pass
+        status.failed(e, evaluations_done=ckpt.evaluations_done(),  # the search failed
+                      evaluations=b.plan.evaluations)
         raise
     progress.close()
     clock.add("compile", res.compile_seconds)
     clock.add("search", res.search_seconds)
     try:
-        return _finish(b, rc, out, res, ckpt, start_from, prep, figures, rerun, progress, clock)
+        return _finish(b, rc, out, res, ckpt, start_from, prep, figures, rerun, progress, clock,
+                       status)
     except BaseException as e:
-        try:  # status.json tells the truth: the search is done, its outputs are not
-            store.write_status(out, "run", "failed", evaluations_done=res.n,
-                               evaluations=res.n, error=_error_text(e))
-        except OSError:
-            pass
-        raise
-
-
-def _error_text(e: BaseException) -> str:
-    """What status.json says of a failure: a user's SUT's own exception when it raised in a
-    host callback, else the exception's type and message (at most 300 characters)."""
-    return (sut_lib.callback_error(e) or f"{type(e).__name__}: {e}")[:300]
+        status.failed(e, evaluations_done=res.n, evaluations=res.n)  # the search is done, its
+        raise  # outputs are not
 
 
 def _finish(b: Built, rc: RunConfig, out: Path, res: campaign.Result, ckpt, start_from: int,
-            prep, figures: bool, rerun: bool, progress: Progress, clock: Clock) -> RunOutcome:
+            prep, figures: bool, rerun: bool, progress: Progress, clock: Clock,
+            status: Status) -> RunOutcome:
     """Write the results, figures, timing, and finally ``status.json`` = complete."""
     with clock("writing"):
         summary = summary_dict(res, rc)
@@ -418,7 +405,7 @@ def _finish(b: Built, rc: RunConfig, out: Path, res: campaign.Result, ckpt, star
                                                  "resumed_from_evaluation": start_from})
     timing = {**clock.summary(), "resumed_from_evaluation": start_from}
     write_json(out / "timing.json", timing, indent=2)
-    store.write_status(out, "run", "complete", evaluations_done=res.n, evaluations=res.n)
+    status.complete(evaluations_done=res.n, evaluations=res.n)
     ckpt.remove()
     return RunOutcome(out, rc, res, summary, timing)
 

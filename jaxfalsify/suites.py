@@ -16,10 +16,10 @@ from jaxfalsify import sut as sut_lib
 from jaxfalsify.compare import DEFAULT_STRATEGIES, CompareConfig, execute
 from jaxfalsify.compare_tables import (
     TIME_NOTE,
-    _plural,
-    _share,
     budgets_markdown,
+    plural,
     requirement_words,
+    share_text,
 )
 from jaxfalsify.files import write_atomic, write_json
 from jaxfalsify.problem import check_int
@@ -307,18 +307,18 @@ def suite_markdown(summary: dict) -> str:
     for r in summary["entries"]:
         share = r.get("collision_share")
         if r.get("n_collisions") is not None:
-            truth = (f"{_plural(r['n_collisions'], 'collision')} of "
-                     f"{_plural(r['n_scenarios'], 'scenario')} (p = {_share(share)})")
+            truth = (f"{plural(r['n_collisions'], 'collision')} of "
+                     f"{plural(r['n_scenarios'], 'scenario')} (p = {share_text(share)})")
         else:
             truth = (f"{r['n_scenarios']:.3g} scenarios, too many to sweep; collision share "
-                     f"estimated {_share(share)} from {r['sampled']:,} uniform draws")
+                     f"estimated {share_text(share)} from {r['sampled']:,} uniform draws")
         extra = ""
         if r.get("global_max_reward") is not None:
             where = ("no collision anywhere in the space" if r["n_collisions"] == 0 else
                      "failures away from every edge (interior island)"
                      if r.get("failures_interior") else "failures touch an edge of the box")
             extra = (f"; global maximum {r['global_max_reward']:.4f} "
-                     f"({_plural(r['global_max_ties'], 'scenario')}); {where}")
+                     f"({plural(r['global_max_ties'], 'scenario')}); {where}")
         sp = ", ".join(f"{k}={v:g}" for k, v in r.get("sut_params", {}).items())
         req = requirement_words(r)
         if req:  # the entry's counts are of violations

@@ -41,19 +41,20 @@ from jaxfalsify import config as cfg
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.distributed import agree, barrier, share
 from jaxfalsify.files import sha256, write_atomic, write_json, write_parquet
+from jaxfalsify.lifecycle import Status, sut_raised
 from jaxfalsify.problem import check_space_sut
 from jaxfalsify.progress import Clock, Progress, timing_line
 from jaxfalsify.space import Space
 from jaxfalsify.sweep_chunks import (
     OUTCOME_FIELDS,
-    _violated_fn,
     check_columns,
     check_sweepable,
     iter_sweep,
     plan_chunks,
+    violated_fn,
 )
 from jaxfalsify.sweep_config import Calibrations, SweepConfig, default_out
-from jaxfalsify.sweep_merge import _merge_rows, _merge_summary, _read_part
+from jaxfalsify.sweep_merge import merge_rows, merge_summary, read_part
 from jaxfalsify.sweep_totals import Reducer, fold
 
 
@@ -239,14 +240,10 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
     except (store.Interrupted, ValueError):
         raise
     except BaseException as e:
-        if num_processes == 1 and not resume and sut_lib.callback_error(e) is not None:
+        if num_processes == 1 and not resume and sut_raised(e):
             store.discard(out, "sweep", lk, existed)  # the SUT raised: nothing worth keeping
         elif process_id == 0 and (out / "config.toml").exists():
-            try:  # status.json tells the truth
-                store.write_status(out, "sweep", "failed", error=(
-                    sut_lib.callback_error(e) or f"{type(e).__name__}: {e}")[:300])
-            except OSError:
-                pass
+            Status(out, "sweep").failed(e)
         raise
     finally:
         lk.release()
@@ -288,7 +285,7 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
         shutil.rmtree(ck)
     ck.mkdir(parents=True, exist_ok=True)
     if process_id == 0:
-        store.write_status(out, "sweep", "running", scenarios=space.size)
+        Status(out, "sweep").running(scenarios=space.size)
     resumed_from = min(begin + done * planned, end)
     total = (end - begin) * calib.count
     progress.phase(f"compiling the sweep of {space.name} x {config.sut}"
@@ -296,7 +293,7 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
     t0 = time.perf_counter()
     compile_s, started = 0.0, False
     req, req_params = config.requirement_of()
-    violated = None if req is None else _violated_fn(req)
+    violated = None if req is None else violated_fn(req)
     try:
         # totals computed on the device (a requirement's violations: on the host, from rows)
         reduced = config.rows == "none" and req is None
@@ -337,8 +334,7 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
               else {})
         n_done = int(st.get("scenarios_done", 0))
         if process_id == 0:
-            store.write_status(out, "sweep", "interrupted", scenarios_done=n_done,
-                               scenarios=space.size)
+            Status(out, "sweep").interrupted(scenarios_done=n_done, scenarios=space.size)
         raise store.Interrupted("sweep", out, n_done, end - begin, "scenarios") from None
     progress.close()
     search_s = time.perf_counter() - t0 - compile_s
@@ -347,7 +343,7 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
     with clock("writing"):
         n_chunks = -(-(end - begin) // planned)
         if config.rows != "none" and n_chunks:  # an empty share writes no part file
-            _merge_rows([(ck / f"rows-{c:06d}.parquet", files.get(f"rows-{c:06d}.parquet"))
+            merge_rows([(ck / f"rows-{c:06d}.parquet", files.get(f"rows-{c:06d}.parquet"))
                          for c in range(n_chunks)], out / name)
         part = {"process_id": process_id,
                 "totals": [{"n": r.n, "collisions": r.collisions, "nonfinite": r.nonfinite,
@@ -360,18 +356,18 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
                                      {**part, "sweep": checkpoints.identity(
                                          config.to_toml(space, num_processes))})
             barrier("jaxfalsify-sweep-parts-written")
-            parts = [_read_part(out / f".summary.part-{i:05d}.json", i,
+            parts = [read_part(out / f".summary.part-{i:05d}.json", i,
                                 checkpoints.identity(config.to_toml(space, num_processes)))
                      for i in range(num_processes)]
         else:
             parts = [cfg.jsonable(part)]
-        summary = _merge_summary(space, config, calib, parts, num_processes)
+        summary = merge_summary(space, config, calib, parts, num_processes)
     timing = {**clock.summary(), "chunk": planned, "devices": jax.local_device_count(),
               "resumed_from_scenario": resumed_from - begin}
     if process_id == 0:
         write_json(out / "timing.json", timing, indent=2)
         write_json(out / "summary.json", summary, indent=2)
-        store.write_status(out, "sweep", "complete", scenarios=space.size)
+        Status(out, "sweep").complete(scenarios=space.size)
     if multi:
         barrier("jaxfalsify-sweep-summary-written")
         if process_id == 0:  # every process has read the parts (before the barrier)

@@ -197,7 +197,7 @@ def iter_sweep(space: Space, calib: Calibrations, world: sim.World = sim.WORLD,
         yield b, e, chunk_table(space, b, idx, out, calib)
 
 
-def _violated_fn(req):
+def violated_fn(req):
     """``(columns, params) -> (n,) bool``: a chunk's violations of ``req`` (robustness < 0 on
     a finite rollout), from its outcome columns; one compiled function per requirement."""
     rob = jax.jit(lambda o, p: requirements.robustness(req, o, p))

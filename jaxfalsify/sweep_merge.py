@@ -17,7 +17,7 @@ from jaxfalsify.space import Space
 from jaxfalsify.sweep_config import Calibrations, SweepConfig
 
 
-def _read_part(path: Path, i: int, sweep_id: str) -> dict:
+def read_part(path: Path, i: int, sweep_id: str) -> dict:
     """Another process's summary part, its seal and identity verified."""
     doc = checkpoints.read_json(path)
     if doc.get("sweep") != sweep_id or doc.get("process_id") != i:
@@ -25,7 +25,7 @@ def _read_part(path: Path, i: int, sweep_id: str) -> dict:
     return doc
 
 
-def _merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts: list,
+def merge_summary(space: Space, config: SweepConfig, calib: Calibrations, parts: list,
                    num_processes: int) -> dict:
     def merged(c):
         ts = [(q["totals"][c], q["process_id"]) for q in parts]
@@ -78,7 +78,7 @@ def _nonempty_share(n: int, process_id: int, num_processes: int) -> bool:
     return end > begin
 
 
-def _merge_rows(files: list[tuple[Path, dict | None]], final: Path) -> None:
+def merge_rows(files: list[tuple[Path, dict | None]], final: Path) -> None:
     """Concatenate the chunks' Parquet files (each verified against its commit-record entry)
     into one, under a temporary name, then rename."""
     import io

@@ -14,7 +14,7 @@ from jaxfalsify import cache, requirements, sim
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.files import save_npz
 from jaxfalsify.space import Space
-from jaxfalsify.sweep_chunks import DEFAULT_CHUNK, _violated_fn, iter_sweep
+from jaxfalsify.sweep_chunks import DEFAULT_CHUNK, iter_sweep, violated_fn
 from jaxfalsify.sweep_config import calibrations
 
 
@@ -38,7 +38,7 @@ def _violation_truth(space: Space, s, sut_params, world, req, req_params) -> dic
     """:func:`ground_truth`'s arrays with ``collision`` the requirement's violations, chunk by
     chunk (only the three arrays are kept)."""
     calib = calibrations(s, sut_params or {})
-    violated = _violated_fn(req)
+    violated = violated_fn(req)
     parts: dict[str, list] = {k: [] for k in TRUTH_FIELDS}
     for _, _, cols in iter_sweep(space, calib, world, DEFAULT_CHUNK):
         parts["collision"].append(violated(cols, req_params))

@@ -31,7 +31,8 @@ gradient's scale, so the learning rate is how far the policy moves per update). 
 of the batch and updated on its own share's elite, so one learner held on a plateau of near
 misses does not hold the others (the batch is their equal mixture). On a logical scenario whose
 failures are isolated in a rough corner of the space (``experiments/spaces/fast-walkers.toml``)
-one learner reached a collision in 1 of 5 seeds within 100 updates, four in 6 of 10 within 200.
+one learner reached a collision in 1 of 5 seeds within 100 updates, four in 6 of 10 within 200
+(learning rate 0.03 throughout; with ``lr_search`` before the first collision, in 10 of 10).
 
 The search keeps moving: a scenario that was in an earlier update's elite or collided is
 remembered (a hashed table in the state); drawn again, a collision loses ``novelty`` (0.5: it
