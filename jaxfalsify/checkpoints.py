@@ -179,23 +179,19 @@ class CampaignCheckpoint:
         if isinstance(n, bool) or not isinstance(n, int) or n < 1 or not isinstance(files, dict):
             raise CheckpointError(f"checkpoint {self.state_path}: bad chunks_done {n!r}")
         ident = identity(self.fingerprint)
-        records = []
-        for c in range(n):
-            name = f"records-{c:06d}.npz"
-            entry = files.get(name)
-            if entry is not None and (entry.get("chunk") != c or entry.get("run") != ident):
-                raise CheckpointError(f"checkpoint file {self.folder / name}: its record names "
-                                      "another chunk or run")
-            data = read_verified(self.folder / name, entry)
-            records.append(load_npz_bytes(data, self.folder / name))
-        name = f"carry-{n:06d}.npz"
-        entry = files.get(name)
-        if entry is not None and (entry.get("after_chunk") != n or entry.get("run") != ident):
-            raise CheckpointError(f"checkpoint file {self.folder / name}: its record names "
-                                  "another chunk or run")
-        data = read_verified(self.folder / name, entry)
-        carry = restore_leaves(load_npz_bytes(data, self.folder / name), template,
-                               self.folder / name)
+
+        def load(name: str, chunk_key: str, chunk: int) -> dict:
+            """A verified npz file of the record whose ``chunk_key`` must be ``chunk``."""
+            entry, path = files.get(name), self.folder / name
+            if entry is not None and (entry.get(chunk_key) != chunk
+                                      or entry.get("run") != ident):
+                raise CheckpointError(f"checkpoint file {path}: its record names another "
+                                      "chunk or run")
+            return load_npz_bytes(read_verified(path, entry), path)
+
+        records = [load(f"records-{c:06d}.npz", "chunk", c) for c in range(n)]
+        carry = restore_leaves(load(f"carry-{n:06d}.npz", "after_chunk", n), template,
+                               self.folder / f"carry-{n:06d}.npz")
         self.files = {k: v for k, v in files.items() if k.startswith("records-")}
         return carry, records
 

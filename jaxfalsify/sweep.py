@@ -284,8 +284,9 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
     if not resume and ck.exists():
         shutil.rmtree(ck)
     ck.mkdir(parents=True, exist_ok=True)
+    status = Status(out, "sweep")
     if process_id == 0:
-        Status(out, "sweep").running(scenarios=space.size)
+        status.running(scenarios=space.size)
     resumed_from = min(begin + done * planned, end)
     total = (end - begin) * calib.count
     progress.phase(f"compiling the sweep of {space.name} x {config.sut}"
@@ -334,7 +335,7 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
               else {})
         n_done = int(st.get("scenarios_done", 0))
         if process_id == 0:
-            Status(out, "sweep").interrupted(scenarios_done=n_done, scenarios=space.size)
+            status.interrupted(scenarios_done=n_done, scenarios=space.size)
         raise store.Interrupted("sweep", out, n_done, end - begin, "scenarios") from None
     progress.close()
     search_s = time.perf_counter() - t0 - compile_s
@@ -367,7 +368,7 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
     if process_id == 0:
         write_json(out / "timing.json", timing, indent=2)
         write_json(out / "summary.json", summary, indent=2)
-        Status(out, "sweep").complete(scenarios=space.size)
+        status.complete(scenarios=space.size)
     if multi:
         barrier("jaxfalsify-sweep-summary-written")
         if process_id == 0:  # every process has read the parts (before the barrier)

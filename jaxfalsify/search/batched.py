@@ -248,11 +248,11 @@ class BatchedReinforce(Strategy):
                      ttc=None):
         h = self._hash(indices)
         signal = self._signal(state, h, rewards, robustness, collision, params, ttc)
-        state, elite = self._learn(key, state, indices, signal,
-                                   collision & jnp.isfinite(rewards), params)
+        hit = collision & jnp.isfinite(rewards)
+        state, elite = self._learn(key, state, indices, signal, hit, params)
         # remembered: this update's elite and its collisions (a later draw of one of them
         # counts less, see signal)
-        keep = (collision & jnp.isfinite(rewards)) | elite
+        keep = hit | elite
         slot = (h & (self.table - 1)).astype(jnp.int32)
         new = jnp.where(keep, h, state.seen[slot])
         return dataclasses.replace(state, seen=state.seen.at[slot].set(new))
