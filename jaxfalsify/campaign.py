@@ -1,5 +1,7 @@
 """A falsification campaign: a search strategy against a SUT over a space, for a budget.
 
+One concern, though over 400 lines: one compiled campaign and the host loop that drives it.
+
 :func:`make_campaign` builds, PureJaxRL-style, pure functions whose whole loop (ask -> simulate
 the batch -> tell, ``lax.scan`` over updates) is one jit-compiled call. Everything numeric is a
 traced argument (:class:`Args`: the space's value table, the SUT's and the strategy's

@@ -1,5 +1,8 @@
 """The ``jaxfalsify`` command: a thin shell over the library.
 
+One concern, though over 400 lines: turning the command line into library calls (flags, help,
+exit codes); no job logic lives here.
+
 Each subcommand maps its flags to a config (``runs.RunConfig``, ``sweep_config.SweepConfig``,
 ``compare.CompareConfig``) and calls the library's ``execute``; exceptions become one line
 ``jaxfalsify: error: ...`` and an exit code: 2 for bad input (nothing written), 130 / 143 after

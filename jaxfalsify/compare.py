@@ -4,6 +4,9 @@ exhaustive sweep as ground truth (from the per-user cache, see
 (:class:`CompareConfig`), the ground truth's summary (:func:`truth_summary`), the searches, the
 search-overhead timing and the files written (:func:`execute`).
 
+One concern, though over 400 lines: the comparison job (its configuration, searches, timing and
+files); statistics and tables are in ``compare_stats`` and ``compare_tables``.
+
 Per strategy (one compiled program, its seeds run through it one after another), the figures of
 :mod:`jaxfalsify.compare_stats` (:func:`~jaxfalsify.compare_stats.seed_stats`,
 :func:`~jaxfalsify.compare_stats.strategy_row`), and:

@@ -1,5 +1,8 @@
 """How often the SUT violates a requirement: failure-rate estimates with confidence intervals.
 
+One concern, though over 400 lines: failure-rate estimation (its estimators, their intervals and
+the estimate job).
+
 The rate is the probability that a concrete scenario drawn from the logical scenario violates
 the requirement (:mod:`jaxfalsify.requirements`), every concrete scenario of the discretised
 space being equally likely (the space's values are drawn from its declared distributions, so

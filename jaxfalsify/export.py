@@ -1,6 +1,8 @@
 """OpenSCENARIO 1.x export of a run's concrete scenarios and its logical scenario
 (``scenariogeneration``, host side).
 
+One concern, though over 400 lines: writing OpenSCENARIO / OpenDRIVE files of a run's scenarios.
+
 Writes, to one folder:
 
 * per scenario, ``<name>.xosc`` (OpenSCENARIO 1.3; ``best.xosc`` or ``critical_NNN.xosc``);

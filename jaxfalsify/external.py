@@ -1,5 +1,8 @@
 """Falsifying a system that lives outside JAX: ask / tell.
 
+One concern, though over 400 lines: ask / tell for systems outside JAX (:class:`Falsifier` and
+its run folder).
+
 The search stays jitted; only the evaluation happens on the host, in the user's loop::
 
     f = jaxfalsify.Falsifier("paper", strategy="reinforce/screened", seed=0, out="runs/mine")

@@ -1,5 +1,7 @@
 """The paper's figures (and critical-region maps) for a run folder, as PNG files.
 
+One concern, though over 400 lines: drawing a run folder's figures.
+
 Host-side only (matplotlib, Agg backend); the jitted core never imports this module.
 
 * ``reward_per_evaluation.png`` — reward per evaluation and its moving average (paper Fig. 6;

@@ -1,5 +1,8 @@
 """Falsification runs: the main job as a library call, ``execute(config, out, ...)``.
 
+One concern, though over 400 lines: the main job (its configuration, folder, lifecycle and
+closing lines).
+
 A run folder holds:
 
 * ``config.toml`` — everything resolved (the space's full description, the SUT's and the

@@ -1,5 +1,8 @@
 """Logical scenario spaces: named parameters with distributions, discretised into concrete values.
 
+One concern, though over 400 lines: logical scenario spaces and their discretisation
+(definition, TOML, index <-> value maps).
+
 A *logical scenario* is a set of parameters with ranges or distributions (the paper's Table I).
 Discretising it with a seed draws each parameter's concrete value set once, as the original code
 did (draws rounded to 3 decimals, then kept for the whole run). A *concrete scenario* is one value

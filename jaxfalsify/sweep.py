@@ -1,5 +1,8 @@
 """Exhaustive sweep of a discrete logical scenario: every concrete scenario, evaluated in chunks.
 
+One concern, though over 400 lines: the exhaustive-sweep job; its configuration, chunks, totals
+and merging are in the ``sweep_*`` modules.
+
 The result is the ground truth that search strategies are measured against: every concrete
 scenario's indices, values and outcome in ``sweep.parquet``, plus ``summary.json`` (bit-identical
 for the same space, seed and SUT whatever the chunk size), ``timing.json`` and the resolved

@@ -95,3 +95,11 @@ def test_every_module_imports_alone():
         if r.returncode:
             failed.append(f"{name}: {r.stderr.strip().splitlines()[-1]}")
     assert failed == []
+
+
+def test_a_module_over_400_lines_names_its_one_concern():
+    long = {m: p for m, p in modules().items() if len(p.read_text().splitlines()) > 400}
+    assert long, "no long module found: the line count was not read"
+    unsaid = [m for m, p in long.items()
+              if "One concern" not in (ast.get_docstring(ast.parse(p.read_text())) or "")]
+    assert unsaid == []

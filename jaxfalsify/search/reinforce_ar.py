@@ -1,5 +1,8 @@
 """REINFORCE on an autoregressive LSTM controller: ``reinforce/screened``.
 
+One concern, though over 400 lines: the ``reinforce/screened`` strategy (its controller is in
+``autoregressive``, its GP in ``surrogate``).
+
 The paper's method (a recurrent controller trained by the policy gradient, Eq. 2-3, with
 Adam), made strong where the original struggles: a factorised policy, a handful of updates,
 a reward that is flat until the first collision, failures that are rare.
