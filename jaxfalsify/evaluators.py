@@ -34,8 +34,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from jaxfalsify import runs, store
+from jaxfalsify import config as cfg
+from jaxfalsify import runs, search, store
 from jaxfalsify import sut as sut_lib
+from jaxfalsify.analysis import markdown_table
+from jaxfalsify.compare_stats import median
 from jaxfalsify.external import Asked, Falsifier
 from jaxfalsify.files import write_atomic, write_json
 from jaxfalsify.lifecycle import Status
@@ -149,14 +152,9 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
     evaluation seconds to the first failure, distinct failures, failed evaluations. Each seed
     is a run folder ``OUT/runs/<strategy>-s<seed>/``; ``OUT/compare.json`` and ``compare.md``
     hold the table. Returns what ``compare.json`` holds."""
-    from jaxfalsify import config as cfg
-    from jaxfalsify.compare_stats import median
-
     check_settings(workers, timeout, retries, None)
     if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
         raise ValueError(f"seeds must be an integer >= 1 (got {seeds!r})")
-    from jaxfalsify import search
-
     strategy_params = dict(strategy_params or {})
     seen: dict[str, str] = {}
     for name in strategies:  # one row per strategy, as compare has it
@@ -271,8 +269,6 @@ def seed_row(seed: int, o, f: Falsifier) -> dict:
 
 def compare_markdown(result: dict) -> str:
     """``compare.md``: one row per strategy."""
-    from jaxfalsify.analysis import markdown_table
-
     def num(x, fmt):
         return "-" if x is None else format(x, fmt)
 

@@ -79,6 +79,50 @@ def test_the_cycle_finder_finds_a_known_cycle():
     assert cycles(graph) == [["a", "b", "c"]]
 
 
+# The package's layers, lowest first: a module imports only from its own layer or below.
+LAYERS = {
+    "foundation": ["config", "pytree", "progress", "distributed", "metrics", "reward",
+                   "weather", "worker", "files", "cache", "store", "checkpoints"],
+    "model": ["space", "suts", "suts.*", "sut", "sim", "requirements", "reference"],
+    "search": ["search", "search.*"],
+    "engine": ["campaign", "problem", "lifecycle", "pools", "sweep_config", "sweep_chunks",
+               "sweep_totals", "sweep_merge", "truth", "rundir"],
+    "outputs": ["analysis", "figures", "report", "replay", "export"],
+    "jobs": ["runs", "sweep", "compare", "compare_stats", "compare_tables", "suites",
+             "estimate", "external", "evaluators"],
+    "interface": ["cli", "__main__", ""],
+}
+
+
+def layer_of(module: str) -> int:
+    """The index in :data:`LAYERS` of ``jaxfalsify.<module>``."""
+    short = module.removeprefix("jaxfalsify").removeprefix(".")
+    for i, names in enumerate(LAYERS.values()):
+        for n in names:
+            if short == n or (n.endswith(".*") and short.startswith(n[:-1])):
+                return i
+    raise KeyError(f"{module} is in no layer of LAYERS")
+
+
+def upward(graph: dict[str, set[str]]) -> list[str]:
+    """Imports of a module in a higher layer."""
+    return sorted(f"{a} -> {b}" for a, bs in graph.items() for b in bs
+                  if layer_of(b) > layer_of(a))
+
+
+def test_the_layer_check_finds_an_upward_import():
+    graph = {"jaxfalsify.sim": {"jaxfalsify.figures", "jaxfalsify.space"},
+             "jaxfalsify.figures": {"jaxfalsify.sim"}}
+    assert upward(graph) == ["jaxfalsify.sim -> jaxfalsify.figures"]
+
+
+def test_every_module_imports_only_from_its_layer_or_below():
+    mods = modules()
+    graph = {m: imports_of(m, p, set(mods)) for m, p in mods.items()}
+    assert graph["jaxfalsify.cli"], "the graph was not read"
+    assert upward(graph) == []
+
+
 def test_the_package_has_no_import_cycle():
     mods = modules()
     graph = {m: imports_of(m, p, set(mods)) for m, p in mods.items()}
