@@ -24,7 +24,10 @@ constant baseline is. ``steps`` Adam steps (optax) follow it on the same batch, 
 rate ``lr_search`` (0.1) until the learner has drawn a collision and ``lr`` (0.03) from then on:
 large steps towards the failures while there are none, small ones to converge on the best
 failures once there are (Adam's steps have about the learning rate's size whatever the
-gradient's scale, so the learning rate is how far the policy moves per update). An entropy bonus
+gradient's scale, so the learning rate is how far the policy moves per update). The first
+update, from the uninformed first batch to its elite, is a larger jump (``lr_first``, 0.3) for
+all learners but the last (``first_learners``, 3): most learners move at once to where the first
+batch's near misses are, one keeps the smaller step in case they are a plateau. An entropy bonus
 ``entropy x mean log sigma`` keeps the components from collapsing early.
 
 **Several learners** (``learners``, 4): independent controllers, each drawing an equal share
@@ -119,7 +122,9 @@ def _initial_bias(shape, K):
 @pytree.dataclass
 class BatchedParams:
     lr: float = 0.03  # Adam learning rate once the learner has found a collision ...
-    lr_search: float = 0.1  # ... and until then
+    lr_search: float = 0.1  # ... and until then ...
+    lr_first: float = 0.3  # ... except at the first update, for the first learners:
+    first_learners: float = 3.0  # learners 0 .. first_learners - 1 (the rest: lr_search)
     eps: float = 0.01  # the uniform floor's weight in the policy
     entropy: float = 0.01  # bonus on the components' mean log-width
     novelty: float = 0.5  # signal taken off a collision seen before (elite or collision) ...
@@ -129,7 +134,8 @@ class BatchedParams:
     ttc_weight: float = 0.0  # near misses told apart by their min TTC [m per s] (0: off)
     ttc_below: float = -0.5  # ... below this robustness [m]
 
-    RANGES = {"lr": "[0, inf)", "lr_search": "[0, inf)", "eps": "(0, 1)", "entropy": "[0, inf)",
+    RANGES = {"lr": "[0, inf)", "lr_search": "[0, inf)", "lr_first": "[0, inf)",
+              "first_learners": "[0, inf)", "eps": "(0, 1)", "entropy": "[0, inf)",
               "novelty": "[0, inf)", "revisit": "[0, inf)",
               "novelty_until": "[0, inf)", "ttc_weight": "[0, inf)", "ttc_below": "(-inf, inf)"}
 
@@ -299,11 +305,16 @@ class BatchedReinforce(Strategy):
         """``(state, elite (B,) bool)``: each learner's update on its own share of the batch
         (:meth:`_learn_one`; a padded share's missing draws have signal -inf, never elite)."""
         found = state.found | jnp.any(self._shares(collided, False), axis=-1)
+        # the learning rate of each learner: lr once it has a collision; before, lr_first at
+        # the first update for learners below first_learners, else lr_search
+        bold = (state.told == 0) & (jnp.arange(self.learners) < params.first_learners)
+        lr = jnp.where(found, params.lr, jnp.where(bold, params.lr_first, params.lr_search))
+        if self.learners == 1:
+            lr = lr[0]
         weights, opt, elite = self._each(
-            lambda k, w, o, i, s, f: self._learn_one(k, w, o, i, s, params,
-                                                     jnp.where(f, params.lr, params.lr_search)))(
+            lambda k, w, o, i, s, r: self._learn_one(k, w, o, i, s, params, r))(
             self._keys(key), state.params, state.opt, self._shares(indices),
-            self._shares(signal, -jnp.inf), found)
+            self._shares(signal, -jnp.inf), lr)
         return dataclasses.replace(state, params=weights, opt=opt, told=state.told + self.batch,
                                    found=found), elite.reshape(-1)[:self.batch]
 

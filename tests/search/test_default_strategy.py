@@ -312,8 +312,10 @@ def test_each_learner_searches_with_lr_search_until_its_share_draws_a_collision(
     """Learner 0's share holds a collision, learner 1's does not: learner 0 learns with ``lr``
     (and is marked as having found one), learner 1 with ``lr_search`` (oracle: the same update
     by two copies of the strategy whose learning rates are both ``lr``, both ``lr_search``);
-    a collision seen once keeps the learner on ``lr``."""
+    a collision seen once keeps the learner on ``lr``. (After a first update: the first uses
+    ``lr_first``, see below.)"""
     s, p, state = _moved(2, 0, 1)
+    state = dataclasses.replace(state, told=jnp.int32(s.batch))
     idx, _ = s.ask(jax.random.key(1), state, p)
     g = np.random.default_rng(7)
     rewards = jnp.asarray(g.uniform(0.3, 0.6, 64), jnp.float32)
@@ -329,3 +331,36 @@ def test_each_learner_searches_with_lr_search_until_its_share_draws_a_collision(
     assert p.lr != p.lr_search
     later = s.tell_outcome(jax.random.key(3), got, idx, rewards, rob, jnp.zeros(64, bool), p)
     np.testing.assert_array_equal(np.asarray(later.found), [True, False])
+
+
+def test_the_first_update_takes_lr_first_for_the_first_learners_only():
+    """At the first update, with no collision, learners below ``first_learners`` step with
+    ``lr_first`` and the others with ``lr_search``; at the second, all with ``lr_search``
+    (oracle: the same updates by copies of the strategy whose learning rates are all one
+    value)."""
+    s, p, state = _moved(3, 0, 1)
+    p = pytree.replace(p, first_learners=2.0)
+    idx, _ = s.ask(jax.random.key(1), state, p)
+    g = np.random.default_rng(8)
+    rewards = jnp.asarray(g.uniform(0.3, 0.6, 64), jnp.float32)
+    rob = jnp.asarray(g.uniform(0.1, 3, 64), jnp.float32)
+    none = jnp.zeros(64, bool)
+    later = dataclasses.replace(state, told=jnp.int32(s.batch))
+    assert len({p.lr_first, p.lr_search, p.lr}) == 3
+
+    def same(a, b, learner):
+        for x, y in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params)):
+            np.testing.assert_array_equal(np.asarray(x)[learner], np.asarray(y)[learner])
+
+    for start, rates in ((state, (p.lr_first, p.lr_first, p.lr_search)),
+                         (later, (p.lr_search,) * 3)):
+        got = s.tell_outcome(jax.random.key(2), start, idx, rewards, rob, none, p)
+        for learner, lr in enumerate(rates):
+            q = pytree.replace(p, lr=lr, lr_search=lr, lr_first=lr)
+            same(got, s.tell_outcome(jax.random.key(2), start, idx, rewards, rob, none, q),
+                 learner)
+        other = [r for r in (p.lr_first, p.lr_search) if r != rates[2]][0]
+        q = pytree.replace(p, lr=other, lr_search=other, lr_first=other)
+        want = s.tell_outcome(jax.random.key(2), start, idx, rewards, rob, none, q)
+        assert not np.array_equal(np.asarray(jax.tree.leaves(got.params)[0])[2],
+                                  np.asarray(jax.tree.leaves(want.params)[0])[2])
