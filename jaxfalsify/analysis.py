@@ -14,6 +14,14 @@ import numpy as np
 
 from jaxfalsify.config import plain
 
+__all__ = [
+    "ranked_reward", "collided", "critical", "best", "first_collision", "first_critical",
+    "best_reached", "moving_mean", "learner_converged", "typical_non_critical",
+    "distinct_critical", "ALIGNED_DIMS", "chebyshev_components", "FailureClusters",
+    "failure_clusters", "from_evaluations", "OUTCOME_ROWS", "table_ii", "format_value",
+    "text_table", "markdown_table"
+]
+
 
 def ranked_reward(fields: dict) -> np.ndarray:
     """Rewards as float64 with NaN (non-finite rollouts) as -inf: they never rank best."""

@@ -25,6 +25,12 @@ from pathlib import Path
 
 from jaxfalsify.files import write_atomic
 
+__all__ = [
+    "enabled", "folder", "enable_compilation_cache", "program_settings", "check_settings",
+    "check_xla_flags", "key_of", "code_hash", "user_code_hash", "source_hash", "stale",
+    "Program", "exported_jit"
+]
+
 MIN_COMPILE_SECONDS = 0.1  # cache every compilation longer than this
 
 

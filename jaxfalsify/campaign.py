@@ -36,6 +36,12 @@ from jaxfalsify import sut as sut_lib
 from jaxfalsify.search.base import Strategy
 from jaxfalsify.space import Layout, Space
 
+__all__ = [
+    "RECORD_FIELDS", "Plan", "plan", "args_for", "Campaign", "evaluation_key", "environment",
+    "is_key", "static_key", "program", "Result", "Stopped", "run_seeds", "run", "carry_avals",
+    "record_shapes"
+]
+
 RECORD_FIELDS = ("reward", "reward_rss", "reward_distance", "reward_collision", "collision",
                  "min_distance", "final_distance", "high_risk_share",
                  "high_risk_share_second_half", "robustness", "nonfinite", "violated")
@@ -184,7 +190,7 @@ def environment() -> dict:
             "local_devices": jax.local_device_count()}
 
 
-def _is_key(x) -> bool:
+def is_key(x) -> bool:
     return jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
 
 
@@ -220,7 +226,7 @@ def _program(c: Campaign, args_tree, args_avals: tuple, n_seeds: int,
         args = jax.tree.unflatten(args_tree, args_leaves)
         template = jax.eval_shape(init, jax.random.key(0), args)
         leaves_t, ctree = jax.tree.flatten(template)
-        keys = [_is_key(x) for x in leaves_t]
+        keys = [is_key(x) for x in leaves_t]
 
         def one(xs):
             leaves, kd = xs
@@ -239,7 +245,7 @@ def _program(c: Campaign, args_tree, args_avals: tuple, n_seeds: int,
         args = jax.tree.unflatten(args_tree, args_leaves)
         template = jax.eval_shape(lambda a: init(jax.random.key(0), a), args)
         kd = jax.eval_shape(lambda: jax.random.key_data(jax.random.key(0))).shape
-        carry = [np.zeros((n_seeds,) + kd, np.uint32) if _is_key(x)
+        carry = [np.zeros((n_seeds,) + kd, np.uint32) if is_key(x)
                  else np.zeros((n_seeds,) + x.shape, x.dtype) for x in jax.tree.leaves(template)]
         return (carry, np.zeros((n_seeds, 2), np.uint32), args_leaves, np.bool_(True))
 

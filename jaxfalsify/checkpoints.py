@@ -29,6 +29,11 @@ import numpy as np
 from jaxfalsify.config import jsonable
 from jaxfalsify.files import save_npz, sha256, write_atomic
 
+__all__ = [
+    "CheckpointError", "read_verified", "write_commit", "read_json", "identity",
+    "check_checkpoint_folder", "CampaignCheckpoint"
+]
+
 FORMAT = 2
 
 

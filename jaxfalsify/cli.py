@@ -18,6 +18,8 @@ import signal
 import sys
 from pathlib import Path
 
+__all__ = ["build_parser", "main", "entry"]
+
 DESCRIPTION = ("JAX-accelerated, batched scenario-based falsification: search a logical "
                "scenario for the concrete scenarios in which a system under test collides.")
 
@@ -792,7 +794,7 @@ def main(argv=None, startup: float = 0.0) -> int:
               file=sys.stderr)
         return 130
     except Exception as e:  # noqa: BLE001 - the Interrupted of runs/sweeps, by name
-        from jaxfalsify.runs import Interrupted
+        from jaxfalsify.store import Interrupted
 
         if isinstance(e, Interrupted):
             print(f"jaxfalsify: {e}", file=sys.stderr)

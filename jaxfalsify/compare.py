@@ -68,10 +68,14 @@ from jaxfalsify.compare_tables import budgets_markdown, table_markdown
 from jaxfalsify.distributed import agree, barrier, share
 from jaxfalsify.files import sha256, write_atomic, write_json
 from jaxfalsify.lifecycle import sut_raised
+from jaxfalsify.problem import RunConfig, check_int
 from jaxfalsify.progress import Clock, Progress
-from jaxfalsify.runs import Interrupted, RunConfig, check_int, check_strategy_memory, timestamp
+from jaxfalsify.runs import check_strategy_memory, timestamp
 from jaxfalsify.space import MAX_SIZE
+from jaxfalsify.store import Interrupted
 from jaxfalsify.truth import ground_truth
+
+__all__ = ["DEFAULT_STRATEGIES", "CompareConfig", "execute"]
 
 # the per-evaluation comparison at each strategy's own batch and the paper's budget: the
 # sample-efficient reinforce/screened stands for the REINFORCE family there (reinforce/default

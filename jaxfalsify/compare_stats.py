@@ -26,6 +26,11 @@ import numpy as np
 
 from jaxfalsify import analysis, campaign
 
+__all__ = [
+    "TOL", "uniform_first_collision", "corner_mask", "seed_stats", "median",
+    "first_collision_seconds_median", "strategy_row", "SEED_TIME_KEYS", "without_times"
+]
+
 TOL = 1e-6  # reward equality with the global maximum (rewards are float32 sums)
 
 

@@ -7,6 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
+__all__ = [
+    "share_text", "plural", "TIME_NOTE", "requirement_words", "table_markdown",
+    "budgets_markdown"
+]
+
 
 def _num(x, fmt: str) -> str:
     return "-" if x is None or not np.isfinite(x) else format(x, fmt)

@@ -11,6 +11,11 @@ from typing import Any
 
 import numpy as np
 
+__all__ = [
+    "versions", "plain", "jsonable", "dumps_toml", "read_toml", "check_keys",
+    "parse_assignments", "check_memory", "check_type"
+]
+
 
 def versions() -> dict[str, str]:
     """Versions of the packages a result depends on."""

@@ -17,6 +17,8 @@ import time
 
 import jax
 
+__all__ = ["TIMEOUT_S", "initialize", "barrier", "agree", "leave", "share"]
+
 TIMEOUT_S = 120  # how long a process waits for the coordinator (and process 0 for its peers)
 
 

@@ -59,6 +59,12 @@ from jaxfalsify.problem import (
 from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.space import MAX_SIZE, Space
 
+__all__ = [
+    "EstimateConfig", "Proposal", "exact_rate", "estimate", "execute", "summary_lines",
+    "METHODS", "uniform_proposal", "wilson", "normal_interval", "fit_mixture", "Tally",
+    "cross_entropy"
+]
+
 METHODS = ("mc", "is", "exact")
 MIN_VIOLATIONS = 10  # violating draws before the stopping rule may stop
 PER_COMPONENT = 200  # elite draws per mixture component, at least

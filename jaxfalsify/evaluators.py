@@ -59,6 +59,8 @@ from jaxfalsify.worker import (  # noqa: F401 - re-exported
     load,
 )
 
+__all__ = ["run", "pool_settings", "COMPARE_STRATEGIES", "compare", "compare_markdown"]
+
 
 # ----------------------------------------------------------------------------- the job
 def run(config: RunConfig, out: Path | str | None = None, *, workers: int | None = None,

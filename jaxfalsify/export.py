@@ -82,6 +82,11 @@ from jaxfalsify.sim import STILL, WINDOW, WORLD, start_positions
 from jaxfalsify.space import KNOWN_PARAMETERS, decimal_grid
 from jaxfalsify.store import folder_kind
 
+__all__ = [
+    "X_OFFSET", "schema_path", "write_road", "value_of", "used_parameters", "parameter_values",
+    "ego_request", "write_controller_scenario", "write_distribution", "EXPORT_FILES", "export"
+]
+
 X_OFFSET = 60.0  # m: our x = -60 is the road's start (ego_offset <= 50 m starts on it)
 ROAD_LENGTH = 130.0  # m
 EGO_LANE = -1  # OpenDRIVE lane of the ego (the innermost right lane)
@@ -251,7 +256,7 @@ def has_window(names) -> bool:
     return any(n in names for n in WINDOW_PARAMETERS)
 
 
-def _used_parameters(space) -> tuple[str, ...]:
+def used_parameters(space) -> tuple[str, ...]:
     """Known scenario parameters a controller-mode file references."""
     base = ("ego_offset", "ped_speed", "ped_accel", "ped_offset", "weather")
     return base + (WINDOW_PARAMETERS if has_window(space.names) else ())
@@ -262,7 +267,7 @@ def parameter_values(space, indices) -> dict[str, str]:
     decimals), then the other known parameters a scenario file uses (their defaults)."""
     out = {n: analysis.format_value(space, p, space.table[p][int(indices[p])])
            for p, n in enumerate(space.names)}
-    for n in _used_parameters(space):
+    for n in used_parameters(space):
         out.setdefault(n, f"{KNOWN_PARAMETERS[n]['default']:g}")
     return out
 

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfalsify import cache, campaign, checkpoints, runs, store
+from jaxfalsify import cache, campaign, checkpoints, runs, sim, store
 from jaxfalsify import figures as figures_lib
 from jaxfalsify import report as report_lib
 from jaxfalsify.files import save_npz, write_atomic, write_json, write_parquet
@@ -45,6 +45,8 @@ from jaxfalsify.lifecycle import Status
 from jaxfalsify.problem import RunConfig
 from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.worker import SIGNALS, trajectory_arrays
+
+__all__ = ["Asked", "Falsifier", "summary_dict"]
 
 TRAJECTORIES = "trajectories.npz"  # an evaluator's run: the trajectories it told
 
@@ -171,10 +173,10 @@ class Falsifier:
 
         self._ask, self._tell = jax.jit(ask), jax.jit(tell)
         key_data = np.asarray(jax.random.key_data(jax.random.wrap_key_data(
-            campaign.sim.seed_key_data(rc.seed))))
+            sim.seed_key_data(rc.seed))))
         template = jax.eval_shape(init, key_data)
         self._treedef = jax.tree.structure(template)
-        self._is_key = [campaign._is_key(x) for x in jax.tree.leaves(template)]
+        self._is_key = [campaign.is_key(x) for x in jax.tree.leaves(template)]
         self.ckpt = checkpoints.CampaignCheckpoint(self.out / "checkpoint", self._fingerprint())
         self.records: list[dict[str, np.ndarray]] = []
         carry = None

@@ -38,6 +38,11 @@ from jaxfalsify.files import write_all_atomic
 from jaxfalsify.rundir import check_config_matches, indices_of, load_run, resimulate  # noqa: F401 - re-exported
 from jaxfalsify.truth import ground_truth
 
+__all__ = [
+    "fig10_rows", "prepare", "make_figures", "critical_region_figure", "search_figure",
+    "cluster_figure", "distance_figure"
+]
+
 FIGSIZE = (8, 4.5)
 MAX_POINTS = 200_000  # evaluations drawn in the reward figure (evenly thinned beyond)
 PER_UPDATE_FROM = 256  # batch from which the reward figure's curve is the mean per update

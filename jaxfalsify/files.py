@@ -17,6 +17,11 @@ import numpy as np
 
 from jaxfalsify.config import jsonable
 
+__all__ = [
+    "sha256", "write_atomic", "write_all_atomic", "replace_files", "atomic_path", "save_npz",
+    "write_parquet", "write_json"
+]
+
 
 def sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()

@@ -11,6 +11,8 @@ from pathlib import Path
 from jaxfalsify import store
 from jaxfalsify.sut import callback_error
 
+__all__ = ["ERROR_CHARS", "Status", "sut_raised"]
+
 ERROR_CHARS = 300  # the longest error text status.json keeps
 STATES = ("running", "interrupted", "failed", "complete")
 

@@ -6,6 +6,8 @@ All functions are written for one scenario and one timestep (scalars); ``vmap`` 
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
+__all__ = ["rss_safe_distance", "box_gaps", "box_distance", "time_to_collision"]
+
 
 def rss_safe_distance(v_rear: ArrayLike, v_front: ArrayLike = 0.0, *, response_time: float = 1.0,
                       accel_max: float = 3.5, brake_min: float = 4.0,

@@ -20,6 +20,8 @@ import numpy as np
 
 from jaxfalsify.worker import EvaluatorError, dask_task
 
+__all__ = ["Results", "Pool", "DaskPool", "make_pool", "check_settings"]
+
 WORKER = str(Path(__file__).with_name("worker.py"))  # a worker process runs this file
 
 @dataclasses.dataclass

@@ -24,6 +24,12 @@ from jaxfalsify.space import (
     space_from_dict,
 )
 
+__all__ = [
+    "PAPER_BUDGET", "SEED_LIMIT", "check_int", "build_space", "space_sut_names",
+    "fixed_sut_params", "check_space_sut", "check_mapping", "Built", "RunConfig",
+    "CONFIG_KEYS", "build_requirement", "SETTINGS", "configure"
+]
+
 PAPER_BUDGET = 4000
 SEED_LIMIT = 2**64  # seeds are 64-bit (see sim.seed_key_data)
 

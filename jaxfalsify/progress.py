@@ -11,6 +11,8 @@ import os
 import sys
 import time
 
+__all__ = ["IMPORTED_AT", "Progress", "Bar", "startup_seconds", "Clock", "timing_line"]
+
 IMPORTED_AT = time.perf_counter()  # when jaxfalsify began to load (its __init__ imports this
 # module first): start-up accounting
 

@@ -12,6 +12,11 @@ import math
 import jax
 import numpy as np
 
+__all__ = [
+    "dataclass", "static", "replace", "FLOAT32_MAX", "real_number", "field_names", "ranges",
+    "in_range", "check_ranges"
+]
+
 
 def dataclass(cls):
     """``@dataclass``: a frozen dataclass registered as a pytree (see :func:`static`)."""

@@ -17,6 +17,8 @@ from jaxfalsify.sim import WORLD, World
 from jaxfalsify.space import KNOWN_PARAMETERS
 from jaxfalsify.sut import REGISTRY
 
+__all__ = ["reference_evaluate", "ttc_scalar", "python_loop_evaluate"]
+
 
 def _rss(v):
     # d_min = v*1 + 3.5/2 + (v + 3.5)^2 / (2*4) - 0, floored at 0 (paper Eq. 4, ad-rss-lib)

@@ -47,6 +47,8 @@ from jaxfalsify.rundir import check_simulated, indices_of, load_run, resimulate
 from jaxfalsify.space import SUT_PREFIX, is_sut_parameter
 from jaxfalsify.suts import carla_tm
 
+__all__ = ["record", "record_campaign", "resolve_scenario"]
+
 RED, GREEN, BLUE, GREY = (220, 40, 40), (40, 160, 60), (40, 90, 220), (150, 150, 150)
 
 

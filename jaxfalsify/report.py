@@ -15,6 +15,8 @@ from jaxfalsify.progress import timing_line
 from jaxfalsify.rundir import load_run
 from jaxfalsify.store import FIGURES
 
+__all__ = ["simulate_command", "write_report"]
+
 
 def simulate_command(sp, rc, ep: dict, row: int) -> list[str]:
     """``jaxfalsify simulate`` lines for evaluated ``row``: its parameter values, the run's SUT

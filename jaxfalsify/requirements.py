@@ -42,6 +42,11 @@ from jaxfalsify import cache, pytree
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.sim import Outcome
 
+__all__ = [
+    "REGISTRY", "DEFAULT", "resolve", "param_names", "with_params", "cache_key", "robustness",
+    "check", "Requirement", "ClashParams", "TTCParams", "RSSParams", "register"
+]
+
 CAP = 1000.0  # robustness of a requirement whose signal never came near (inf) is capped here
 
 

@@ -19,6 +19,8 @@ decimals and does not clip. The RSS fraction is rounded half-up with exact integ
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
+__all__ = ["rss_term", "distance_term", "collision_term", "paper_reward"]
+
 LOW, HIGH = -0.01, 0.01
 COLLISION_BONUS = 0.25
 DIST_MIN, DIST_MAX = 1.0, 10.0

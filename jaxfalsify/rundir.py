@@ -18,6 +18,11 @@ from jaxfalsify.campaign import RECORD_FIELDS, evaluation_key
 from jaxfalsify.problem import RunConfig
 from jaxfalsify.space import Space, is_sut_parameter
 
+__all__ = [
+    "RunFolder", "load_run", "check_config_matches", "check_simulated", "indices_of",
+    "resimulate"
+]
+
 
 class RunFolder(NamedTuple):
     """A finished run folder, read and checked (:func:`load_run`); unpacks as ``space,

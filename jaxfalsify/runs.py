@@ -62,6 +62,13 @@ from jaxfalsify.sim import WORLD
 from jaxfalsify.space import Space
 from jaxfalsify.store import Interrupted  # noqa: F401 - re-exported
 
+__all__ = [
+    "RunConfig", "configure", "SETTINGS", "Interrupted",
+    "evaluations_table", "CLUSTERS_LISTED", "summary_dict", "critical_csv", "restore",
+    "STATE_COPIES", "check_strategy_memory", "RunOutcome", "execute", "redraw",
+    "resume_config", "closing_report", "run_lines", "timestamp", "default_run_dir"
+]
+
 
 # ----------------------------------------------------------------------------- outputs
 def evaluations_table(res: campaign.Result) -> dict[str, np.ndarray]:

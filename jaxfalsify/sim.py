@@ -53,6 +53,13 @@ from jaxfalsify.space import (
     is_sut_parameter,
 )
 
+__all__ = [
+    "World", "WORLD", "Trajectory", "Outcome", "BLOCK", "STILL", "WINDOW",
+    "ped_profile_constants", "ped_speed_profile", "start_positions", "rollout",
+    "batch_rollout", "LANES_PER", "lane_count", "as_float32", "seed_key_data", "seed_key",
+    "simulate", "CPU_CHUNK", "default_chunk", "evaluate", "local_batch_sharding", "describe"
+]
+
 NON_NEGATIVE = ("lanes_left", "crosswalk_x", "end_x", "walker_base", "origin_dz")
 
 
@@ -641,7 +648,7 @@ def _refilled(flat: dict, over: dict, offsets, key, sut: sut_lib.SUT, params, wo
     return st[-1]
 
 
-def _f32(tree):
+def as_float32(tree):
     return jax.tree.map(lambda x: np.asarray(x, np.float32), tree)
 
 
@@ -680,8 +687,8 @@ def run_batch(flat: dict, offsets, key_data, sut: sut_lib.SUT, params, world: Wo
               record: bool = False):
     """:func:`batch_rollout` compiled: host arrays in, ``(Outcome, Trajectory | None)`` of
     NumPy arrays out."""
-    p_leaves, p_tree = jax.tree.flatten(_f32(params))
-    w_leaves, w_tree = jax.tree.flatten(_f32(world))
+    p_leaves, p_tree = jax.tree.flatten(as_float32(params))
+    w_leaves, w_tree = jax.tree.flatten(as_float32(world))
     avals = tuple(jax.ShapeDtypeStruct(x.shape, x.dtype) for x in p_leaves)
     n = int(np.shape(offsets)[0])
     prog = _batch_program(sut, record, n, p_tree, avals, w_tree)

@@ -32,6 +32,13 @@ from jaxfalsify import weather
 from jaxfalsify.config import check_keys, read_toml
 from jaxfalsify.pytree import FLOAT32_MAX
 
+__all__ = [
+    "KNOWN_PARAMETERS", "MAX_SIZE", "SUT_PREFIX", "is_sut_parameter", "decimal_grid",
+    "uniform", "Layout", "Space", "space_from_dict", "check_name", "load_space",
+    "check_scenario_values", "Parameter", "DISTRIBUTIONS", "BUILTIN", "MAX_SAMPLES",
+    "MAX_SEARCH_SIZE"
+]
+
 # Scenario parameters the simulator understands: unit, default, allowed domain, integer-valued.
 # A space need not declare all of them; undeclared ones take the default.
 KNOWN_PARAMETERS: dict[str, dict[str, Any]] = {

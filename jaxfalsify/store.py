@@ -25,6 +25,12 @@ from pathlib import Path
 from jaxfalsify.config import read_toml
 from jaxfalsify.files import write_json
 
+__all__ = [
+    "FolderError", "FIGURES", "folder_kind", "check_out", "clear", "FolderLock", "discard",
+    "open_folder", "open_new_folder", "shell_path", "write_status", "run_folder_lock",
+    "check_out_plain", "Interrupted"
+]
+
 
 class FolderError(ValueError):
     """An output folder that cannot be used as asked (one line naming it and what to do)."""

@@ -27,6 +27,8 @@ from jaxfalsify.progress import Clock, Progress
 from jaxfalsify.runs import timestamp
 from jaxfalsify.space import check_name, load_space
 
+__all__ = ["load_suite", "execute_suite", "suite_markdown"]
+
 
 @dataclasses.dataclass(frozen=True)
 class SuiteEntry:

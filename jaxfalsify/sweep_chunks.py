@@ -20,6 +20,11 @@ from jaxfalsify import sut as sut_lib
 from jaxfalsify.space import MAX_SIZE, Layout, Space
 from jaxfalsify.sweep_config import Calibrations
 
+__all__ = [
+    "OUTCOME_FIELDS", "DEFAULT_CHUNK", "plan_chunks", "chunk_table", "check_columns",
+    "check_sweepable", "iter_sweep", "violated_fn"
+]
+
 OUTCOME_FIELDS = tuple(f.name for f in dataclasses.fields(sim.Outcome))
 DEFAULT_CHUNK = sim.CPU_CHUNK  # library helpers' default; a sweep's: sim.default_chunk()
 
@@ -111,8 +116,8 @@ def _chunk_program(layout: Layout, sut: sut_lib.SUT, chunk: int, params_tree,
 
 
 def _program(params, world, layout: Layout, sut: sut_lib.SUT, chunk: int, reduced: bool):
-    p_leaves, p_tree = jax.tree.flatten(sim._f32(params))
-    w_leaves, w_tree = jax.tree.flatten(sim._f32(world))
+    p_leaves, p_tree = jax.tree.flatten(sim.as_float32(params))
+    w_leaves, w_tree = jax.tree.flatten(sim.as_float32(world))
     avals = tuple(jax.ShapeDtypeStruct(x.shape, x.dtype) for x in p_leaves)
     prog = _chunk_program(layout, sut, chunk, p_tree, avals, w_tree, reduced)
     return prog, p_leaves, w_leaves

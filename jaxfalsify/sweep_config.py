@@ -29,6 +29,8 @@ from jaxfalsify.problem import (
 )
 from jaxfalsify.space import Space
 
+__all__ = ["Calibrations", "calibrations", "SweepConfig", "default_out"]
+
 ROWS = ("all", "collisions", "none")
 
 

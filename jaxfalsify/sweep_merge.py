@@ -16,6 +16,8 @@ from jaxfalsify.problem import fixed_sut_params
 from jaxfalsify.space import Space
 from jaxfalsify.sweep_config import Calibrations, SweepConfig
 
+__all__ = ["read_part", "merge_summary", "merge_rows"]
+
 
 def read_part(path: Path, i: int, sweep_id: str) -> dict:
     """Another process's summary part, its seal and identity verified."""

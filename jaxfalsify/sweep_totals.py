@@ -14,6 +14,8 @@ from jaxfalsify.space import Space
 from jaxfalsify.sweep_chunks import chunk_table
 from jaxfalsify.sweep_config import Calibrations
 
+__all__ = ["Reducer", "fold"]
+
 
 class Reducer:
     """Running totals of a sweep per calibration: counts and the global maximum reward (the

@@ -17,6 +17,8 @@ from jaxfalsify.space import Space
 from jaxfalsify.sweep_chunks import DEFAULT_CHUNK, iter_sweep, violated_fn
 from jaxfalsify.sweep_config import calibrations
 
+__all__ = ["sweep_arrays", "TRUTH_FIELDS", "ground_truth"]
+
 
 def sweep_arrays(space: Space, sut="carla-tm", sut_params=None, world: sim.World = sim.WORLD,
                  chunk: int = DEFAULT_CHUNK, fields=None) -> dict[str, np.ndarray]:

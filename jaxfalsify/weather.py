@@ -11,6 +11,8 @@ unchanged. Only perception-based systems under test (``sensor-aeb``) react to it
 
 import numpy as np
 
+__all__ = ["PRESETS", "N_PRESETS", "TABLE"]
+
 # name, cloudiness [%], precipitation [%], precipitation deposits [%], sun altitude [deg]
 PRESETS: tuple[tuple[str, float, float, float, float], ...] = (
     ("ClearNoon", 15.0, 0.0, 0.0, 75.0),

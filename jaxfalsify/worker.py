@@ -19,6 +19,11 @@ from typing import Callable
 
 import numpy as np
 
+__all__ = [
+    "SIGNALS", "EvaluatorError", "import_module", "load", "call", "trajectory_arrays",
+    "dask_task"
+]
+
 TRAJECTORY = ("t", "distance", "ego_x", "ego_y", "ped_x", "ped_y", "ego_speed")  # what an
 # evaluator's trajectory may hold, (n, T) each: time [s], the distance between the boxes [m],
 # positions [m] and the ego's speed [m/s] per step (NaN after a scenario's end)

@@ -147,3 +147,77 @@ def test_a_module_over_400_lines_names_its_one_concern():
     unsaid = [m for m, p in long.items()
               if "One concern" not in (ast.get_docstring(ast.parse(p.read_text())) or "")]
     assert unsaid == []
+
+
+def names_taken(mods: dict[str, Path]) -> dict[str, set[str]]:
+    """For each module, the names other modules of the package take from it: ``from M import
+    name`` and ``alias.name`` where ``alias`` is M imported under a name."""
+    taken: dict[str, set[str]] = {m: set() for m in mods}
+    for me, path in mods.items():
+        tree = ast.parse(path.read_text())
+        alias = {}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("jaxfalsify"):
+                for a in node.names:
+                    full = f"{node.module}.{a.name}"
+                    if full in mods:
+                        alias[a.asname or a.name] = full
+                    elif node.module in mods and node.module != me:
+                        taken[node.module].add(a.name)
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+                    and alias.get(node.value.id, me) != me):
+                taken[alias[node.value.id]].add(node.attr)
+    return taken
+
+
+def top_level_names(path: Path) -> set[str]:
+    """Names a module binds at its top level (within ``if`` and ``try`` blocks too)."""
+    out, todo = set(), list(ast.parse(path.read_text()).body)
+    while todo:
+        n = todo.pop()
+        if isinstance(n, (ast.FunctionDef, ast.ClassDef)):
+            out.add(n.name)
+        elif isinstance(n, (ast.Assign, ast.AnnAssign)):
+            out |= {t.id for t in (n.targets if isinstance(n, ast.Assign) else [n.target])
+                    if isinstance(t, ast.Name)}
+        elif isinstance(n, (ast.Import, ast.ImportFrom)):
+            out |= {(a.asname or a.name).split(".")[0] for a in n.names}
+        elif isinstance(n, (ast.If, ast.Try)):
+            todo += n.body + n.orelse
+    return out
+
+
+def declared_all(path: Path) -> list[str] | None:
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "__all__"
+                                                for t in node.targets):
+            return [e.value for e in node.value.elts]
+    return None
+
+
+def test_names_taken_are_read_from_imports_and_attributes(tmp_path):
+    a, b = tmp_path / "a.py", tmp_path / "b.py"
+    a.write_text("from jaxfalsify.b import f\nfrom jaxfalsify import b as bee\nbee.g()\n")
+    b.write_text("__all__ = ['f']\ndef f(): pass\ndef g(): pass\n")
+    taken = names_taken({"jaxfalsify.a": a, "jaxfalsify.b": b})
+    assert taken == {"jaxfalsify.a": set(), "jaxfalsify.b": {"f", "g"}}
+    assert declared_all(b) == ["f"]
+
+
+def test_modules_use_only_each_others_public_api():
+    """Every module declares ``__all__``; what one module takes from another is in the
+    other's ``__all__``, and every name there is defined."""
+    mods = {m: p for m, p in modules().items() if not m.endswith("__main__")}
+    taken = names_taken(mods)
+    assert taken["jaxfalsify.sim"], "no use of sim was read"
+    missing, outside, undefined = [], [], []
+    for m, p in mods.items():
+        names = declared_all(p)
+        if names is None:
+            missing.append(m)
+            continue
+        outside += [f"{m}.{n}" for n in sorted(taken[m] - set(names))
+                    if f"{m}.{n}" not in mods and not n.startswith("__")]
+        undefined += [f"{m}.{n}" for n in names if n not in top_level_names(p)]
+    assert (missing, outside, undefined) == ([], [], [])

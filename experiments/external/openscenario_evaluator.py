@@ -46,7 +46,7 @@ def write(values: dict, folder: Path) -> Path:
     _count[0] += 1
     path = folder / f"scenario_{os.getpid()}_{_count[0]:06d}.xosc"
     text = {n: f"{v:.10g}" for n, v in values.items()}
-    for n in export._used_parameters(SPACE):
+    for n in export.used_parameters(SPACE):
         text.setdefault(n, f"{KNOWN_PARAMETERS[n]['default']:g}")
     return export.write_controller_scenario(path, road.name, SPACE, text, REQUEST, WORLD,
                                             path.stem)

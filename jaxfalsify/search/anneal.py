@@ -21,6 +21,8 @@ from jaxfalsify.search.base import (
     uniform_indices,
 )
 
+__all__ = ["Anneal", "AnnealParams", "AnnealState"]
+
 
 @pytree.dataclass
 class AnnealParams:

@@ -36,7 +36,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxfalsify.search.base import categorical_from_uniform, value_mask
-from jaxfalsify.search.controller import MASKED, _glorot, lstm_step, mm
+from jaxfalsify.search.controller import MASKED, glorot, lstm_step, mm
+
+__all__ = [
+    "LOG_SIGMA_MIN", "init", "LOCAL_STEPS", "unrolled", "padded", "over_params", "sample",
+    "log_prob_and_entropy"
+]
 
 LOG_SIGMA_MIN = float(np.log(0.05))
 
@@ -52,7 +57,7 @@ def init(key, shape: tuple[int, ...], hidden: int = 32, anchored: bool = False) 
     :func:`head_logits`)."""
     P, width = len(shape), max(shape)
     n_in = 4 * P + 1 if anchored else 2 * P
-    w, u = _glorot(key, [(n_in, 4 * hidden), (hidden, 4 * hidden)])
+    w, u = glorot(key, [(n_in, 4 * hidden), (hidden, 4 * hidden)])
     b = jnp.zeros(4 * hidden, jnp.float32).at[hidden:2 * hidden].set(1.0)
     z = lambda *s: jnp.zeros(s, jnp.float32)  # noqa: E731
     out = {"lstm": {"w": w, "u": u, "b": b},
@@ -163,7 +168,7 @@ UNROLL_ABOVE = 1024  # padded head values (P x the widest parameter's values) ab
 
 
 def unrolled(shape: tuple[int, ...]) -> bool:
-    """Whether :func:`_scan` unrolls the steps (heads at their own widths: less work per draw
+    """Whether :func:`over_params` unrolls the steps (heads at their own widths: less work per draw
     on spaces with a few wide parameters, a larger program to load) or scans them (heads
     padded to the widest parameter)."""
     return len(shape) * max(shape) > UNROLL_ABOVE
@@ -186,8 +191,8 @@ def _anchor_ranks(anchor, shape):
     return idx.astype(jnp.float32) / span, jnp.asarray(present), zoom, edge_mass
 
 
-def _scan(w: dict, shape: tuple[int, ...], step_fn, xs, log_sigma_min=LOG_SIGMA_MIN,
-          anchor=None):
+def over_params(w: dict, shape: tuple[int, ...], step_fn, xs, log_sigma_min=LOG_SIGMA_MIN,
+                anchor=None):
     """Run the controller over the P parameters for one scenario; ``step_fn(p, logits, x)``
     returns ``(value index, output)`` where ``x`` is that step's per-scenario input; the
     outputs are stacked ``(P, ...)``. ``anchor``: ``(indices (P,), present[, zoom (P,)])`` for
@@ -225,7 +230,7 @@ def sample(w: dict, u: jax.Array, shape: tuple[int, ...],
         a = categorical_from_uniform(up, jax.nn.softmax(logits))
         return a, a
 
-    return _scan(w, shape, step_fn, u, log_sigma_min, anchor)
+    return over_params(w, shape, step_fn, u, log_sigma_min, anchor)
 
 
 def log_prob_and_entropy(w: dict, action: jax.Array, shape: tuple[int, ...],
@@ -237,7 +242,7 @@ def log_prob_and_entropy(w: dict, action: jax.Array, shape: tuple[int, ...],
         lp = jax.nn.log_softmax(logits)
         return a, (lp[a], -jnp.sum(jnp.exp(lp) * lp))
 
-    lp, ent = _scan(w, shape, step_fn, action, log_sigma_min, anchor)
+    lp, ent = over_params(w, shape, step_fn, action, log_sigma_min, anchor)
     return jnp.sum(lp), jnp.sum(ent)
 
 
@@ -248,4 +253,4 @@ def conditionals(w: dict, action: jax.Array, shape: tuple[int, ...],
     def step_fn(p, logits, a):
         return a, padded(jax.nn.softmax(logits), shape)
 
-    return _scan(w, shape, step_fn, action, log_sigma_min, anchor)
+    return over_params(w, shape, step_fn, action, log_sigma_min, anchor)

@@ -36,6 +36,12 @@ import jax.numpy as jnp
 
 from jaxfalsify import pytree
 
+__all__ = [
+    "Strategy", "near_miss_ttc", "shaped_signal", "SIGNALS", "resolve_signal", "centred_ranks",
+    "uniform", "sample_uniform", "value_mask", "sample_categorical",
+    "categorical_from_uniform", "uniform_indices", "rank_order"
+]
+
 
 @pytree.dataclass
 class NoParams:

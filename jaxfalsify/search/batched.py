@@ -61,6 +61,11 @@ from jaxfalsify.search import discretised
 from jaxfalsify.search.base import Strategy, near_miss_ttc, shaped_signal, uniform
 from jaxfalsify.search.controller import Linear, LSTMCell
 
+__all__ = [
+    "SIGMA_MIN_STEPS", "LOG_SIGMA_MAX", "BatchedReinforce", "MixtureController",
+    "BatchedParams", "BatchedState"
+]
+
 SIGMA_MIN_STEPS = 0.1  # narrowest component's logistic scale, in value steps (98.7 % of its
 # mass on one value: S(5) - S(-5))
 LOG_SIGMA_MAX = 0.0  # widest component: sigma = 1 (the whole range)

@@ -21,6 +21,8 @@ from jaxfalsify.search.base import (
     value_mask,
 )
 
+__all__ = ["CEMParams", "CEM", "CEMState"]
+
 
 @pytree.dataclass
 class CEMParams:

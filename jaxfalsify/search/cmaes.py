@@ -35,6 +35,8 @@ from jax.scipy.special import ndtr, ndtri
 from jaxfalsify import pytree
 from jaxfalsify.search.base import Strategy, resolve_signal
 
+__all__ = ["CMAES", "ordinal_ranks", "margin_correction", "CMAESParams", "CMAESState"]
+
 
 @pytree.dataclass
 class CMAESParams:

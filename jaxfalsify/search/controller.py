@@ -31,6 +31,11 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+__all__ = [
+    "MASKED", "mm", "LSTMCell", "lstm_step", "glorot", "init", "Linear", "PaperController",
+    "logits", "action_log_prob", "entropy", "normalise"
+]
+
 # Logit of padded (non-existent) values: finite, so gradients through softmax stay finite,
 # and low enough that their probability is exactly 0 in float32.
 MASKED = -1e9
@@ -44,13 +49,13 @@ def mm(a: jax.Array, b: jax.Array) -> jax.Array:
 
 def lstm_init(key, in_features: int, hidden: int) -> dict[str, jax.Array]:
     """One LSTM layer: ``w (in, 4H)``, ``u (H, 4H)``, ``b (4H,)``; gates in order i, f, g, o."""
-    w, u = _glorot(key, [(in_features, 4 * hidden), (hidden, 4 * hidden)])
+    w, u = glorot(key, [(in_features, 4 * hidden), (hidden, 4 * hidden)])
     b = jnp.zeros(4 * hidden, jnp.float32).at[hidden:2 * hidden].set(1.0)
     return {"w": w, "u": u, "b": b}
 
 
 def _glorot_init(key, shape, dtype=jnp.float32):
-    (w,) = _glorot(key, [tuple(shape)])
+    (w,) = glorot(key, [tuple(shape)])
     return w.astype(dtype)
 
 
@@ -88,11 +93,11 @@ def lstm_step(p: dict, carry: tuple[jax.Array, jax.Array], x: jax.Array,
 
 
 def dense_init(key, in_features: int, out_features: int) -> dict[str, jax.Array]:
-    (w,) = _glorot(key, [(in_features, out_features)])
+    (w,) = glorot(key, [(in_features, out_features)])
     return {"w": w, "b": jnp.zeros(out_features, jnp.float32)}
 
 
-def _glorot(key, shapes: list[tuple[int, int]]) -> list[jax.Array]:
+def glorot(key, shapes: list[tuple[int, int]]) -> list[jax.Array]:
     """Glorot-uniform matrices, U(-l, l) with l = sqrt(6 / (fan_in + fan_out)), from one draw."""
     sizes = [a * b for a, b in shapes]
     u = jax.random.uniform(key, (sum(sizes),), minval=-1.0, maxval=1.0)
@@ -113,7 +118,7 @@ def init(key, shape: tuple[int, ...], hidden: int = 32) -> dict:
     """The paper's controller: two relu LSTM layers and one linear head ``(P * max_n)``
     (all weights from one draw: each random call site costs compile time)."""
     P, width = len(shape), max(shape)
-    w1, u1, w2, u2, wh = _glorot(key, [(P, 4 * hidden), (hidden, 4 * hidden),
+    w1, u1, w2, u2, wh = glorot(key, [(P, 4 * hidden), (hidden, 4 * hidden),
                                        (hidden, 4 * hidden), (hidden, 4 * hidden),
                                        (hidden, P * width)])
     b = jnp.zeros(4 * hidden, jnp.float32).at[hidden:2 * hidden].set(1.0)

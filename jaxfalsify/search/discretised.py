@@ -36,6 +36,8 @@ import numpy as np
 
 from jaxfalsify.search.base import categorical_from_uniform
 
+__all__ = ["half_steps", "log_mass", "log_normaliser", "log_prob", "sample", "probs_table"]
+
 
 def half_steps(shape: tuple[int, ...]) -> np.ndarray:
     """``(P,)`` half a value step in rank units, ``0.5 / (n_p - 1)`` (0.5 for one value)."""

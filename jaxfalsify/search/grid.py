@@ -14,6 +14,8 @@ import numpy as np
 from jaxfalsify import pytree
 from jaxfalsify.search.base import Strategy
 
+__all__ = ["Grid", "GridState"]
+
 MAX_SIZE = 20_000_000
 
 

@@ -4,6 +4,8 @@ import dataclasses
 
 from jaxfalsify.search.base import Strategy, sample_uniform
 
+__all__ = ["RandomSearch"]
+
 
 @dataclasses.dataclass(frozen=True)
 class RandomSearch(Strategy):

@@ -42,6 +42,8 @@ from jaxfalsify.search.base import (
     uniform_indices,
 )
 
+__all__ = ["epsilon", "Reinforce", "ReinforceParams", "ReinforceState"]
+
 
 @pytree.dataclass
 class ReinforceParams:

@@ -101,6 +101,8 @@ from jaxfalsify.search.base import (
     uniform_indices,
 )
 
+__all__ = ["scenario_hash", "top_distinct", "AutoregressiveReinforce", "ARParams", "ARState"]
+
 ADVANTAGES = ("rank", "normalised")
 
 
@@ -308,8 +310,8 @@ class AutoregressiveReinforce(Strategy):
             return jnp.argmax(logits).astype(jnp.int32), ar.padded(jax.nn.softmax(logits),
                                                                    self.shape)
 
-        return ar._scan(w, self.shape, step_fn, jnp.zeros(self.n_params), self._lsm(params),
-                        self._global())
+        return ar.over_params(w, self.shape, step_fn, jnp.zeros(self.n_params),
+                              self._lsm(params), self._global())
 
     def candidates(self, key, state, params):
         """The scenarios an ask chooses from, per learner: ``idx (L, C, P)``, ``explored``

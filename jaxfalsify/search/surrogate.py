@@ -34,6 +34,12 @@ import jax.numpy as jnp
 
 from jaxfalsify.search.controller import mm  # full float32 products (not TF32) on GPUs
 
+__all__ = [
+    "LENGTH_SCALES", "ARD_SCALES", "ARD_START", "NOISE", "unit", "cholesky", "solve_lower",
+    "solve_upper", "KERNELS", "check_kernel", "kernel", "fit", "best_fit", "refine", "predict",
+    "posterior", "ucb", "batch_ucb"
+]
+
 LENGTH_SCALES = (0.03, 0.06, 0.12, 0.25, 0.5)  # candidates, fractions of every range
 ARD_SCALES = (0.03, 0.06, 0.12, 0.25, 0.5, 1.0, 4.0)  # candidates per parameter
 ARD_START = 0.12  # every parameter's scale before it is refined

@@ -9,6 +9,11 @@ import jax.numpy as jnp
 from jaxfalsify import pytree
 from jaxfalsify.suts.interface import Observation
 
+__all__ = [
+    "CruiseParams", "cruise_command", "AutopilotParams", "target_speed", "pid_init",
+    "autopilot_command", "none_act"
+]
+
 
 @pytree.dataclass
 class CruiseParams:

@@ -11,6 +11,8 @@ from jaxfalsify import pytree
 from jaxfalsify.suts.autopilot import AutopilotParams, autopilot_command
 from jaxfalsify.suts.interface import Observation
 
+__all__ = ["CarlaTMParams", "boundary_extension", "tm_polygons", "carla_tm_hazard", "carla_tm_act"]
+
 
 @pytree.dataclass
 class CarlaTMParams(AutopilotParams):

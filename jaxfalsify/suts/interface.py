@@ -10,6 +10,8 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+__all__ = ["G", "Observation", "no_state", "SUT"]
+
 G = 9.81  # m/s^2
 
 

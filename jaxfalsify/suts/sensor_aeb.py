@@ -11,6 +11,8 @@ from jaxfalsify import metrics, pytree, weather
 from jaxfalsify.suts.autopilot import AutopilotParams, autopilot_command, pid_init
 from jaxfalsify.suts.interface import G, Observation
 
+__all__ = ["SensorAEBParams", "sensor_capability", "sensor_aeb_act", "sensor_init"]
+
 
 @pytree.dataclass
 class SensorAEBParams(AutopilotParams):
