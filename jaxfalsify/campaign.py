@@ -1,6 +1,6 @@
 """A falsification campaign: a search strategy against a SUT over a space, for a budget.
 
-One concern, though over 400 lines: one compiled campaign and the host loop that drives it.
+One concern: one compiled campaign and the host loop that drives it.
 
 :func:`make_campaign` builds, PureJaxRL-style, pure functions whose whole loop (ask -> simulate
 the batch -> tell, ``lax.scan`` over updates) is one jit-compiled call. Everything numeric is a
@@ -39,7 +39,7 @@ from jaxfalsify.space import Layout, Space
 __all__ = [
     "RECORD_FIELDS", "Plan", "plan", "args_for", "Campaign", "evaluation_key", "environment",
     "is_key", "static_key", "program", "Result", "Stopped", "run_seeds", "run", "carry_avals",
-    "record_shapes"
+    "record_shapes", "drive"
 ]
 
 RECORD_FIELDS = ("reward", "reward_rss", "reward_distance", "reward_collision", "collision",

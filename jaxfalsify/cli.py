@@ -1,6 +1,6 @@
 """The ``jaxfalsify`` command: a thin shell over the library.
 
-One concern, though over 400 lines: turning the command line into library calls (flags, help,
+One concern: turning the command line into library calls (flags, help,
 exit codes); no job logic lives here.
 
 Each subcommand maps its flags to a config (``runs.RunConfig``, ``sweep_config.SweepConfig``,

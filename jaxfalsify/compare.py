@@ -4,7 +4,7 @@ exhaustive sweep as ground truth (from the per-user cache, see
 (:class:`CompareConfig`), the ground truth's summary (:func:`truth_summary`), the searches, the
 search-overhead timing and the files written (:func:`execute`).
 
-One concern, though over 400 lines: the comparison job (its configuration, searches, timing and
+One concern: the comparison job (its configuration, searches, timing and
 files); statistics and tables are in ``compare_stats`` and ``compare_tables``.
 
 Per strategy (one compiled program, its seeds run through it one after another), the figures of
@@ -75,7 +75,7 @@ from jaxfalsify.space import MAX_SIZE
 from jaxfalsify.store import Interrupted
 from jaxfalsify.truth import ground_truth
 
-__all__ = ["DEFAULT_STRATEGIES", "CompareConfig", "execute"]
+__all__ = ["DEFAULT_STRATEGIES", "CompareConfig", "execute", "truth_summary"]
 
 # the per-evaluation comparison at each strategy's own batch and the paper's budget: the
 # sample-efficient reinforce/screened stands for the REINFORCE family there (reinforce/default

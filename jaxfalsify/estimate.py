@@ -1,6 +1,6 @@
 """How often the SUT violates a requirement: failure-rate estimates with confidence intervals.
 
-One concern, though over 400 lines: failure-rate estimation (its estimators, their intervals and
+One concern: failure-rate estimation (its estimators, their intervals and
 the estimate job).
 
 The rate is the probability that a concrete scenario drawn from the logical scenario violates

@@ -42,7 +42,7 @@ from jaxfalsify.compare_stats import median
 from jaxfalsify.external import Asked, Falsifier
 from jaxfalsify.files import write_atomic, write_json
 from jaxfalsify.lifecycle import Status
-from jaxfalsify.pools import (  # noqa: F401 - re-exported
+from jaxfalsify.pools import (  # re-exported
     DaskPool,
     Pool,
     Results,
@@ -51,7 +51,7 @@ from jaxfalsify.pools import (  # noqa: F401 - re-exported
 )
 from jaxfalsify.problem import RunConfig
 from jaxfalsify.progress import Clock, Progress
-from jaxfalsify.worker import (  # noqa: F401 - re-exported
+from jaxfalsify.worker import (  # re-exported
     SIGNALS,
     EvaluatorError,
     call,
@@ -59,7 +59,11 @@ from jaxfalsify.worker import (  # noqa: F401 - re-exported
     load,
 )
 
-__all__ = ["run", "pool_settings", "COMPARE_STRATEGIES", "compare", "compare_markdown"]
+__all__ = [
+    "run", "pool_settings", "COMPARE_STRATEGIES", "compare", "compare_markdown", "Pool",
+    "DaskPool", "Results", "make_pool", "check_settings", "load", "call", "SIGNALS",
+    "EvaluatorError", "dask_task"
+]
 
 
 # ----------------------------------------------------------------------------- the job

@@ -1,7 +1,7 @@
 """OpenSCENARIO 1.x export of a run's concrete scenarios and its logical scenario
 (``scenariogeneration``, host side).
 
-One concern, though over 400 lines: writing OpenSCENARIO / OpenDRIVE files of a run's scenarios.
+One concern: writing OpenSCENARIO / OpenDRIVE files of a run's scenarios.
 
 Writes, to one folder:
 

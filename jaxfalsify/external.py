@@ -1,6 +1,6 @@
 """Falsifying a system that lives outside JAX: ask / tell.
 
-One concern, though over 400 lines: ask / tell for systems outside JAX (:class:`Falsifier` and
+One concern: ask / tell for systems outside JAX (:class:`Falsifier` and
 its run folder).
 
 The search stays jitted; only the evaluation happens on the host, in the user's loop::

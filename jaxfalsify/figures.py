@@ -1,6 +1,6 @@
 """The paper's figures (and critical-region maps) for a run folder, as PNG files.
 
-One concern, though over 400 lines: drawing a run folder's figures.
+One concern: drawing a run folder's figures.
 
 Host-side only (matplotlib, Agg backend); the jitted core never imports this module.
 
@@ -35,7 +35,7 @@ import numpy as np
 
 from jaxfalsify import analysis, sim
 from jaxfalsify.files import write_all_atomic
-from jaxfalsify.rundir import check_config_matches, indices_of, load_run, resimulate  # noqa: F401 - re-exported
+from jaxfalsify.rundir import load_run, resimulate
 from jaxfalsify.truth import ground_truth
 
 __all__ = [

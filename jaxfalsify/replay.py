@@ -330,7 +330,7 @@ def _tm_polygons(rc, tr: dict, w, scenario: dict | None = None) -> tuple:
     ``(x0, x1, y0, y1)`` arrays (the SUT's own geometry, ``suts.carla_tm.tm_polygons``), with the
     SUT parameters the scenario ran with: the run's ``sut_params`` and the scenario's
     ``sut.NAME`` values (``scenario``: one scenario's parameters, scalars or arrays of one
-    value), as ``figures.resimulate`` simulates it."""
+    value), as ``rundir.resimulate`` simulates it."""
 
     s = sut_lib.resolve(rc.sut)
     over = {k[len(SUT_PREFIX):]: float(np.asarray(v).reshape(-1)[0])

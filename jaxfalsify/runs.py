@@ -1,6 +1,6 @@
 """Falsification runs: the main job as a library call, ``execute(config, out, ...)``.
 
-One concern, though over 400 lines: the main job (its configuration, folder, lifecycle and
+One concern: the main job (its configuration, folder, lifecycle and
 closing lines).
 
 A run folder holds:
@@ -42,25 +42,11 @@ from jaxfalsify import replay as replay_lib
 from jaxfalsify import report as report_lib
 from jaxfalsify.files import write_atomic, write_json, write_parquet
 from jaxfalsify.lifecycle import Status, sut_raised
-from jaxfalsify.problem import (  # noqa: F401 - the run's configuration, re-exported
-    CONFIG_KEYS,
-    PAPER_BUDGET,
-    SEED_LIMIT,
-    SETTINGS,
-    Built,
-    RunConfig,
-    build_space,
-    check_int,
-    check_mapping,
-    check_space_sut,
-    configure,
-    fixed_sut_params,
-    space_sut_names,
-)
+from jaxfalsify.problem import SETTINGS, Built, RunConfig, configure  # the run's configuration
 from jaxfalsify.progress import Clock, Progress, timing_line
 from jaxfalsify.sim import WORLD
 from jaxfalsify.space import Space
-from jaxfalsify.store import Interrupted  # noqa: F401 - re-exported
+from jaxfalsify.store import Interrupted
 
 __all__ = [
     "RunConfig", "configure", "SETTINGS", "Interrupted",

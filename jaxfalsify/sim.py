@@ -1,7 +1,7 @@
 """The crossing world and its batched simulator (paper Fig. 1/2: a pedestrian crosses an urban
 road).
 
-One concern, though over 400 lines: the world's dynamics and their batched rollout; the SUTs
+One concern: the world's dynamics and their batched rollout; the SUTs
 live in ``jaxfalsify.suts``, the metrics in ``jaxfalsify.metrics``.
 
 Frame: x along the ego's lane (direction of travel), y to the left, origin at the ego's *base*

@@ -1,6 +1,6 @@
 """Logical scenario spaces: named parameters with distributions, discretised into concrete values.
 
-One concern, though over 400 lines: logical scenario spaces and their discretisation
+One concern: logical scenario spaces and their discretisation
 (definition, TOML, index <-> value maps).
 
 A *logical scenario* is a set of parameters with ranges or distributions (the paper's Table I).
@@ -36,7 +36,7 @@ __all__ = [
     "KNOWN_PARAMETERS", "MAX_SIZE", "SUT_PREFIX", "is_sut_parameter", "decimal_grid",
     "uniform", "Layout", "Space", "space_from_dict", "check_name", "load_space",
     "check_scenario_values", "Parameter", "DISTRIBUTIONS", "BUILTIN", "MAX_SAMPLES",
-    "MAX_SEARCH_SIZE"
+    "MAX_SEARCH_SIZE", "normal", "integers", "values", "build"
 ]
 
 # Scenario parameters the simulator understands: unit, default, allowed domain, integer-valued.

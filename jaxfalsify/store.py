@@ -2,7 +2,7 @@
 is written (:func:`check_out`), its lock, its ``status.json``, and the removal of earlier
 results (``--force``) or of what a failed command wrote.
 
-One concern, though over 400 lines: result folders: their checks, locks, status and removal.
+One concern: result folders: their checks, locks, status and removal.
 
 **Locks.** A process writing a run, sweep or comparison folder holds an exclusive ``flock`` on
 ``.lock`` in it (the kernel releases it when the process dies, kill -9 included); a second

@@ -1,6 +1,6 @@
 """Exhaustive sweep of a discrete logical scenario: every concrete scenario, evaluated in chunks.
 
-One concern, though over 400 lines: the exhaustive-sweep job; its configuration, chunks, totals
+One concern: the exhaustive-sweep job; its configuration, chunks, totals
 and merging are in the ``sweep_*`` modules.
 
 The result is the ground truth that search strategies are measured against: every concrete

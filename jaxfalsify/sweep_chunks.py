@@ -22,7 +22,8 @@ from jaxfalsify.sweep_config import Calibrations
 
 __all__ = [
     "OUTCOME_FIELDS", "DEFAULT_CHUNK", "plan_chunks", "chunk_table", "check_columns",
-    "check_sweepable", "iter_sweep", "violated_fn"
+    "check_sweepable", "iter_sweep", "violated_fn", "sweep_chunk", "reduce_chunk",
+    "evaluate_chunk", "evaluate_reduced"
 ]
 
 OUTCOME_FIELDS = tuple(f.name for f in dataclasses.fields(sim.Outcome))

@@ -21,7 +21,7 @@ import numpy as np
 
 __all__ = [
     "SIGNALS", "EvaluatorError", "import_module", "load", "call", "trajectory_arrays",
-    "dask_task"
+    "dask_task", "TRAJECTORY"
 ]
 
 TRAJECTORY = ("t", "distance", "ego_x", "ego_y", "ped_x", "ped_y", "ego_speed")  # what an

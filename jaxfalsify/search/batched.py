@@ -26,8 +26,11 @@ large steps towards the failures while there are none, small ones to converge on
 failures once there are (Adam's steps have about the learning rate's size whatever the
 gradient's scale, so the learning rate is how far the policy moves per update). The first
 update, from the uninformed first batch to its elite, is a larger jump (``lr_first``, 0.3) for
-all learners but the last (``first_learners``, 3): most learners move at once to where the first
-batch's near misses are, one keeps the smaller step in case they are a plateau. An entropy bonus
+learners 0 to ``first_learners`` - 1 (3: all but the last of the default four; a single
+learner takes it too) whose share drew no collision: most learners move at once to where the
+first batch's near misses are, one keeps the smaller step in case they are a plateau.
+``first_learners`` is a traced number like every hyperparameter: a learner takes ``lr_first``
+when its index is below it. An entropy bonus
 ``entropy x mean log sigma`` keeps the components from collapsing early.
 
 **Several learners** (``learners``, 4): independent controllers, each drawing an equal share
@@ -63,7 +66,7 @@ from jaxfalsify.search.controller import Linear, LSTMCell
 
 __all__ = [
     "SIGMA_MIN_STEPS", "LOG_SIGMA_MAX", "BatchedReinforce", "MixtureController",
-    "BatchedParams", "BatchedState"
+    "BatchedParams", "BatchedState", "SIGMA_INIT"
 ]
 
 SIGMA_MIN_STEPS = 0.1  # narrowest component's logistic scale, in value steps (98.7 % of its
@@ -129,7 +132,7 @@ class BatchedParams:
     lr: float = 0.03  # Adam learning rate once the learner has found a collision ...
     lr_search: float = 0.1  # ... and until then ...
     lr_first: float = 0.3  # ... except at the first update, for the first learners:
-    first_learners: float = 3.0  # learners 0 .. first_learners - 1 (the rest: lr_search)
+    first_learners: float = 3.0  # learners whose index is below it (the rest: lr_search)
     eps: float = 0.01  # the uniform floor's weight in the policy
     entropy: float = 0.01  # bonus on the components' mean log-width
     novelty: float = 0.5  # signal taken off a collision seen before (elite or collision) ...

@@ -119,8 +119,8 @@ def init(key, shape: tuple[int, ...], hidden: int = 32) -> dict:
     (all weights from one draw: each random call site costs compile time)."""
     P, width = len(shape), max(shape)
     w1, u1, w2, u2, wh = glorot(key, [(P, 4 * hidden), (hidden, 4 * hidden),
-                                       (hidden, 4 * hidden), (hidden, 4 * hidden),
-                                       (hidden, P * width)])
+                                      (hidden, 4 * hidden), (hidden, 4 * hidden),
+                                      (hidden, P * width)])
     b = jnp.zeros(4 * hidden, jnp.float32).at[hidden:2 * hidden].set(1.0)
     return {"lstm1": {"w": w1, "u": u1, "b": b}, "lstm2": {"w": w2, "u": u2, "b": b},
             "head": {"w": wh, "b": jnp.zeros(P * width, jnp.float32)}}

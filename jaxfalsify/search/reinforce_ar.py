@@ -1,6 +1,6 @@
 """REINFORCE on an autoregressive LSTM controller: ``reinforce/screened``.
 
-One concern, though over 400 lines: the ``reinforce/screened`` strategy (its controller is in
+One concern: the ``reinforce/screened`` strategy (its controller is in
 ``autoregressive``, its GP in ``surrogate``).
 
 The paper's method (a recurrent controller trained by the policy gradient, Eq. 2-3, with

@@ -12,7 +12,7 @@ import pytest
 from conftest import space_file_fixture
 
 import jaxfalsify as jf
-from jaxfalsify import checkpoints, runs, sim, space, sweep, sweep_config, truth
+from jaxfalsify import checkpoints, problem, runs, sim, space, sweep, sweep_config, truth
 from jaxfalsify import config as cfg
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.cli import main
@@ -233,10 +233,10 @@ def test_space_sut_parameters_outside_the_sut_ranges_are_refused(tmp_path, capsy
     s = sut_lib.resolve("sensor-aeb")
     ok = space.space_from_dict({"parameters": {"sut": {"ttc_full": {"values": [0.0, 1.0]},
                                                        "fov": {"values": [10.0, 360.0]}}}})
-    runs.check_space_sut(ok, s)
+    problem.check_space_sut(ok, s)
     bad = space.space_from_dict({"parameters": {"sut": {"fov": {"values": [10.0, 360.5]}}}})
     with pytest.raises(ValueError, match=r"sut\.fov.*360\.5"):
-        runs.check_space_sut(bad, s)
+        problem.check_space_sut(bad, s)
 
 
 # --- 5. distribution must be a string

@@ -12,7 +12,7 @@ import pyarrow.parquet as pq
 import pytest
 from conftest import TINY_SPACE
 
-from jaxfalsify import runs
+from jaxfalsify import problem, runs
 from jaxfalsify.cli import main
 
 
@@ -160,7 +160,7 @@ def test_ground_truth_takes_a_requirement_by_name_and_table():
     the resolved Requirement and its parameter pytree (oracle: the sweep's min gaps)."""
     from jaxfalsify import requirements, truth
 
-    sp = runs.build_space("paper", 0)
+    sp = problem.build_space("paper", 0)
     by_name = truth.ground_truth(sp, requirement="clash", requirement_params={"epsilon": 0.5})
     req = requirements.resolve("clash")
     by_object = truth.ground_truth(sp, requirement=req,
@@ -205,7 +205,7 @@ def test_sweep_counts_a_requirements_violations(tmp_path, rows):
     from jaxfalsify import truth
 
     p = space_path(tmp_path)
-    plain = truth.sweep_arrays(runs.build_space(str(p), 0), "carla-tm",
+    plain = truth.sweep_arrays(problem.build_space(str(p), 0), "carla-tm",
                                fields=("min_distance", "nonfinite", "scenario"))
     want = (plain["min_distance"] < 1.5) & ~plain["nonfinite"]
     assert 0 < want.sum() < want.size
@@ -237,7 +237,7 @@ def test_a_users_requirement_file_through_run_sweep_and_estimate(tmp_path, monke
     (tmp_path / "reqs.py").write_text("def gap(outcome, params):\n"
                                       "    return outcome.min_distance - 1.2\n")
     p = space_path(tmp_path)
-    rows = truth.sweep_arrays(runs.build_space(str(p), 0), "carla-tm",
+    rows = truth.sweep_arrays(problem.build_space(str(p), 0), "carla-tm",
                               fields=("min_distance", "nonfinite"))
     want = (rows["min_distance"] < 1.2) & ~rows["nonfinite"]
     assert 0 < want.sum() < want.size

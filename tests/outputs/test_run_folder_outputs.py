@@ -337,7 +337,7 @@ def test_export_controller_parameters_reproduce_the_run(run_with_figures, tmp_pa
     import jaxfalsify as jf
     from jaxfalsify import analysis
     from jaxfalsify.export import X_OFFSET, value_of
-    from jaxfalsify.figures import load_run
+    from jaxfalsify.rundir import load_run
 
     out = tmp_path / "osc"
     assert main(["export", str(run_with_figures), "--scenario", "critical",
@@ -400,7 +400,7 @@ def test_export_distribution_lists_the_space(run_with_figures, tmp_path):
     from test_openscenario_export import schema
 
     from jaxfalsify.export import write_distribution
-    from jaxfalsify.figures import load_run
+    from jaxfalsify.rundir import load_run
 
     out = tmp_path / "osc"
     assert main(["export", str(run_with_figures), "--out", str(out)]) == 0
@@ -493,7 +493,7 @@ def test_export_force_replaces_the_earlier_export(run_with_figures, tmp_path):
     """``--force`` replaces an earlier export's files (no stale critical_NNN.xosc beside the
     new best.xosc) and leaves the user's own files alone."""
     from jaxfalsify import analysis
-    from jaxfalsify.figures import load_run
+    from jaxfalsify.rundir import load_run
 
     sp, _, _, ep = load_run(run_with_figures)
     n_crit = len(analysis.distinct_critical(*analysis.from_evaluations(ep, sp)))
@@ -517,8 +517,8 @@ def test_report_simulate_line_reproduces_the_best_scenario(run_with_figures, cap
 
     import jaxfalsify as jf
     from jaxfalsify import analysis
-    from jaxfalsify.figures import load_run
     from jaxfalsify.report import simulate_command
+    from jaxfalsify.rundir import load_run
 
     sp, rc, _, ep = load_run(run_with_figures)
     row = analysis.best(ep)

@@ -359,8 +359,22 @@ def test_the_first_update_takes_lr_first_for_the_first_learners_only():
             q = pytree.replace(p, lr=lr, lr_search=lr, lr_first=lr)
             same(got, s.tell_outcome(jax.random.key(2), start, idx, rewards, rob, none, q),
                  learner)
-        other = [r for r in (p.lr_first, p.lr_search) if r != rates[2]][0]
-        q = pytree.replace(p, lr=other, lr_search=other, lr_first=other)
+        q = pytree.replace(p, lr=p.lr_first, lr_search=p.lr_first, lr_first=p.lr_first)
         want = s.tell_outcome(jax.random.key(2), start, idx, rewards, rob, none, q)
         assert not np.array_equal(np.asarray(jax.tree.leaves(got.params)[0])[2],
                                   np.asarray(jax.tree.leaves(want.params)[0])[2])
+
+
+def test_a_learner_whose_first_share_collides_takes_lr_not_lr_first():
+    s, p, state = _moved(2, 0, 1)
+    idx, _ = s.ask(jax.random.key(1), state, p)
+    g = np.random.default_rng(9)
+    rewards = jnp.asarray(g.uniform(0.3, 0.6, 64), jnp.float32)
+    rob = jnp.asarray(g.uniform(-1, 3, 64), jnp.float32)
+    hit = jnp.asarray(np.arange(64) == 5)  # in learner 0's share, at the first update
+    got = s.tell_outcome(jax.random.key(2), state, idx, rewards, rob, hit, p)
+    for lr, learner in ((p.lr, 0), (p.lr_first, 1)):
+        q = pytree.replace(p, lr=lr, lr_search=lr, lr_first=lr)
+        want = s.tell_outcome(jax.random.key(2), state, idx, rewards, rob, hit, q)
+        for x, y in zip(jax.tree.leaves(got.params), jax.tree.leaves(want.params)):
+            np.testing.assert_array_equal(np.asarray(x)[learner], np.asarray(y)[learner])

@@ -11,7 +11,7 @@ import pytest
 from conftest import TINY_SPACE, space_file_fixture
 
 import jaxfalsify as jf
-from jaxfalsify import report
+from jaxfalsify import report, rundir
 from jaxfalsify import sut as sut_lib
 from jaxfalsify.cli import main
 from jaxfalsify.truth import sweep_arrays
@@ -138,7 +138,7 @@ def test_a_stochastic_runs_draws_are_resimulated_as_evaluated(tiny, tmp_path):
     campaign's recorded outcomes are the oracle. report.md's simulate line carries the run's
     SUT parameters and says it draws other noise."""
     from jaxfalsify.campaign import evaluation_key
-    from jaxfalsify.figures import load_run, resimulate
+    from jaxfalsify.rundir import load_run, resimulate
 
     out = tmp_path / "noisy"
     assert main(["run", "--space", str(tiny), "--sut", SPEC, "--sut-param", "noise=3",
@@ -360,7 +360,7 @@ def test_a_space_varying_a_sut_parameter_round_trips(tmp_path):
     figures re-simulate rows of different calibrations (each equal to simulating that
     calibration alone), ``--config`` repeats it, and an interrupted sweep resumes: the
     recorded config.toml leaves the varied parameter to the space."""
-    from jaxfalsify import figures, runs, sweep, sweep_config
+    from jaxfalsify import runs, sweep, sweep_config
 
     space = tmp_path / "sutdim.toml"
     space.write_text(SUT_DIM_SPACE)
@@ -373,9 +373,9 @@ def test_a_space_varying_a_sut_parameter_round_trips(tmp_path):
         "sut_params"]
     runs.execute(runs.resume_config(tmp_path / "r"), tmp_path / "r", resume=True)
     assert (tmp_path / "r" / "report.md").exists()
-    sp, rc2, _, ep = figures.load_run(tmp_path / "r")
+    sp, rc2, _, ep = rundir.load_run(tmp_path / "r")
     rows = np.arange(12)
-    traj = figures.resimulate(sp, rc2, ep, rows)
+    traj = rundir.resimulate(sp, rc2, ep, rows)
     ttc = np.asarray(ep["sut.ttc_full"])[rows]
     assert len(np.unique(ttc)) > 1
     for v in np.unique(ttc):
