@@ -25,10 +25,11 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import jaxfalsify as jf
-from jaxfalsify import campaign, runs, sweep, sweep_chunks, sweep_config
-from jaxfalsify import sut as sut_lib
-from jaxfalsify.checkpoints import CampaignCheckpoint
-from jaxfalsify.config import versions
+from jaxfalsify.base.config import versions
+from jaxfalsify.engine import campaign, sweep_chunks, sweep_config
+from jaxfalsify.io.checkpoints import CampaignCheckpoint
+from jaxfalsify.jobs import runs, sweep
+from jaxfalsify.suts import registry as sut_lib
 
 
 def plain_sweep(sp, out: Path) -> None:

@@ -5,7 +5,7 @@ against the exact rate of each space (every scenario evaluated).
     python experiments/bench_estimate.py              # three spaces, 3 seeds each
     python experiments/bench_estimate.py --seeds 5
 
-For each space: the exact rate (:func:`jaxfalsify.estimate.exact_rate`); Monte Carlo run to
+For each space: the exact rate (:func:`jaxfalsify.jobs.estimate.exact_rate`); Monte Carlo run to
 the target where that takes at most ``--mc-limit`` draws, else the draws it would need,
 ``z^2 (1 - p) / (p r^2)`` at the exact rate (marked *computed*); importance sampling run per
 seed (draws of the proposal's fitting and of the estimate, both counted, and wall time
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 import jaxfalsify as jf
-from jaxfalsify import estimate as est
+from jaxfalsify.jobs import estimate as est
 
 SPACES = [  # (label, space, SUT, SUT parameters, requirement)
     ("paper, carla-tm", "paper", "carla-tm", {}, "collision"),

@@ -6,7 +6,7 @@ and the search's own cost per evaluation, side by side in one process.
 The evaluator (``experiments/external/busy_evaluator.py``) does about 1 ms of CPU work per
 scenario, so ``workers`` processes can at best evaluate ``workers / 1 ms`` scenarios per
 second. Rows: the pool alone on ``batches`` batches of ``batch`` scenarios (a warm pool: its
-processes started before timing); the whole job (``jaxfalsify.evaluators.run``: the search
+processes started before timing); the whole job (``jaxfalsify.jobs.evaluators.run``: the search
 asking, the pool evaluating, a checkpoint per update) for ``random`` and the sample-efficient
 ``reinforce/screened``: evaluations per second of its loop (search + evaluation + checkpoint,
 from the run's own clock) and the search's and the checkpoint's seconds per evaluation;
@@ -28,7 +28,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "external"))
 from busy_evaluator import SECONDS_EACH  # noqa: E402
 
-from jaxfalsify import evaluators, runs  # noqa: E402
+from jaxfalsify.jobs import evaluators, runs  # noqa: E402
 
 SPEC = f"{HERE / 'external' / 'busy_evaluator.py'}:evaluate"
 

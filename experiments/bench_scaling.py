@@ -25,10 +25,11 @@ import jax
 import jax.numpy as jnp
 
 import jaxfalsify as jf
-from jaxfalsify import campaign, sim
-from jaxfalsify import sut as sut_lib
-from jaxfalsify.runs import RunConfig
-from jaxfalsify.sweep_chunks import plan_chunks
+from jaxfalsify.core import sim
+from jaxfalsify.engine import campaign
+from jaxfalsify.engine.sweep_chunks import plan_chunks
+from jaxfalsify.jobs.runs import RunConfig
+from jaxfalsify.suts import registry as sut_lib
 
 SPACE = jf.load_space("paper-extended")
 STRIDE = 997

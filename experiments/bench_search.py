@@ -5,7 +5,7 @@ collision, distinct collisions found, in one process.
                                        [--strategies reinforce/default random cmaes cem]
                                        [--evaluations 2048000] [--json out.json]
 
-Each strategy x seed is one campaign (``jaxfalsify.campaign.run``, compiled once per strategy
+Each strategy x seed is one campaign (``jaxfalsify.engine.campaign.run``, compiled once per strategy
 and reused for every seed), timed per chunk of updates on the host; the search time to the first
 collision is the chunks' measured seconds up to the end of the update that held it
 (``Result.search_seconds_at``), compilation excluded and reported apart. A seed that finds no
@@ -22,7 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfalsify import analysis, campaign, runs
+from jaxfalsify.engine import campaign
+from jaxfalsify.jobs import runs
+from jaxfalsify.outputs import analysis
 
 SUITE = Path(__file__).parent / "suite"
 SPACES_DIR = Path(__file__).parent / "spaces"
@@ -59,9 +61,9 @@ def estimate_share(space_name, draws, per_seed=1 << 20):
 
 def truth_clusters(b, sut, sut_params):
     """``(labels (N,), count)``: the exhaustive sweep's failure clusters (value-grid
-    neighbours, :func:`jaxfalsify.analysis.chebyshev_components`) over every scenario number
+    neighbours, :func:`jaxfalsify.outputs.analysis.chebyshev_components`) over every scenario number
     of a sweepable space (label -1: no collision)."""
-    from jaxfalsify import truth
+    from jaxfalsify.engine import truth
 
     gt = truth.ground_truth(b.space, sut, sut_params)
     hit = np.asarray(gt["collision"], bool) & ~np.asarray(gt["nonfinite"], bool)
@@ -145,7 +147,7 @@ def controller_cost(space, sut, sut_params, batch, updates=20, repeats=3):
 def learning(seeds: int, batch: int, evaluations: int | None):
     """The paper space's learning target: per seed, the last update's mean reward over the
     global maximum (the exhaustive sweep's, cached per machine)."""
-    from jaxfalsify import truth
+    from jaxfalsify.engine import truth
 
     b = runs.RunConfig(batch=batch, evaluations=evaluations).build()
     gmax = float(np.max(truth.ground_truth(b.space, "carla-tm")["reward"]))

@@ -42,9 +42,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxfalsify as jf  # noqa: E402
-from jaxfalsify import metrics, sim  # noqa: E402
-from jaxfalsify import sut as sut_lib  # noqa: E402
-from jaxfalsify.config import versions  # noqa: E402
+from jaxfalsify.base.config import versions  # noqa: E402
+from jaxfalsify.core import sim
+from jaxfalsify.scenario import metrics  # noqa: E402
+from jaxfalsify.suts import registry as sut_lib  # noqa: E402
 
 W = jf.WORLD
 

@@ -32,12 +32,13 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxfalsify as jf
-from jaxfalsify import sim, sweep_chunks, sweep_totals
-from jaxfalsify import sut as sut_lib
-from jaxfalsify.config import versions
-from jaxfalsify.reference import python_loop_evaluate, reference_evaluate
-from jaxfalsify.sweep_chunks import plan_chunks
-from jaxfalsify.sweep_config import calibrations
+from jaxfalsify.base.config import versions
+from jaxfalsify.core import sim
+from jaxfalsify.core.reference import python_loop_evaluate, reference_evaluate
+from jaxfalsify.engine import sweep_chunks, sweep_totals
+from jaxfalsify.engine.sweep_chunks import plan_chunks
+from jaxfalsify.engine.sweep_config import calibrations
+from jaxfalsify.suts import registry as sut_lib
 
 SPACE = jf.load_space("paper-extended")
 STRIDE = 997  # prime, coprime with the space size; size * STRIDE < 2**31 (no int32 overflow)

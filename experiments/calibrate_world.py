@@ -29,9 +29,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfalsify import sim
-from jaxfalsify import sut as sut_lib
-from jaxfalsify.space import KNOWN_PARAMETERS
+from jaxfalsify.core import sim
+from jaxfalsify.scenario.space import KNOWN_PARAMETERS
+from jaxfalsify.suts import registry as sut_lib
 
 TABLE_II = {  # challenging, non-challenging (paper Table II)
     "ego_offset": [9.0, 7.0], "ped_accel": [0.007, 0.076], "ped_speed": [1.237, 1.808],

@@ -7,7 +7,7 @@ Name it wherever a SUT is named, by import path:
 
 or from Python: ``jaxfalsify.evaluate(scenario, sut=AEB, sut_params={"noise": 0.5})``.
 
-The contract (see ``jaxfalsify/sut.py``): ``init(key, params) -> state`` and
+The contract (see ``jaxfalsify/suts/registry.py``): ``init(key, params) -> state`` and
 ``act(obs, state, params, key) -> (acceleration command [m/s^2], state)`` for ONE scenario at
 ONE step (the simulator vmaps and scans it); ``params`` is a pytree of floats with defaults,
 passed traced, so a calibration sweep does not recompile; ``key`` is this step's PRNG key.
@@ -16,8 +16,8 @@ passed traced, so a calibration sweep does not recompile; ``key`` is this step's
 import jax
 import jax.numpy as jnp
 
-from jaxfalsify import pytree
-from jaxfalsify.sut import SUT, cruise_command
+from jaxfalsify.base import pytree
+from jaxfalsify.suts.registry import SUT, cruise_command
 
 
 @pytree.dataclass

@@ -95,7 +95,7 @@ def flood_fill_to_max(signal: np.ndarray, is_max: np.ndarray, start: int, radius
 
 def main(argv=None) -> None:
     import jaxfalsify as jf
-    from jaxfalsify.truth import sweep_arrays
+    from jaxfalsify.engine.truth import sweep_arrays
 
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)

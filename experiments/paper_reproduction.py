@@ -29,10 +29,11 @@ from pathlib import Path
 import numpy as np
 
 import jaxfalsify as jf
-from jaxfalsify import analysis, campaign
-from jaxfalsify.config import jsonable
-from jaxfalsify.runs import RunConfig
-from jaxfalsify.truth import sweep_arrays
+from jaxfalsify.base.config import jsonable
+from jaxfalsify.engine import campaign
+from jaxfalsify.engine.truth import sweep_arrays
+from jaxfalsify.jobs.runs import RunConfig
+from jaxfalsify.outputs import analysis
 
 
 def plateau_episode(curve: np.ndarray, window: int = 100, tol: float = 0.05) -> int:

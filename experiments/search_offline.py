@@ -20,13 +20,14 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxfalsify as jf
-from jaxfalsify import compare_stats, search
+from jaxfalsify import search
+from jaxfalsify.jobs import compare_stats
 
 
 def load_table(space, sut, sut_params, path):
     if path and os.path.exists(path):
         return dict(np.load(path))
-    from jaxfalsify.truth import sweep_arrays
+    from jaxfalsify.engine.truth import sweep_arrays
     g = sweep_arrays(space, sut, sut_params,
                      fields=("collision", "reward", "robustness", "min_ttc"))
     if path:

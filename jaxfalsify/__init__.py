@@ -1,7 +1,8 @@
 """jaxfalsify: JAX-accelerated, batched scenario-based falsification (pedestrian crossing vs AEB).
 
 The simulator, SUTs and metrics are imported here; the run, sweep and compare entry points
-(``jaxfalsify.runs.execute``, ``jaxfalsify.sweep.execute``, ``jaxfalsify.compare.execute``),
+(``jaxfalsify.jobs.runs.execute``, ``jaxfalsify.jobs.sweep.execute``,
+``jaxfalsify.jobs.compare.execute``),
 strategies (``jaxfalsify.search``) and host-side outputs are imported on first use
 (``jaxfalsify.search.make(...)`` works after a bare ``import jaxfalsify``: PEP 562).
 """
@@ -9,7 +10,7 @@ strategies (``jaxfalsify.search``) and host-side outputs are imported on first u
 import importlib as _importlib  # noqa: E402
 import sys as _sys  # noqa: E402
 
-from jaxfalsify.progress import IMPORTED_AT  # noqa: F401 - first: start-up accounting
+from jaxfalsify.base.progress import IMPORTED_AT  # noqa: F401 - first: start-up accounting
 
 
 def _command_line() -> bool:
@@ -27,11 +28,11 @@ if _command_line() and "--no-cache" in _sys.argv[1:]:  # before the cache is set
     _os.environ["JAXFALSIFY_NO_CACHE"] = "1"
 
 try:  # importing JAX takes most of a second: a Ctrl-C then ends the command in one line
-    from jaxfalsify import cache as _cache
-    from jaxfalsify.metrics import rss_safe_distance
-    from jaxfalsify.sim import WORLD, Outcome, Trajectory, World, evaluate, simulate
-    from jaxfalsify.space import Space, load_space
-    from jaxfalsify.sut import SUT, Observation
+    from jaxfalsify.core.sim import WORLD, Outcome, Trajectory, World, evaluate, simulate
+    from jaxfalsify.io import cache as _cache
+    from jaxfalsify.scenario.metrics import rss_safe_distance
+    from jaxfalsify.scenario.space import Space, load_space
+    from jaxfalsify.suts.registry import SUT, Observation
 
     _cache.enable_compilation_cache()
 except ValueError as _e:  # a JAX setting from the environment that JAX refuses at import
@@ -50,7 +51,7 @@ except KeyboardInterrupt:
     _os._exit(130)
 
 if _command_line():  # refused before any command starts (library calls refuse in
-    try:  # runs.execute and wherever a program is built: jaxfalsify.cache.check_settings)
+    try:  # runs.execute and wherever a program is built: jaxfalsify.io.cache.check_settings)
         _cache.check_settings()
     except ValueError as _e:
         print(f"jaxfalsify: error: {_e}", file=_sys.stderr)
@@ -60,19 +61,16 @@ __all__ = ["rss_safe_distance", "simulate", "evaluate", "load_space", "Space", "
            "Outcome", "Trajectory", "SUT", "Observation"]
 __version__ = "0.4.0"
 
-_SUBMODULES = frozenset({
-    "analysis", "cache", "campaign", "cli", "compare", "config", "distributed", "export",
-    "figures", "metrics", "progress", "pytree", "reference", "replay", "report", "reward",
-    "runs", "search", "sim", "space", "store", "sut", "sweep", "weather", "external",
-    "evaluators", "estimate", "requirements", "suites", "pools", "worker", "checkpoints",
-    "compare_stats", "compare_tables", "sweep_config", "sweep_chunks", "sweep_totals",
-    "sweep_merge", "truth"})
-_LAZY = {"Falsifier": "external", "RunConfig": "problem"}  # names loaded with their module
+# the package's layers, lowest first (each imports only from those before it), and the CLI
+_SUBMODULES = frozenset({"base", "io", "scenario", "suts", "core", "search", "engine", "outputs",
+                         "jobs", "cli"})
+# names loaded with their module
+_LAZY = {"Falsifier": "jobs.external", "RunConfig": "engine.problem"}
 
 
 def __getattr__(name: str):
-    """Submodules not imported at start-up (``runs``, ``search``, ``figures``, ...) load on
-    first access, so ``import jaxfalsify`` stays cheap."""
+    """Layers not imported at start-up (``jobs``, ``search``, ``outputs``, ...) load on first
+    access, so ``import jaxfalsify`` stays cheap."""
     if name in _SUBMODULES:
         return _importlib.import_module(f"jaxfalsify.{name}")
     if name in _LAZY:

@@ -119,7 +119,7 @@ def _folder(text: str) -> Path:
 
 
 def _add_requirement(p):
-    from jaxfalsify.requirements import DEFAULT, REGISTRY
+    from jaxfalsify.core.requirements import DEFAULT, REGISTRY
 
     p.add_argument("--requirement", help=f"what counts as a failure: {', '.join(REGISTRY)} or "
                    f"an import path module:attr / file.py:attr (default {DEFAULT})")
@@ -128,7 +128,7 @@ def _add_requirement(p):
 
 
 def _add_sut(p, many=False):
-    from jaxfalsify.sut import REGISTRY
+    from jaxfalsify.suts.registry import REGISTRY
 
     p.add_argument("--sut", help=f"system under test: {', '.join(REGISTRY)} or an import "
                    "path module:attr / file.py:attr (default carla-tm)")
@@ -154,7 +154,7 @@ def _distributed_flags(p) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from jaxfalsify import __version__, search
-    from jaxfalsify.compare import DEFAULT_STRATEGIES
+    from jaxfalsify.jobs.compare import DEFAULT_STRATEGIES
 
     p = _Parser(prog="jaxfalsify", description=DESCRIPTION)
     p.add_argument("--version", action="version", version=f"jaxfalsify {__version__}")
@@ -331,13 +331,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _progress(quiet: bool):
-    from jaxfalsify.progress import Bar, Progress
+    from jaxfalsify.base.progress import Bar, Progress
 
     return Progress() if quiet else Bar()
 
 
 def _assignments(items, flag, many=False):
-    from jaxfalsify.config import parse_assignments
+    from jaxfalsify.base.config import parse_assignments
 
     return parse_assignments(items, flag, many)
 
@@ -397,7 +397,7 @@ def _no_flags_with_resume(args, names):
 
 
 def cmd_run(args, stop, startup) -> int:
-    from jaxfalsify import runs
+    from jaxfalsify.jobs import runs
 
     if args.resume is not None:
         _no_flags_with_resume(args, runs.SETTINGS + ("config", "out", "force", "sut_param",
@@ -418,7 +418,7 @@ def cmd_run(args, stop, startup) -> int:
         if args.rerun:
             raise UsageError("--rerun needs the JAX simulator (a run with an evaluator has no "
                              "trajectories to record)")
-        from jaxfalsify import evaluators
+        from jaxfalsify.jobs import evaluators
 
         pool = evaluators.pool_settings(args.resume, workers=args.workers,
                                         timeout=args.timeout, retries=args.retries,
@@ -446,7 +446,7 @@ def _no_evaluator_flags(args) -> None:
 
 
 def _compare_evaluator(args, names, stop) -> int:
-    from jaxfalsify import evaluators
+    from jaxfalsify.jobs import evaluators
 
     bad = [f for f in ("suite", "entries", "budgets", "sut", "sut_param", "jobs",
                        "requirement", "requirement_param", "coordinator", "num_processes",
@@ -489,7 +489,7 @@ def _start_distributed(args) -> tuple[int, int]:
             raise UsageError("--coordinator/--num-processes/--process-id/--coordinator-timeout "
                              "need --distributed")
         return 0, 1
-    from jaxfalsify.distributed import TIMEOUT_S, initialize
+    from jaxfalsify.base.distributed import TIMEOUT_S, initialize
 
     def say(text):
         if not args.quiet:
@@ -500,8 +500,8 @@ def _start_distributed(args) -> tuple[int, int]:
 
 
 def cmd_sweep(args, stop, startup) -> int:
-    from jaxfalsify import sweep
-    from jaxfalsify.sweep_config import SweepConfig
+    from jaxfalsify.engine.sweep_config import SweepConfig
+    from jaxfalsify.jobs import sweep
 
     if args.resume is not None:
         _no_flags_with_resume(args, SWEEP_FLAGS)
@@ -543,9 +543,9 @@ def _names(flag: str, value: str | None, what: str, example: str) -> tuple[str, 
 
 
 def cmd_compare(args, stop, startup) -> int:
-    from jaxfalsify import compare
-    from jaxfalsify.compare_tables import budgets_markdown, table_markdown
-    from jaxfalsify.progress import timing_line
+    from jaxfalsify.base.progress import timing_line
+    from jaxfalsify.jobs import compare
+    from jaxfalsify.jobs.compare_tables import budgets_markdown, table_markdown
 
     names = _names("--strategies", args.strategies, "strategy", "reinforce/default,cmaes")
     if args.evaluator:
@@ -603,8 +603,8 @@ def cmd_compare(args, stop, startup) -> int:
 
 
 def _compare_suite(args, names, stop, startup) -> int:
-    from jaxfalsify import suites
-    from jaxfalsify.progress import timing_line
+    from jaxfalsify.base.progress import timing_line
+    from jaxfalsify.jobs import suites
 
     for flag, given in (("--space", args.space), ("--space-seed", args.space_seed is not None),
                         ("--sut", args.sut),
@@ -631,8 +631,8 @@ def _compare_suite(args, names, stop, startup) -> int:
 
 
 def cmd_simulate(args, stop, startup) -> int:
-    from jaxfalsify.sim import describe
-    from jaxfalsify.space import KNOWN_PARAMETERS
+    from jaxfalsify.core.sim import describe
+    from jaxfalsify.scenario.space import KNOWN_PARAMETERS
 
     scenario, sut_values = {}, {}
     for item in args.params:
@@ -664,7 +664,7 @@ def cmd_simulate(args, stop, startup) -> int:
 
 
 def cmd_replay(args, stop, startup) -> int:
-    from jaxfalsify.replay import record, record_campaign
+    from jaxfalsify.outputs.replay import record, record_campaign
 
     if args.save is not None and Path(args.save).is_file() and not args.force:
         raise UsageError(f"--save {args.save} exists; pass --force to overwrite it")
@@ -684,8 +684,8 @@ def cmd_replay(args, stop, startup) -> int:
 
 
 def cmd_export(args, stop, startup) -> int:
-    from jaxfalsify.export import EXPORT_FILES, export
-    from jaxfalsify.store import check_out_plain
+    from jaxfalsify.io.store import check_out_plain
+    from jaxfalsify.outputs.export import EXPORT_FILES, export
 
     if args.scenario not in ("best", "critical"):
         raise UsageError(f"--scenario {args.scenario!r}: expected best or critical")
@@ -702,7 +702,7 @@ def cmd_export(args, stop, startup) -> int:
 
 
 def cmd_figures(args, stop, startup) -> int:
-    from jaxfalsify import runs
+    from jaxfalsify.jobs import runs
 
     files, report = runs.redraw(args.run_dir)
     print(f"wrote {len(files)} figures to {args.run_dir}/figures/ and {report}")
@@ -710,8 +710,8 @@ def cmd_figures(args, stop, startup) -> int:
 
 
 def cmd_estimate(args, stop, startup) -> int:
-    from jaxfalsify import estimate
-    from jaxfalsify.sut import folder_name
+    from jaxfalsify.jobs import estimate
+    from jaxfalsify.suts.registry import folder_name
 
     config = estimate.EstimateConfig(
         **{k: getattr(args, k) for k in ("space", "space_seed", "sut", "requirement", "method",
@@ -749,12 +749,12 @@ def main(argv=None, startup: float = 0.0) -> int:
     args = None
     try:
         args = parse(argv)
-        from jaxfalsify.cache import check_xla_flags
+        from jaxfalsify.io.cache import check_xla_flags
 
         check_xla_flags()  # XLA would end the process on a flag it does not know
         if args.no_cache:
             os.environ["JAXFALSIFY_NO_CACHE"] = "1"
-            from jaxfalsify.cache import enable_compilation_cache
+            from jaxfalsify.io.cache import enable_compilation_cache
             enable_compilation_cache()
         return COMMANDS[args.command](args, stop, startup)
     except (UsageError, ValueError) as e:
@@ -776,7 +776,7 @@ def main(argv=None, startup: float = 0.0) -> int:
         print("jaxfalsify: error: out of memory (lower --batch or --chunk)", file=sys.stderr)
         return 1
     except RuntimeError as e:
-        from jaxfalsify.sut import callback_error
+        from jaxfalsify.suts.registry import callback_error
 
         raised = callback_error(e)
         if raised is not None:
@@ -794,7 +794,7 @@ def main(argv=None, startup: float = 0.0) -> int:
               file=sys.stderr)
         return 130
     except Exception as e:  # noqa: BLE001 - the Interrupted of runs/sweeps, by name
-        from jaxfalsify.store import Interrupted
+        from jaxfalsify.io.store import Interrupted
 
         if isinstance(e, Interrupted):
             print(f"jaxfalsify: {e}", file=sys.stderr)
@@ -809,7 +809,7 @@ def entry() -> None:
     takes about half a second; every file is already written and closed)."""
     import os
 
-    from jaxfalsify.progress import startup_seconds
+    from jaxfalsify.base.progress import startup_seconds
 
     code = main(startup=startup_seconds())
     try:
@@ -817,7 +817,7 @@ def entry() -> None:
     except BrokenPipeError:  # the reader went away before our last lines (see main)
         code = code or 128 + signal.SIGPIPE
     sys.stderr.flush()
-    from jaxfalsify.distributed import leave
+    from jaxfalsify.base.distributed import leave
 
     leave()  # process 0 of a multi-process command waits for the others to leave first
     os._exit(code)

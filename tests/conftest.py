@@ -80,15 +80,16 @@ def table_ii():
 @pytest.fixture(scope="session")
 def paper_sweep():
     """The exhaustive sweep of the paper space (100,000 scenarios, default SUT)."""
-    from jaxfalsify.truth import sweep_arrays
+    from jaxfalsify.engine.truth import sweep_arrays
     return sweep_arrays(jf.load_space("paper"))
 
 
 def run_campaign(space, strategy="random", batch=16, evaluations=64, seed=0, sut="carla-tm",
                  every=None, **drive_kw):
     """A campaign through the library (``campaign.run``) with a registry strategy."""
-    from jaxfalsify import campaign, search
-    from jaxfalsify import sut as sut_lib
+    from jaxfalsify import search
+    from jaxfalsify.engine import campaign
+    from jaxfalsify.suts import registry as sut_lib
 
     s, sp_ = sut_lib.make(sut)
     strat, params = search.make(strategy, space.shape, batch)

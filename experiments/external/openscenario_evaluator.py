@@ -6,7 +6,7 @@ the robustness back: the shape of a CARLA ScenarioRunner or esmini integration.
 
 For every scenario ``evaluate`` writes ``$XOSC_DIR/scenario_<n>.xosc`` (default
 ``openscenario-asked/``), the project's controller-mode export of the paper's crossing
-(``jaxfalsify.export.write_controller_scenario``: the concrete values in its
+(``jaxfalsify.outputs.export.write_controller_scenario``: the concrete values in its
 ``ParameterDeclarations``, the ego's start, route and launch request, the pedestrian's path and
 speed profile as expressions of them) beside the road ``crossing.xodr``. Then:
 
@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfalsify import export
-from jaxfalsify.reference import reference_evaluate
-from jaxfalsify.sim import WORLD
-from jaxfalsify.space import KNOWN_PARAMETERS, load_space
+from jaxfalsify.core.reference import reference_evaluate
+from jaxfalsify.core.sim import WORLD
+from jaxfalsify.outputs import export
+from jaxfalsify.scenario.space import KNOWN_PARAMETERS, load_space
 
 SPACE = load_space("paper")
 REQUEST = export.ego_request("carla-tm", {}, WORLD)

@@ -1,4 +1,4 @@
-"""The project's NumPy reference simulator (``jaxfalsify.reference``: float64, a Python loop
+"""The project's NumPy reference simulator (``jaxfalsify.core.reference``: float64, a Python loop
 over time steps) as an external evaluator: what a team's own simulator looks like to
 ``jaxfalsify run --evaluator``.
 
@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
-from jaxfalsify.reference import reference_evaluate
-from jaxfalsify.sim import WORLD
+from jaxfalsify.core.reference import reference_evaluate
+from jaxfalsify.core.sim import WORLD
 
 
 def evaluate(scenarios: dict) -> dict:

@@ -14,7 +14,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from jaxfalsify import pytree
+from jaxfalsify.base import pytree
 from jaxfalsify.search.anneal import Anneal
 from jaxfalsify.search.base import SIGNALS, Strategy, resolve_signal
 from jaxfalsify.search.batched import BatchedReinforce

@@ -23,7 +23,7 @@ by :func:`resolve_signal`.
 Rewards given to ``tell`` are finite or ``-inf``: the campaign replaces NaN (a non-finite
 rollout) and evaluations beyond the budget by ``-inf``, so they never rank as best. Every
 function is jit-compatible; the campaign runs ask -> simulate -> tell inside one ``lax.scan``
-and jits once at the edge. States are :func:`jaxfalsify.pytree.dataclass` pytrees.
+and jits once at the edge. States are :func:`jaxfalsify.base.pytree.dataclass` pytrees.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from typing import Any, Callable, ClassVar
 import jax
 import jax.numpy as jnp
 
-from jaxfalsify import pytree
+from jaxfalsify.base import pytree
 
 __all__ = [
     "Strategy", "near_miss_ttc", "shaped_signal", "SIGNALS", "resolve_signal", "centred_ranks",

@@ -59,7 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxfalsify import pytree
+from jaxfalsify.base import pytree
 from jaxfalsify.search import discretised
 from jaxfalsify.search.base import Strategy, near_miss_ttc, shaped_signal, uniform
 from jaxfalsify.search.controller import Linear, LSTMCell

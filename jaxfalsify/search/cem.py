@@ -12,7 +12,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxfalsify import pytree
+from jaxfalsify.base import pytree
 from jaxfalsify.search.base import (
     Strategy,
     rank_order,

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.special import ndtr, ndtri
 
-from jaxfalsify import pytree
+from jaxfalsify.base import pytree
 from jaxfalsify.search.base import Strategy, resolve_signal
 
 __all__ = ["CMAES", "ordinal_ranks", "margin_correction", "CMAESParams", "CMAESState"]

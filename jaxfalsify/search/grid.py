@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfalsify import pytree
+from jaxfalsify.base import pytree
 from jaxfalsify.search.base import Strategy
 
 __all__ = ["Grid", "GridState"]

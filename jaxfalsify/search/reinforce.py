@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jaxfalsify import pytree
+from jaxfalsify.base import pytree
 from jaxfalsify.search import controller
 from jaxfalsify.search.base import (
     Strategy,

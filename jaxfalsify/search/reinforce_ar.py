@@ -88,7 +88,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jaxfalsify import pytree
+from jaxfalsify.base import pytree
 from jaxfalsify.search import autoregressive as ar
 from jaxfalsify.search import surrogate as gp
 from jaxfalsify.search.base import (

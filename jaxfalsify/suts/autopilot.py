@@ -6,7 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxfalsify import pytree
+from jaxfalsify.base import pytree
 from jaxfalsify.suts.interface import Observation
 
 __all__ = [

@@ -7,7 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxfalsify import pytree
+from jaxfalsify.base import pytree
 from jaxfalsify.suts.autopilot import AutopilotParams, autopilot_command
 from jaxfalsify.suts.interface import Observation
 

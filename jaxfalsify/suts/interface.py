@@ -1,6 +1,6 @@
 """The interface every system under test implements: what it observes (:class:`Observation`)
-and the pair of pure functions it is (:class:`SUT`); see :mod:`jaxfalsify.sut` for the contract
-and the registry."""
+and the pair of pure functions it is (:class:`SUT`); see :mod:`jaxfalsify.suts.registry` for the
+contract and the registry."""
 
 from __future__ import annotations
 

@@ -7,7 +7,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxfalsify import metrics, pytree, weather
+from jaxfalsify.base import pytree
+from jaxfalsify.scenario import metrics, weather
 from jaxfalsify.suts.autopilot import AutopilotParams, autopilot_command, pid_init
 from jaxfalsify.suts.interface import G, Observation
 

@@ -12,8 +12,9 @@ from pathlib import Path
 import pytest
 from conftest import TINY_SPACE
 
-from jaxfalsify import runs, sweep, sweep_config
 from jaxfalsify.cli import main
+from jaxfalsify.engine import sweep_config
+from jaxfalsify.jobs import runs, sweep
 
 
 def _stopper(n):
@@ -100,7 +101,7 @@ def world(tmp_path_factory):
         "def factory_keyerror():\n    return {}['cfg']\n")
     (w / "exits.py").write_text("import sys\n\nsys.exit(3)\n")
     (w / "clash.py").write_text(  # a SUT parameter named like a sweep.parquet column
-        "from jaxfalsify import pytree\nfrom jaxfalsify.sut import SUT\n\n\n"
+        "from jaxfalsify.base import pytree\nfrom jaxfalsify.suts.registry import SUT\n\n\n"
         "@pytree.dataclass\nclass P:\n    steps: float = 1.0\n\n\n"
         "def act(obs, state, p, key):\n    return -p.steps, state\n\n\n"
         "AEB = SUT('clash', act, default_params=P())\n")
@@ -230,9 +231,11 @@ CASES = [
     # unknown names
     (["run", "--sut", "tesla"], "unknown SUT 'tesla'"),
     # a built-in SUT's own functions by import path (they need its state and parameters)
-    (["run", "--sut", "jaxfalsify.sut:carla_tm_act"], "is the 'carla-tm' SUT's act function"),
-    (["simulate", "--sut", "jaxfalsify.sut:none_act"], "is the 'none' SUT's act function"),
-    (["sweep", "--sut", "jaxfalsify.sut:sensor_aeb_act"],
+    (["run", "--sut", "jaxfalsify.suts.registry:carla_tm_act"],
+     "is the 'carla-tm' SUT's act function"),
+    (["simulate", "--sut", "jaxfalsify.suts.registry:none_act"],
+     "is the 'none' SUT's act function"),
+    (["sweep", "--sut", "jaxfalsify.suts.registry:sensor_aeb_act"],
      "is the 'sensor-aeb' SUT's act function"),
     (["run", "--strategy", "ga"], "unknown strategy 'ga'"),
     (["run", "--space", "moon"], "unknown space 'moon'"),
@@ -502,8 +505,9 @@ def test_library_misuse_gives_one_line_errors_naming_the_argument(tmp_path):
     import numpy as np
 
     import jaxfalsify as jf
-    from jaxfalsify import compare, search
-    from jaxfalsify.sut import CarlaTMParams, SensorAEBParams
+    from jaxfalsify import search
+    from jaxfalsify.jobs import compare
+    from jaxfalsify.suts.registry import CarlaTMParams, SensorAEBParams
 
     for fn, cls in ((runs.execute, "problem.RunConfig"),
                     (sweep.execute, "sweep_config.SweepConfig"),

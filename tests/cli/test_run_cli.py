@@ -109,7 +109,7 @@ def test_compare_against_sweep_ground_truth(tmp_path, capsys):
     assert main(["compare", "--strategies", "random,cem", "--seeds", "2", "--evaluations",
                  "60", "--space", str(space), "--out", str(out), "--quiet"]) == 0
     result = json.loads((out / "compare.json").read_text())
-    from jaxfalsify.truth import sweep_arrays
+    from jaxfalsify.engine.truth import sweep_arrays
     truth = sweep_arrays(jf.load_space(str(space)))
     assert result["n_collisions"] == int(truth["collision"].sum()) > 0
     assert [r["strategy"] for r in result["rows"]] == ["random", "cem"]
@@ -139,7 +139,7 @@ def test_closing_report_and_report_md_agree(tmp_path, capsys):
         assert " ".join(m[1:]).split() == t[1:], (m, t)
     import pyarrow.parquet as pq
 
-    from jaxfalsify import analysis
+    from jaxfalsify.outputs import analysis
     table = pq.read_table(out / "evaluations.parquet").to_pydict()
     ep = {k: np.asarray(v) for k, v in table.items()}
     typ = analysis.typical_non_critical(ep)
@@ -155,8 +155,8 @@ def test_config_with_flags_drops_what_the_flag_replaces(tmp_path, monkeypatch):
     one is refused in one line."""
     from pathlib import Path
 
-    from jaxfalsify import runs
-    from jaxfalsify.sut import recorded_spec
+    from jaxfalsify.jobs import runs
+    from jaxfalsify.suts.registry import recorded_spec
 
     rc = runs.RunConfig(strategy="reinforce/default", strategy_params={"hidden": 8}, batch=16)
     same = runs.configure(rc, strategy="reinforce")  # an alias: the same strategy
@@ -197,7 +197,7 @@ def test_startup_does_not_count_a_program_that_ran_before_in_the_same_process():
     import subprocess
     import sys
 
-    code = ("import jaxfalsify.progress as p; print(p.startup_seconds(), p.process_age())")
+    code = ("import jaxfalsify.base.progress as p; print(p.startup_seconds(), p.process_age())")
     out = subprocess.run(["bash", "-c", f"sleep 2 && exec {sys.executable} -c '{code}'"],
                          capture_output=True, text=True, check=True).stdout.split()
     startup, age = float(out[0]), float(out[1])

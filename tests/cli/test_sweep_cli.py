@@ -12,12 +12,12 @@ import pytest
 from conftest import space_file_fixture
 
 import jaxfalsify as jf
-from jaxfalsify import sut as sut_lib
 from jaxfalsify.cli import main
-from jaxfalsify.sweep_chunks import iter_sweep
-from jaxfalsify.sweep_config import SweepConfig, calibrations
-from jaxfalsify.sweep_totals import Reducer, fold
-from jaxfalsify.truth import sweep_arrays
+from jaxfalsify.engine.sweep_chunks import iter_sweep
+from jaxfalsify.engine.sweep_config import SweepConfig, calibrations
+from jaxfalsify.engine.sweep_totals import Reducer, fold
+from jaxfalsify.engine.truth import sweep_arrays
+from jaxfalsify.suts import registry as sut_lib
 
 SMALL = """
 name = "small"
@@ -111,13 +111,13 @@ def test_cli_simulate_takes_values_after_options_and_sut_values(capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["scenario"]["ego_offset"] == 30 and out["scenario"]["ped_speed"] == 1.5
     assert np.isclose(out["sut_params"]["ttc_full"], 0.4)
-    sut, params = jf.sut.make("sensor-aeb", ttc_full=0.4)
+    sut, params = jf.suts.registry.make("sensor-aeb", ttc_full=0.4)
     want = jf.evaluate({"ego_offset": 30.0, "ped_speed": 1.5}, sut=sut, sut_params=params)
     assert np.isclose(out["outcome"]["min_distance"], float(want.min_distance))
     default = jf.evaluate({"ego_offset": 30.0, "ped_speed": 1.5}, sut="sensor-aeb")
     assert out["outcome"]["min_distance"] != float(default.min_distance)
     # the library call behind the command gives the same document
-    from jaxfalsify.sim import describe
+    from jaxfalsify.core.sim import describe
     lib = describe({"ego_offset": 30, "ped_speed": 1.5}, sut="sensor-aeb",
                    sut_params={"ttc_full": 0.4})
     assert json.loads(json.dumps(lib)) == out and lib["defaults_used"] == sorted(
@@ -150,7 +150,7 @@ def test_calibration_sweep_equals_separate_sweeps(small_space, tmp_path, capsys)
     # config.toml holds every SUT parameter: the defaults, the given value and the list
     import tomllib
 
-    from jaxfalsify import sut as sut_lib
+    from jaxfalsify.suts import registry as sut_lib
     recorded = tomllib.loads((out / "config.toml").read_text())["sut_params"]
     defaults = sut_lib.params_dict(sut_lib.resolve("carla-tm").default_params)
     assert recorded == {**defaults, "full_brake": [3.1, 8], "walker_time": 1.5}
@@ -200,7 +200,7 @@ def test_summary_only_sweep_reduces_on_device_like_rows(small_space, tmp_path, m
         131072 if jax.default_backend() == "cpu" else 1048576)
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     assert SweepConfig().chunk is None  # chosen by execute, after a distributed start-up
-    assert SweepConfig().resolved().chunk == jf.sim.default_chunk() == 1048576
+    assert SweepConfig().resolved().chunk == jf.core.sim.default_chunk() == 1048576
 
 
 def test_chunks_never_exceed_the_chunk_given():
@@ -209,7 +209,7 @@ def test_chunks_never_exceed_the_chunk_given():
     import itertools
     import math
 
-    from jaxfalsify.sweep_chunks import plan_chunks
+    from jaxfalsify.engine.sweep_chunks import plan_chunks
 
     for size, chunk in itertools.product((1, 7, 255, 1000, 60_000, 100_000, 1_000_003),
                                          (1, 3, 100, 256, 1024, 20_000, 131_072)):
@@ -223,8 +223,8 @@ def test_chunks_never_exceed_the_chunk_given():
 def test_default_folder_keeps_the_whole_space_name():
     """``exp.v1`` and ``exp.v2`` sweep into folders of their own (the name was cut at its
     last dot, so the second found the first's results)."""
-    from jaxfalsify.space import space_from_dict
-    from jaxfalsify.sweep_config import default_out
+    from jaxfalsify.engine.sweep_config import default_out
+    from jaxfalsify.scenario.space import space_from_dict
 
     doc = {"parameters": {"ped_speed": {"values": [1.0, 2.0]}}}
     names = [default_out(space_from_dict({**doc, "name": n}), "carla-tm", 0).name

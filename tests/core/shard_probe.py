@@ -15,7 +15,7 @@ def probe(space_path: str) -> dict:
     from conftest import random_scenarios, run_campaign
 
     import jaxfalsify as jf
-    from jaxfalsify.truth import sweep_arrays
+    from jaxfalsify.engine.truth import sweep_arrays
 
     out = {"devices": np.array(jax.local_device_count())}
     o = jf.evaluate(random_scenarios(1003, seed=5), chunk_size=256)

@@ -7,8 +7,8 @@ import pytest
 from conftest import random_scenarios
 
 import jaxfalsify as jf
-from jaxfalsify import metrics
-from jaxfalsify.reference import reference_evaluate, ttc_scalar
+from jaxfalsify.core.reference import reference_evaluate, ttc_scalar
+from jaxfalsify.scenario import metrics
 
 
 @pytest.mark.parametrize("sut", ["carla-tm", "none"])
@@ -102,10 +102,10 @@ def _dense_penetration(sc, sut, samples=200):
     scenario the deepest penetration ``min_t max(|dx| - hx, |dy| - hy)`` [m] (< 0: the boxes
     overlap at a sampled instant) up to and including the tick the simulator ended on, and
     whether the boxes overlap at any recorded tick state."""
-    w = jf.sim.WORLD
+    w = jf.core.sim.WORLD
     tr = jf.simulate(sc, sut=sut)
     hx, hy = (w.ego_length + w.ped_length) / 2, (w.ego_width + w.ped_width) / 2
-    x0, y0 = jf.sim.start_positions(sc["ego_offset"], sc["ped_offset"], w)
+    x0, y0 = jf.core.sim.start_positions(sc["ego_offset"], sc["ped_offset"], w)
     f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
     x1, v1, y1 = f64(tr.ego_x), f64(tr.ego_speed), f64(tr.ped_y)
     prev = lambda a, first: np.concatenate([np.broadcast_to(first, (a.shape[0], 1)), a[:, :-1]], 1)  # noqa: E731,E501
@@ -146,7 +146,7 @@ def test_a_grazed_corner_against_shapely():
     every recorded state the boxes are apart, at an instant inside the tick shapely finds
     them intersecting."""
     from shapely.geometry import box
-    w = jf.sim.WORLD
+    w = jf.core.sim.WORLD
     sc = dict(ego_offset=2.0, ped_accel=0.056, ped_speed=1.519, ped_offset=3.0, weather=0.0)
     out = jf.evaluate(sc)
     assert bool(out.collision) and float(out.collision_time) == pytest.approx(3.5)

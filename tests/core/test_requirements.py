@@ -10,7 +10,7 @@ import pytest
 from conftest import random_scenarios
 
 import jaxfalsify as jf
-from jaxfalsify import requirements as req_lib
+from jaxfalsify.core import requirements as req_lib
 
 W = jf.WORLD
 
@@ -73,7 +73,7 @@ def test_rss_is_the_safe_distance_while_the_pedestrian_is_ahead(rollouts):
 def test_a_users_requirement_by_import_path(tmp_path, rollouts, monkeypatch):
     out, _ = rollouts
     (tmp_path / "reqs.py").write_text(
-        "from jaxfalsify.requirements import Requirement, TTCParams\n\n\n"
+        "from jaxfalsify.core.requirements import Requirement, TTCParams\n\n\n"
         "def gap(outcome, params):\n    return outcome.min_distance - 0.25\n\n\n"
         "CLOSE = Requirement('close', lambda o, p: o.min_ttc - p.min_ttc, TTCParams(3.0))\n"
         "import jax.numpy as jnp\nNOT_ONE = lambda o, p: o.min_distance * jnp.ones(2)\n"
@@ -95,7 +95,7 @@ def test_a_users_requirement_by_import_path(tmp_path, rollouts, monkeypatch):
 @pytest.mark.parametrize("spec, says", [
     ("nope", "unknown requirement 'nope'"),
     ("missing.py:f", "no such file missing.py"),
-    ("jaxfalsify.requirements:CAP", "is a float, not a Requirement"),
+    ("jaxfalsify.core.requirements:CAP", "is a float, not a Requirement"),
 ])
 def test_bad_requirements_are_named(spec, says):
     with pytest.raises(ValueError, match=says):

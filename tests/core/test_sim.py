@@ -9,8 +9,8 @@ import pytest
 from conftest import random_scenarios
 
 import jaxfalsify as jf
-from jaxfalsify import sim
-from jaxfalsify.sut import REGISTRY, SUT, CruiseParams, cruise_command
+from jaxfalsify.core import sim
+from jaxfalsify.suts.registry import REGISTRY, SUT, CruiseParams, cruise_command
 from jaxfalsify.suts.sensor_aeb import sensor_capability
 
 W = jf.WORLD
@@ -104,7 +104,7 @@ def _aeb_steps(latency, demand_steps=8, ped_vy=0.0, ped_y=-1.5):
     """sensor-aeb's commands over ``demand_steps`` steps with a pedestrian standing (or
     walking at ``ped_vy``) in the ego's lane 3 m ahead at 6 m/s (TTC 0.5 s: a full-brake
     demand from the first step), the weather's extra latencies off."""
-    from jaxfalsify.sut import Observation, SensorAEBParams
+    from jaxfalsify.suts.registry import Observation, SensorAEBParams
     from jaxfalsify.suts.sensor_aeb import sensor_aeb_act, sensor_init
     p = SensorAEBParams(latency=latency, dark_latency=0.0, rain_latency=0.0)
     f = lambda v: jnp.float32(v)  # noqa: E731
@@ -133,7 +133,7 @@ def test_sensor_aeb_brakes_after_its_latency(latency):
 def test_sensor_aeb_holds_a_pedestrian_in_its_path():
     """The in-path target model: a pedestrian inside the lane walking away from its centre
     line still gets full braking (the metric's TTC says it clears the path first)."""
-    from jaxfalsify import metrics
+    from jaxfalsify.scenario import metrics
     gy = abs(-1.0 - -1.5) - (2.1 + 0.6) / 2  # inside the path, 0.85 m from its far edge
     assert not np.isfinite(float(metrics.time_to_collision(3.0, gy, 6.0, -2.0,
                                                            5.1, 2.7)))  # leaves after 0.43 s

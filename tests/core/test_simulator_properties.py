@@ -11,8 +11,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import jaxfalsify as jf
-from jaxfalsify import reward
-from jaxfalsify.sim import WORLD
+from jaxfalsify.core.sim import WORLD
+from jaxfalsify.scenario import reward
 
 B = 8
 DT = WORLD.dt
@@ -83,8 +83,8 @@ def test_ego_never_accelerates_while_braking(batch):
     assert np.all(traj["ego_accel"][traj["braking"] & traj["valid"]] <= 0)
     # and stays within the vehicle's limits (the carla-tm SUT within its own full brake)
     a = traj["ego_accel"][traj["valid"]]
-    limit = (jf.sut.REGISTRY["carla-tm"].default_params.full_brake if batch[0] == "carla-tm"
-             else WORLD.max_brake)
+    tm_brake = jf.suts.registry.REGISTRY["carla-tm"].default_params.full_brake
+    limit = tm_brake if batch[0] == "carla-tm" else WORLD.max_brake
     assert a.min(initial=0) >= -limit - 1e-3 and a.max(initial=0) <= WORLD.max_accel + 1e-3
 
 
@@ -162,7 +162,7 @@ def test_a_nan_sut_does_not_poison_the_batch(bad_from):
     reward), every other scenario's outcome equals the same SUT's outcome without NaNs."""
     import jax.numpy as jnp
 
-    tm = jf.sut.resolve("carla-tm")
+    tm = jf.suts.registry.resolve("carla-tm")
 
     def act(obs, state, params, key, poison):
         cmd, state = tm.act(obs, state, params, key)
@@ -174,10 +174,11 @@ def test_a_nan_sut_does_not_poison_the_batch(bad_from):
           "ped_speed": rng.uniform(1.0, 2.0, B).astype(np.float32),
           # carla-tm ignores the weather: it marks which scenarios the SUT poisons
           "weather": np.where(poisoned, 3.0, 5.0).astype(np.float32)}
-    nan_sut = jf.sut.SUT("nan-sometimes", lambda o, s, p, k: act(o, s, p, k, o.weather == 3),
-                         tm.init, tm.default_params)
-    clean_sut = jf.sut.SUT("clean", lambda o, s, p, k: act(o, s, p, k, False), tm.init,
-                           tm.default_params)
+    nan_sut = jf.suts.registry.SUT(
+        "nan-sometimes", lambda o, s, p, k: act(o, s, p, k, o.weather == 3), tm.init,
+        tm.default_params)
+    clean_sut = jf.suts.registry.SUT("clean", lambda o, s, p, k: act(o, s, p, k, False), tm.init,
+                                     tm.default_params)
     bad = jax_to_np(jf.evaluate(sc, sut=nan_sut))
     good = jax_to_np(jf.evaluate(sc, sut=clean_sut))
     np.testing.assert_array_equal(bad["nonfinite"], poisoned)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import jaxfalsify as jf
-from jaxfalsify import sim
+from jaxfalsify.core import sim
 
 STORED = Path(__file__).parents[1] / "data" / "reference_outcomes.npz"
 

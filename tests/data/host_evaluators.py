@@ -1,4 +1,4 @@
-"""Host evaluators for the tests of jaxfalsify.evaluators (loaded by file path in worker
+"""Host evaluators for the tests of jaxfalsify.jobs.evaluators (loaded by file path in worker
 processes). Each returns the robustness ``ped_speed - 1.5`` (negative: violated), an oracle the
 tests compute themselves, and misbehaves on chosen scenarios."""
 

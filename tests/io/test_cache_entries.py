@@ -5,14 +5,17 @@ another configuration put under this one's name (each file intact) is rebuilt, n
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfalsify import cache, sim, truth
-from jaxfalsify import sut as sut_lib
-from jaxfalsify.space import space_from_dict
+from jaxfalsify.core import sim
+from jaxfalsify.engine import truth
+from jaxfalsify.io import cache
+from jaxfalsify.scenario.space import space_from_dict
+from jaxfalsify.suts import registry as sut_lib
 
 
 @pytest.fixture
@@ -82,3 +85,22 @@ def test_a_ground_truth_of_another_space_under_this_name_is_swept_again(own_cach
     assert len(said) == 1 and str(entries[0]) in said[0] and "rebuilding" in said[0]
     for k in truth.TRUTH_FIELDS:
         np.testing.assert_array_equal(got[k], want[k], err_msg=k)
+
+
+def test_the_code_hash_covers_every_module_of_the_package_and_none_is_user_code():
+    """A compiled program is keyed on the package's own source: every module of every layer
+    folder counts (oracle: the modules ``pkgutil`` walks), and none of them is taken for a
+    user's module (whose file would be hashed apart)."""
+    import importlib
+    import pkgutil
+
+    import jaxfalsify
+
+    mods = [m.name for m in pkgutil.walk_packages(jaxfalsify.__path__, "jaxfalsify.")]
+    files = {Path(importlib.import_module(m).__file__).resolve() for m in mods
+             if m != "jaxfalsify.__main__"} | {Path(jaxfalsify.__file__).resolve()}
+    assert len(files) > 50
+    covered = {f.resolve() for f in cache.package_files()}
+    assert files - covered == set()
+    roots = cache._installed_roots()  # code identified by versions and code_hash
+    assert [f for f in files if not str(f).startswith(roots)] == []

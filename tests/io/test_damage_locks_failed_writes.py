@@ -34,10 +34,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import jaxfalsify as jf
-from jaxfalsify import runs, sweep, sweep_config
-from jaxfalsify.checkpoints import CampaignCheckpoint, write_commit
 from jaxfalsify.cli import main
-from jaxfalsify.files import atomic_path, replace_files, write_atomic
+from jaxfalsify.engine import sweep_config
+from jaxfalsify.io.checkpoints import CampaignCheckpoint, write_commit
+from jaxfalsify.io.files import atomic_path, replace_files, write_atomic
+from jaxfalsify.jobs import runs, sweep
 
 FAST = settings(max_examples=25, deadline=None, derandomize=True,
                 suppress_health_check=list(HealthCheck))
@@ -432,7 +433,7 @@ def test_a_damaged_cached_program_is_rebuilt_not_run(tmp_path, monkeypatch):
     inside a constant used to run silently with the wrong constant)."""
     import jax.numpy as jnp
 
-    from jaxfalsify import cache
+    from jaxfalsify.io import cache
 
     monkeypatch.setenv("JAXFALSIFY_CACHE_DIR", str(tmp_path))
     table = np.linspace(0.0, 1.0, 64, dtype=np.float32)  # a constant baked into the program
@@ -458,7 +459,7 @@ def test_a_damaged_cached_program_is_rebuilt_not_run(tmp_path, monkeypatch):
 
 
 def test_a_damaged_ground_truth_entry_is_swept_again(tmp_path, monkeypatch):
-    from jaxfalsify.truth import ground_truth
+    from jaxfalsify.engine.truth import ground_truth
 
     monkeypatch.setenv("JAXFALSIFY_CACHE_DIR", str(tmp_path))
     space = tmp_path / "tiny.toml"
@@ -509,7 +510,7 @@ def test_force_removes_the_earlier_runs_recordings(tmp_path):
 def test_a_run_that_failed_while_writing_resumes(tmp_path, monkeypatch):
     """The search finished, summary.json was written, the figures failed: status.json says
     failed and how to resume, and the resume finishes the outputs (identical results)."""
-    from jaxfalsify import figures
+    from jaxfalsify.outputs import figures
 
     space = tmp_path / "tiny.toml"
     space.write_text(TINY_SPACE)
@@ -575,7 +576,7 @@ def test_the_resume_command_is_quoted_for_a_shell(tmp_path):
     import json
     import shlex
 
-    from jaxfalsify import store
+    from jaxfalsify.io import store
 
     out = tmp_path / "my run"
     out.mkdir()
@@ -593,7 +594,7 @@ def test_the_resume_command_is_quoted_for_a_shell(tmp_path):
 def test_default_folders_of_the_same_second_do_not_collide(tmp_path):
     """Two commands started in the same second get ``base`` and ``base-2`` (each created
     exclusively), not one folder that the second then calls an unfinished run of its own."""
-    from jaxfalsify import store
+    from jaxfalsify.io import store
 
     base = tmp_path / "runs" / "20261124-094511-random"
     a, la = store.open_new_folder(base, "run")

@@ -1,4 +1,4 @@
-"""Every job folder's ``status.json`` through one lifecycle (:mod:`jaxfalsify.lifecycle`):
+"""Every job folder's ``status.json`` through one lifecycle (:mod:`jaxfalsify.engine.lifecycle`):
 the states and their fields read back from the file, the error text of a failure, and a
 failure that cannot be written leaving the job's own error to its caller."""
 
@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from jaxfalsify import lifecycle
-from jaxfalsify.store import shell_path
+from jaxfalsify.engine import lifecycle
+from jaxfalsify.io.store import shell_path
 
 
 def _read(out):

@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from jaxfalsify import campaign, compare_stats, compare_tables, suites
+from jaxfalsify.engine import campaign
+from jaxfalsify.jobs import compare_stats, compare_tables, suites
 
 
 class _Space:
@@ -158,7 +159,7 @@ def test_per_strategy_options_reach_that_strategy_only():
     unknown options, are refused with one line."""
     import pytest
 
-    from jaxfalsify.compare import CompareConfig
+    from jaxfalsify.jobs.compare import CompareConfig
     from jaxfalsify.search.cem import CEMParams
 
     cfg = CompareConfig(strategies=("random", "cem"), seeds=2, evaluations=64,
@@ -182,7 +183,7 @@ def test_per_strategy_options_reach_that_strategy_only():
 def _tiny_compare(tmp_path, name, jobs, stop=None):
     from conftest import TINY_SPACE
 
-    from jaxfalsify.compare import CompareConfig, execute
+    from jaxfalsify.jobs.compare import CompareConfig, execute
 
     space = tmp_path / "tiny.toml"
     space.write_text(TINY_SPACE)
@@ -222,7 +223,7 @@ def test_side_by_side_stop_interrupts_every_strategy_and_writes_nothing(tmp_path
     written."""
     import pytest
 
-    from jaxfalsify.runs import Interrupted
+    from jaxfalsify.jobs.runs import Interrupted
 
     calls = []
 

@@ -11,8 +11,9 @@ import pytest
 from conftest import TINY_SPACE, run_campaign
 
 import jaxfalsify as jf
-from jaxfalsify import campaign, compare, compare_stats, compare_tables, suites
-from jaxfalsify.progress import Progress
+from jaxfalsify.base.progress import Progress
+from jaxfalsify.engine import campaign
+from jaxfalsify.jobs import compare, compare_stats, compare_tables, suites
 
 NO_COLLISION_SPACE = TINY_SPACE.replace("values = [7, 9]", "values = [1, 2]", 1)  # carla-tm:
 # none of its 32 scenarios collides (checked against the sweep below)
@@ -123,7 +124,7 @@ def test_a_campaigns_first_failure_is_given_the_time_of_its_update(tmp_path):
 
 def _make(strategy, sp, batch=4):
     from jaxfalsify import search
-    from jaxfalsify import sut as sut_lib
+    from jaxfalsify.suts import registry as sut_lib
 
     s, sp_ = sut_lib.make("carla-tm")
     strat, params = search.make(strategy, sp.shape, batch)
@@ -252,7 +253,7 @@ def test_a_strategy_that_finds_nothing_reports_no_time(tmp_path):
     """A space without a collision: every seed's time to the first collision is null (not 0),
     so is the median, and the table says "-"; the seeds were timed all the same (search
     seconds a number, zero failures per second)."""
-    from jaxfalsify.truth import sweep_arrays
+    from jaxfalsify.engine.truth import sweep_arrays
 
     space = tmp_path / "safe.toml"
     space.write_text(NO_COLLISION_SPACE)

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 import jaxfalsify as jf
-from jaxfalsify import estimate as est
-from jaxfalsify import requirements as req_lib
-from jaxfalsify import sut as sut_lib
 from jaxfalsify.cli import main
+from jaxfalsify.core import requirements as req_lib
+from jaxfalsify.jobs import estimate as est
+from jaxfalsify.suts import registry as sut_lib
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +56,7 @@ def test_weights_and_draws_follow_the_defensive_mixture(paper):
     req = req_lib.resolve("clash")
     run = est._compile(paper, sut, req, 20000)
     idx, rob, logw = (np.asarray(a) for a in run(
-        jf.sim.seed_key(3), q.log_weight, q.log_prob, np.float32(math.log(share)),
+        jf.core.sim.seed_key(3), q.log_weight, q.log_prob, np.float32(math.log(share)),
         sut.default_params, req.default_params))
     # NumPy: p = 1/size; q(x) = sum_k w_k prod_j probs[k, j, x_j]
     n = len(idx)

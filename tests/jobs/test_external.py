@@ -1,5 +1,5 @@
 """A system outside JAX: ask / tell (jaxfalsify.Falsifier) and the worker pool
-(jaxfalsify.evaluators). Oracles: the built-in campaign's own scenarios and collisions (the
+(jaxfalsify.jobs.evaluators). Oracles: the built-in campaign's own scenarios and collisions (the
 evaluator returns the built-in simulator's or the NumPy reference's outcomes), the
 robustness ``ped_speed - 1.5`` of the test evaluators, and scenarios chosen to misbehave."""
 
@@ -12,9 +12,11 @@ import numpy as np
 import pytest
 
 import jaxfalsify as jf
-from jaxfalsify import analysis, campaign, evaluators, runs
 from jaxfalsify.cli import main
-from jaxfalsify.rundir import load_run
+from jaxfalsify.engine import campaign
+from jaxfalsify.engine.rundir import load_run
+from jaxfalsify.jobs import evaluators, runs
+from jaxfalsify.outputs import analysis
 
 HERE = Path(__file__).resolve().parent
 HOST = HERE.parent / "data" / "host_evaluators.py"
@@ -420,7 +422,7 @@ def test_a_bad_trajectory_fails_its_scenarios_with_the_reason(tmp_path):
 
 
 def test_trajectories_of_other_lengths_and_names_share_one_length():
-    from jaxfalsify.pools import _assemble
+    from jaxfalsify.engine.pools import _assemble
 
     done = {0: {"robustness": 1.0, "trajectory/distance": np.arange(8.0)},
             1: {"robustness": 2.0, "trajectory/t": np.arange(5.0),

@@ -8,9 +8,9 @@ import jax
 import numpy as np
 import pytest
 
-from jaxfalsify import config as cfg
-from jaxfalsify import runs
+from jaxfalsify.base import config as cfg
 from jaxfalsify.cli import main
+from jaxfalsify.jobs import runs
 
 
 def _allocated_state_bytes(rc: runs.RunConfig) -> int:

@@ -17,9 +17,11 @@ import pytest
 from conftest import TINY_SPACE, run_campaign  # noqa: F401
 
 import jaxfalsify as jf
-from jaxfalsify import campaign, runs, search
-from jaxfalsify.checkpoints import CampaignCheckpoint
+from jaxfalsify import search
 from jaxfalsify.cli import main
+from jaxfalsify.engine import campaign
+from jaxfalsify.io.checkpoints import CampaignCheckpoint
+from jaxfalsify.jobs import runs
 
 FAST_RESUME = ("random",)  # the rest in the slow pass (test_trust resumes reinforce/default)
 

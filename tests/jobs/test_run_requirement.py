@@ -12,8 +12,9 @@ import pyarrow.parquet as pq
 import pytest
 from conftest import TINY_SPACE
 
-from jaxfalsify import problem, runs
 from jaxfalsify.cli import main
+from jaxfalsify.engine import problem
+from jaxfalsify.jobs import runs
 
 
 def _table(out):
@@ -93,7 +94,9 @@ def test_compare_counts_the_requirements_violations(tmp_path, capsys, monkeypatc
     scenarios whose minimum box gap is below epsilon (oracle: the sweep's own min_distance
     column), and each seed's first critical evaluation is the one a run with that
     requirement and seed records."""
-    from jaxfalsify import analysis, campaign, compare, truth
+    from jaxfalsify.engine import campaign, truth
+    from jaxfalsify.jobs import compare
+    from jaxfalsify.outputs import analysis
 
     monkeypatch.chdir(tmp_path)
     assert main(["compare", "--requirement", "clash", "--requirement-param", "epsilon=1.5",
@@ -133,7 +136,8 @@ def space_path(tmp_path):
 
 
 def test_a_suite_entry_names_its_requirement(tmp_path):
-    from jaxfalsify import compare, suites, truth
+    from jaxfalsify.engine import truth
+    from jaxfalsify.jobs import compare, suites
 
     (tmp_path / "tiny.toml").write_text(TINY_SPACE)
     suite = tmp_path / "suite.toml"
@@ -158,7 +162,8 @@ def test_a_suite_entry_names_its_requirement(tmp_path):
 def test_ground_truth_takes_a_requirement_by_name_and_table():
     """truth.ground_truth(requirement="clash", requirement_params={...}) is the same as with
     the resolved Requirement and its parameter pytree (oracle: the sweep's min gaps)."""
-    from jaxfalsify import requirements, truth
+    from jaxfalsify.core import requirements
+    from jaxfalsify.engine import truth
 
     sp = problem.build_space("paper", 0)
     by_name = truth.ground_truth(sp, requirement="clash", requirement_params={"epsilon": 0.5})
@@ -175,13 +180,13 @@ def test_ground_truth_takes_a_requirement_by_name_and_table():
 
 
 def cols_collision(sp):
-    from jaxfalsify import truth
+    from jaxfalsify.engine import truth
 
     return truth.sweep_arrays(sp, "carla-tm", fields=("collision",))["collision"]
 
 
 def test_a_suite_may_compare_two_requirements_on_one_space(tmp_path):
-    from jaxfalsify import suites
+    from jaxfalsify.jobs import suites
 
     (tmp_path / "tiny.toml").write_text(TINY_SPACE)
     suite = tmp_path / "suite.toml"
@@ -202,7 +207,7 @@ def test_a_suite_may_compare_two_requirements_on_one_space(tmp_path):
 def test_sweep_counts_a_requirements_violations(tmp_path, rows):
     """jaxfalsify sweep --requirement clash: every row's violated flag and the summary's
     count against the rows' own minimum gaps (a sweep without the requirement)."""
-    from jaxfalsify import truth
+    from jaxfalsify.engine import truth
 
     p = space_path(tmp_path)
     plain = truth.sweep_arrays(problem.build_space(str(p), 0), "carla-tm",
@@ -231,7 +236,8 @@ def _table_of(path):
 def test_a_users_requirement_file_through_run_sweep_and_estimate(tmp_path, monkeypatch):
     """reqs.py:gap (box gap below 1.2 m) named by file path: the run's violations, the sweep's
     count and the exact rate all against the rows' own minimum gaps."""
-    from jaxfalsify import estimate, truth
+    from jaxfalsify.engine import truth
+    from jaxfalsify.jobs import estimate
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "reqs.py").write_text("def gap(outcome, params):\n"

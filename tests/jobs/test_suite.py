@@ -10,9 +10,9 @@ import pytest
 from conftest import TINY_SPACE, run_campaign, space_file_fixture
 
 import jaxfalsify as jf
-from jaxfalsify import compare, runs, suites
 from jaxfalsify.cli import main
-from jaxfalsify.truth import sweep_arrays
+from jaxfalsify.engine.truth import sweep_arrays
+from jaxfalsify.jobs import compare, runs, suites
 
 SUT_SPACE = TINY_SPACE + """[parameters.sut.ttc_full]
 values = [0.5, 0.9, 2.0]
@@ -39,10 +39,10 @@ def test_sut_parameters_are_dimensions_of_a_space(sut_space):
     # the description round-trips through TOML (the run's config.toml)
     import tomllib
 
-    from jaxfalsify import config
+    from jaxfalsify.base import config
 
     doc = tomllib.loads(config.dumps_toml({"space": sp.describe()}))
-    assert jf.space.space_from_dict(doc["space"]).table == sp.table
+    assert jf.scenario.space.space_from_dict(doc["space"]).table == sp.table
     # a SUT without that parameter: one line naming it, before anything runs
     with pytest.raises(ValueError, match="space parameter sut.ttc_full: the SUT 'carla-tm'"):
         runs.RunConfig(space=str(sut_space), sut="carla-tm").build()
@@ -102,8 +102,8 @@ def test_a_suites_relative_paths_are_the_suite_files(tmp_path, monkeypatch):
     from any working folder; the entry's folder is named by the SUT file's stem."""
     import shutil
 
-    from jaxfalsify import sut as sut_lib
-    from jaxfalsify.suites import load_suite
+    from jaxfalsify.jobs.suites import load_suite
+    from jaxfalsify.suts import registry as sut_lib
 
     sub = (tmp_path / "sub").resolve()
     sub.mkdir()
@@ -124,7 +124,7 @@ def test_the_shipped_suite_loads_with_every_space_and_sut():
     suite spans at least 6 spaces and 2 SUTs."""
     import tomllib
 
-    from jaxfalsify import sut as sut_lib
+    from jaxfalsify.suts import registry as sut_lib
 
     path = Path(__file__).parents[2] / "experiments" / "suite" / "suite.toml"
     suite = suites.load_suite(str(path))

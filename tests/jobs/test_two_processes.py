@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 import pytest
 
 import jaxfalsify as jf
-from jaxfalsify.truth import sweep_arrays
+from jaxfalsify.engine.truth import sweep_arrays
 
 # the processes run on CPUs (gloo collectives); a bit-for-bit comparison with this process
 # needs it on the same backend (float32 last bits differ between a GPU and the CPU)
@@ -138,7 +138,7 @@ def test_two_process_compare_equals_single_process(tmp_path):
     single = json.loads((tmp_path / "single" / "compare.json").read_text())
     multi = json.loads((tmp_path / "multi" / "compare.json").read_text())
     assert multi["processes"] == 2
-    from jaxfalsify.compare_stats import without_times
+    from jaxfalsify.jobs.compare_stats import without_times
 
     for a, b in zip(single["rows"], multi["rows"]):
         a, b = without_times(a), without_times(b)  # measured seconds differ between runs
@@ -195,7 +195,7 @@ def test_two_process_sweep_killed_and_resumed_equals_single_process(tmp_path):
 def test_an_unreachable_coordinator_fails_in_time_with_one_line():
     """Process 1 of 2 pointed at a port nobody listens on: a one-line error after the
     initialisation timeout, not a hang."""
-    code = ("from jaxfalsify.distributed import initialize\n"
+    code = ("from jaxfalsify.base.distributed import initialize\n"
             "try:\n    initialize('127.0.0.1:%d', 2, 1, timeout=3)\n"
             "except ValueError as e:\n    print('ERR', e)\n" % _free_port())
     env = dict(os.environ, JAX_PLATFORMS="cpu")
@@ -282,7 +282,7 @@ def test_a_process_without_scenarios_writes_no_part(tmp_path):
 
 @pytest.mark.parametrize("var", ["JAX_NUM_PROCESSES", "JAX_PROCESS_ID"])
 def test_a_non_integer_process_variable_is_named(monkeypatch, var):
-    from jaxfalsify.distributed import initialize
+    from jaxfalsify.base.distributed import initialize
 
     monkeypatch.setenv("JAX_COORDINATOR_ADDRESS", "127.0.0.1:1234")
     monkeypatch.setenv("JAX_NUM_PROCESSES", "2")
@@ -300,7 +300,7 @@ def test_checking_a_comparison_leaves_the_backend_to_jax_distributed():
     limited to CPUs, as a test's processes are)."""
     code = ("from jax._src import xla_bridge as xb\n"
             "from jaxfalsify import search\n"
-            "from jaxfalsify.compare import CompareConfig\n"
+            "from jaxfalsify.jobs.compare import CompareConfig\n"
             "CompareConfig(strategies=tuple(search.REGISTRY), evaluations=64, seeds=2).check()\n"
             "print('started' if xb._backends else 'not started')\n")
     env = dict(os.environ, JAX_PLATFORMS="cpu")

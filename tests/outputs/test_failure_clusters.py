@@ -12,7 +12,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from jaxfalsify import analysis, runs
+from jaxfalsify.jobs import runs
+from jaxfalsify.outputs import analysis
 
 
 # ----------------------------------------------------------------------------- oracles
@@ -212,8 +213,8 @@ def test_run_outputs_agree_with_the_oracle(run_folder):
 
 
 def test_report_and_figure_show_the_clusters(run_folder, tmp_path):
-    from jaxfalsify.figures import _plt, cluster_figure, load_run
-    from jaxfalsify.report import write_report
+    from jaxfalsify.outputs.figures import _plt, cluster_figure, load_run
+    from jaxfalsify.outputs.report import write_report
 
     out, _ = run_folder
     s = json.loads((out / "summary.json").read_text())

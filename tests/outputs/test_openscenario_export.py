@@ -54,7 +54,7 @@ def speed_events(root, params, maneuver="ped_speed_profile"):
     """``[(name, start time or None, kind, target, rate)]`` of a maneuver's speed events, start
     times resolved from their triggers (simulation time, parameter conditions, another
     event's end or standby state), as an OpenSCENARIO engine would."""
-    from jaxfalsify.export import value_of
+    from jaxfalsify.outputs.export import value_of
 
     man = next(m for m in root.iter("Maneuver") if m.attrib["name"] == maneuver)
     events = {}
@@ -125,7 +125,7 @@ def schema(kind="xosc"):
     """The XSD, loaded once per test session (a few seconds each)."""
     import xmlschema
 
-    from jaxfalsify.export import schema_path
+    from jaxfalsify.outputs.export import schema_path
 
     return xmlschema.XMLSchema(str(schema_path(kind)))
 
@@ -156,7 +156,8 @@ CASES = [  # ped_speed, ped_accel, ped_speed_change, ped_change_step
 def test_exported_pedestrian_profile_equals_the_simulator(tmp_path, xsd, speed, accel, change,
                                                          step):
     import jaxfalsify as jf
-    from jaxfalsify import export, sim
+    from jaxfalsify.core import sim
+    from jaxfalsify.outputs import export
 
     sp = jf.load_space("paper-extended")
     values = {"ego_offset": "7", "ped_accel": f"{accel:g}", "ped_speed": f"{speed:g}",
@@ -201,7 +202,7 @@ def test_exported_pedestrian_profile_equals_the_simulator(tmp_path, xsd, speed, 
 
 
 def test_value_of_evaluates_references_and_expressions():
-    from jaxfalsify.export import value_of
+    from jaxfalsify.outputs.export import value_of
 
     p = {"a": 0.25, "b": -2.0}
     assert value_of("1.5", p) == 1.5
@@ -225,7 +226,8 @@ def test_a_space_with_only_ped_change_step_pauses_the_growth_there(tmp_path, xsd
     0 holds the speed, the growth paused six steps): a space declaring only the step exports a
     pedestrian that walks the simulator's distance, not an unpaused ramp."""
     import jaxfalsify as jf
-    from jaxfalsify import export, sim
+    from jaxfalsify.core import sim
+    from jaxfalsify.outputs import export
 
     sp = _space(tmp_path, 'name = "stepcha"\n[parameters.ego_offset]\nvalues = [9.0]\n'
                 '[parameters.ped_speed]\nvalues = [1.237]\n[parameters.ped_accel]\n'
@@ -282,8 +284,8 @@ def test_replay_grows_the_walker_box_with_the_spaces_sut_parameter(sut_run, tmp_
     run simulated it, not the SUT's default (1.5 s): half size = half the walker's size +
     walker_time * its speed."""
     import jaxfalsify as jf
-    from jaxfalsify.replay import record
-    from jaxfalsify.sut import CarlaTMParams
+    from jaxfalsify.outputs.replay import record
+    from jaxfalsify.suts.registry import CarlaTMParams
 
     f = record(sut_run, "best", save=tmp_path / "best.rrd")
     half = np.asarray([np.asarray(h)[0] for h in _recording_column(
@@ -311,7 +313,8 @@ def test_every_weather_the_stochastic_file_may_draw_has_its_event(tmp_path, xsd,
     import dataclasses
 
     import jaxfalsify as jf
-    from jaxfalsify import export, weather
+    from jaxfalsify.outputs import export
+    from jaxfalsify.scenario import weather
 
     sp = _space(tmp_path, 'name = "w"\n[parameters.ego_offset]\nvalues = [9.0]\n'
                 '[parameters.weather]\n' + decl)
@@ -331,7 +334,7 @@ def test_every_weather_the_stochastic_file_may_draw_has_its_event(tmp_path, xsd,
     assert all(v.is_integer() for v in drawn) and sum(drawn.values()) == pytest.approx(1.0)
     # the oracle: the space's own draw, many times
     big = dataclasses.replace(sp.parameters[p], samples=400_000).discretise(1)
-    lo, hi = jf.space.KNOWN_PARAMETERS["weather"]["domain"]
+    lo, hi = jf.scenario.space.KNOWN_PARAMETERS["weather"]["domain"]
     big = big[(big >= lo) & (big <= hi)]  # the file's normal is truncated to the domain
     vals, counts = np.unique(big, return_counts=True)
     freq = dict(zip(vals.tolist(), (counts / counts.sum()).tolist()))
@@ -373,7 +376,7 @@ def test_library_export_refuses_existing_files_without_force(sut_run, tmp_path):
     (``critical_NNN.xosc``, not a user's ``critical_mine.xosc``)."""
     import fnmatch
 
-    from jaxfalsify.export import EXPORT_FILES, export
+    from jaxfalsify.outputs.export import EXPORT_FILES, export
 
     out = tmp_path / "osc"
     out.mkdir()
@@ -414,7 +417,7 @@ def test_a_failed_export_leaves_the_folder_as_it_was(sut_run, tmp_path, monkeypa
     import os
     from pathlib import Path
 
-    from jaxfalsify import export as ex
+    from jaxfalsify.outputs import export as ex
 
     def broken(*a, **k):
         raise OSError(28, "No space left on device")
@@ -460,7 +463,7 @@ def test_an_export_is_byte_reproducible_and_its_road_says_opendrive_1_7(sut_run,
     is checked against, and the crosswalk has no subtype "None"."""
     import time
 
-    from jaxfalsify.export import export
+    from jaxfalsify.outputs.export import export
 
     export(sut_run, tmp_path / "one", ego="replay")
     time.sleep(1.1)

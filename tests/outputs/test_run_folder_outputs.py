@@ -41,9 +41,9 @@ def test_figures_are_nontrivial_images_of_the_right_size(run_with_figures):
 def test_figure_content_units_values_and_drawing_order(run_with_figures):
     """What a safety engineer reads: axes carry units, ticks are the space's values (with its
     decimals), the colour scale is fitted to the data, collisions are drawn on top."""
-    from jaxfalsify import analysis
-    from jaxfalsify.figures import _plt, critical_region_figure, load_run, search_figure
-    from jaxfalsify.truth import ground_truth
+    from jaxfalsify.engine.truth import ground_truth
+    from jaxfalsify.outputs import analysis
+    from jaxfalsify.outputs.figures import _plt, critical_region_figure, load_run, search_figure
 
     plt = _plt()
     sp, rc, _, ep = load_run(run_with_figures)
@@ -107,7 +107,7 @@ def test_a_failure_while_drawing_leaves_every_figure_as_it_was(run_with_figures,
                                                                 capsys):
     """The figures are written as one set after all are drawn: the last one failing leaves
     the earlier ones byte for byte (none redrawn) and no temporary file behind."""
-    from jaxfalsify import figures
+    from jaxfalsify.outputs import figures
 
     figs = run_with_figures / "figures"
     originals = {p: p.read_bytes() for p in figs.iterdir()}
@@ -200,7 +200,7 @@ def test_replay_recording_reads_back_with_simulated_values(run_with_figures, tmp
 
     assert not re.search(r"\d\.\d{9,}", text), text
     # each parameter written as Table II and critical.csv write it (declared decimals)
-    from jaxfalsify import analysis
+    from jaxfalsify.outputs import analysis
 
     for p, (n, unit) in enumerate(zip(sp.names, sp.units)):
         want = analysis.format_value(sp, p, ep[n][best])
@@ -267,7 +267,7 @@ def test_export_validates_against_the_xsd_and_matches_the_trajectory(run_with_fi
     from test_openscenario_export import schema
 
     import jaxfalsify as jf
-    from jaxfalsify.export import X_OFFSET
+    from jaxfalsify.outputs.export import X_OFFSET
 
     out = tmp_path / "osc"
     assert main(["export", str(run_with_figures), "--scenario", "critical", "--ego", "replay",
@@ -335,9 +335,9 @@ def test_export_controller_parameters_reproduce_the_run(run_with_figures, tmp_pa
     from test_openscenario_export import declarations, oracle_profile, schema, speed_events
 
     import jaxfalsify as jf
-    from jaxfalsify import analysis
-    from jaxfalsify.export import X_OFFSET, value_of
-    from jaxfalsify.rundir import load_run
+    from jaxfalsify.engine.rundir import load_run
+    from jaxfalsify.outputs import analysis
+    from jaxfalsify.outputs.export import X_OFFSET, value_of
 
     out = tmp_path / "osc"
     assert main(["export", str(run_with_figures), "--scenario", "critical",
@@ -399,8 +399,8 @@ def test_export_distribution_lists_the_space(run_with_figures, tmp_path):
 
     from test_openscenario_export import schema
 
-    from jaxfalsify.export import write_distribution
-    from jaxfalsify.rundir import load_run
+    from jaxfalsify.engine.rundir import load_run
+    from jaxfalsify.outputs.export import write_distribution
 
     out = tmp_path / "osc"
     assert main(["export", str(run_with_figures), "--out", str(out)]) == 0
@@ -492,8 +492,8 @@ def test_replay_refuses_to_overwrite_a_saved_file_and_says_when_no_viewer(
 def test_export_force_replaces_the_earlier_export(run_with_figures, tmp_path):
     """``--force`` replaces an earlier export's files (no stale critical_NNN.xosc beside the
     new best.xosc) and leaves the user's own files alone."""
-    from jaxfalsify import analysis
-    from jaxfalsify.rundir import load_run
+    from jaxfalsify.engine.rundir import load_run
+    from jaxfalsify.outputs import analysis
 
     sp, _, _, ep = load_run(run_with_figures)
     n_crit = len(analysis.distinct_critical(*analysis.from_evaluations(ep, sp)))
@@ -516,9 +516,9 @@ def test_report_simulate_line_reproduces_the_best_scenario(run_with_figures, cap
     import shlex
 
     import jaxfalsify as jf
-    from jaxfalsify import analysis
-    from jaxfalsify.report import simulate_command
-    from jaxfalsify.rundir import load_run
+    from jaxfalsify.engine.rundir import load_run
+    from jaxfalsify.outputs import analysis
+    from jaxfalsify.outputs.report import simulate_command
 
     sp, rc, _, ep = load_run(run_with_figures)
     row = analysis.best(ep)
@@ -674,7 +674,7 @@ def test_a_second_recording_of_the_same_scenario_keeps_its_timelines(run_with_fi
     """Two recordings of one run's best scenario in one process (a notebook, or a test after
     another): rerun keeps a stream's time per recording id, so the second one's simulated
     metrics once carried the first one's last evaluation number as a second timeline."""
-    from jaxfalsify.replay import record
+    from jaxfalsify.outputs.replay import record
 
     record(run_with_figures, "best", save=tmp_path / "first.rrd")  # ends on the evaluations
     cols = _read_rrd(record(run_with_figures, "best", save=tmp_path / "second.rrd"))
@@ -691,7 +691,9 @@ def test_library_figures_and_replay_take_the_run_folders_lock(run_with_figures, 
     that writer's pid, and nothing is written; a recording saved elsewhere needs no lock."""
     import os
 
-    from jaxfalsify import replay, runs, store
+    from jaxfalsify.io import store
+    from jaxfalsify.jobs import runs
+    from jaxfalsify.outputs import replay
 
     out = run_with_figures
     before = sorted(os.listdir(out))
@@ -718,7 +720,7 @@ def test_a_run_folder_reads_back_as_its_own_files(run_with_figures):
     import json
     import tomllib
 
-    from jaxfalsify.rundir import RunFolder, load_run
+    from jaxfalsify.engine.rundir import RunFolder, load_run
 
     folder = load_run(run_with_figures)
     assert isinstance(folder, RunFolder)

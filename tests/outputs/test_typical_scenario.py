@@ -4,7 +4,7 @@ requirement: the median reward among evaluations whose box gap never fell below 
 
 import numpy as np
 
-from jaxfalsify import analysis
+from jaxfalsify.outputs import analysis
 
 
 def _fields(reward, robustness, collision, nonfinite=None):
@@ -34,7 +34,7 @@ def test_fig9_rows_are_the_requirements_violations_when_the_run_names_one():
     """Oracle: a hand-built record where violations and collisions differ; Fig. 9's critical
     rows must come from the violations (a run with --requirement), the others from the
     evaluations that satisfy it."""
-    from jaxfalsify.figures import fig10_rows
+    from jaxfalsify.outputs.figures import fig10_rows
 
     n = 40
     collision = np.zeros(n, bool)

@@ -9,7 +9,8 @@ import tomllib
 import jax
 import pytest
 
-from jaxfalsify import compare, runs, search, suites
+from jaxfalsify import search
+from jaxfalsify.jobs import compare, runs, suites
 
 
 def test_default_run_is_300_updates_of_4096_and_the_paper_preset_keeps_4000():

@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfalsify import pytree, search
+from jaxfalsify import search
+from jaxfalsify.base import pytree
 from jaxfalsify.search import base, batched, discretised
 
 SHAPE = (4, 1, 3, 5)  # a one-value parameter too

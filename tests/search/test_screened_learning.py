@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from jaxfalsify import pytree, search
+from jaxfalsify import search
+from jaxfalsify.base import pytree
 from jaxfalsify.search import autoregressive as ar
 from jaxfalsify.search import base, cmaes, surrogate
 from jaxfalsify.search.reinforce_ar import scenario_hash, top_distinct

@@ -12,7 +12,10 @@ import pytest
 from conftest import run_campaign
 
 import jaxfalsify as jf
-from jaxfalsify import analysis, campaign, pytree, search
+from jaxfalsify import search
+from jaxfalsify.base import pytree
+from jaxfalsify.engine import campaign
+from jaxfalsify.outputs import analysis
 from jaxfalsify.search import controller, reinforce
 
 SHAPE = (6, 5, 4)
@@ -248,7 +251,7 @@ def test_campaign_budget_and_determinism():
 
 
 def test_seeds_together_equal_single_runs():
-    from jaxfalsify import sut as sut_lib
+    from jaxfalsify.suts import registry as sut_lib
 
     sp = jf.load_space("paper")
     s, sp_ = sut_lib.make("carla-tm")
@@ -263,7 +266,7 @@ def test_seeds_together_equal_single_runs():
 def test_another_space_seed_or_calibration_does_not_recompile(compile_events):
     """Space values, SUT and strategy parameters are traced: a second campaign with another
     space seed, SUT calibration and hyperparameter value reuses the compiled program."""
-    from jaxfalsify import sut as sut_lib
+    from jaxfalsify.suts import registry as sut_lib
 
     def go(space_seed, ttc, elite):
         sp = jf.load_space("paper", seed=space_seed)
@@ -278,7 +281,7 @@ def test_another_space_seed_or_calibration_does_not_recompile(compile_events):
 
 
 def test_nan_outcomes_never_rank_best():
-    from jaxfalsify import sut as sut_lib
+    from jaxfalsify.suts import registry as sut_lib
 
     sp = jf.load_space("paper")
 
@@ -335,11 +338,12 @@ def test_submodules_load_on_first_access():
     code = ("import sys, jaxfalsify as jf\n"
             "before = 'jaxfalsify.search' in sys.modules\n"
             "strategy, params = jf.search.make('cem', (3, 4), 20, elite_frac=0.2)\n"
-            "print(before, type(strategy).__name__, float(params.elite_frac), 'runs' in dir(jf))\n"
+            "print(before, type(strategy).__name__, float(params.elite_frac), 'jobs' in dir(jf),\n"
+            "      'jaxfalsify.jobs.runs' in sys.modules, callable(jf.jobs.runs.execute))\n"
             "try:\n    jf.no_such_thing\nexcept AttributeError as e:\n    print(e)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout.splitlines()
-    assert out == ["False CEM 0.2 True",
+    assert out == ["False CEM 0.2 True False True",
                    "module 'jaxfalsify' has no attribute 'no_such_thing'"]
 
 

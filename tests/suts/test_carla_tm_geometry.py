@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfalsify.sut import REGISTRY, Observation
 from jaxfalsify.suts.carla_tm import boundary_extension, carla_tm_act, carla_tm_hazard
+from jaxfalsify.suts.registry import REGISTRY, Observation
 
 shapely = pytest.importorskip("shapely")
 from shapely.geometry import Polygon  # noqa: E402

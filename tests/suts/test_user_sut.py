@@ -11,10 +11,11 @@ import pytest
 from conftest import TINY_SPACE, space_file_fixture
 
 import jaxfalsify as jf
-from jaxfalsify import report, rundir
-from jaxfalsify import sut as sut_lib
 from jaxfalsify.cli import main
-from jaxfalsify.truth import sweep_arrays
+from jaxfalsify.engine import rundir
+from jaxfalsify.engine.truth import sweep_arrays
+from jaxfalsify.outputs import report
+from jaxfalsify.suts import registry as sut_lib
 
 EXAMPLE = Path(__file__).parents[2] / "experiments" / "example_aeb.py"
 SPEC = f"{EXAMPLE}:AEB"
@@ -40,7 +41,7 @@ def test_a_sut_that_cannot_step_is_refused_before_it_runs(tmp_path):
     that keeps it loads, and a SUT without defaults works with the parameters given."""
     import jax.numpy as jnp
 
-    from jaxfalsify import pytree
+    from jaxfalsify.base import pytree
 
     mod = tmp_path / "user_suts.py"
     mod.write_text(
@@ -97,7 +98,7 @@ def test_a_relative_sut_path_resumes_from_another_folder(tiny, tmp_path, monkeyp
     """config.toml records a SUT file named by a relative path as an absolute one, so a run
     interrupted in one working folder resumes from another and ends with the files of an
     uninterrupted run (the oracle: the same run made in one go with the absolute path)."""
-    from jaxfalsify import runs
+    from jaxfalsify.jobs import runs
 
     calls = iter(range(10_000))
     monkeypatch.chdir(EXAMPLE.parent.parent)
@@ -114,7 +115,7 @@ def test_a_relative_sut_path_resumes_from_another_folder(tiny, tmp_path, monkeyp
     for f in ("config.toml", "summary.json", "evaluations.parquet"):
         assert (tmp_path / "cut" / f).read_bytes() == (tmp_path / "whole" / f).read_bytes(), f
     # a sweep records it the same way
-    from jaxfalsify.sweep_config import SweepConfig
+    from jaxfalsify.engine.sweep_config import SweepConfig
 
     monkeypatch.chdir(EXAMPLE.parent)
     assert SweepConfig(sut="example_aeb.py:AEB").resolved().sut == SPEC
@@ -137,8 +138,8 @@ def test_a_stochastic_runs_draws_are_resimulated_as_evaluated(tiny, tmp_path):
     campaign's own draw: the key of the run's seed, offset by the evaluation number; the
     campaign's recorded outcomes are the oracle. report.md's simulate line carries the run's
     SUT parameters and says it draws other noise."""
-    from jaxfalsify.campaign import evaluation_key
-    from jaxfalsify.rundir import load_run, resimulate
+    from jaxfalsify.engine.campaign import evaluation_key
+    from jaxfalsify.engine.rundir import load_run, resimulate
 
     out = tmp_path / "noisy"
     assert main(["run", "--space", str(tiny), "--sut", SPEC, "--sut-param", "noise=3",
@@ -163,7 +164,7 @@ def test_a_stochastic_runs_draws_are_resimulated_as_evaluated(tiny, tmp_path):
                         (ep["evaluation"] - 2, r"0..2\*\*31-1")]:
         with pytest.raises(ValueError, match=needle):
             jf.evaluate(scen, sut=SPEC, sut_params=params, offsets=bad)
-    from jaxfalsify.report import write_report
+    from jaxfalsify.outputs.report import write_report
 
     report = write_report(out).read_text()
     assert "--sut-param noise=3" in report and "# a stochastic SUT" in report
@@ -174,7 +175,8 @@ def test_resume_after_the_suts_code_changed_is_refused(tiny, tmp_path):
     """A checkpoint records the code it was written under (jaxfalsify's and the SUT's file):
     resuming after the SUT's file changed is refused instead of joining two versions'
     results; unchanged, the resume completes."""
-    from jaxfalsify import checkpoints, runs
+    from jaxfalsify.io import checkpoints
+    from jaxfalsify.jobs import runs
 
     mine = tmp_path / "my_aeb.py"
     mine.write_text(EXAMPLE.read_text())
@@ -191,7 +193,7 @@ def test_resume_after_the_suts_code_changed_is_refused(tiny, tmp_path):
     mine.write_text(EXAMPLE.read_text())
     assert runs.execute(rc, tmp_path / "kept", resume=True, figures=False).result.n == 32
     # the same bytes in another folder (a project moved): the same code
-    from jaxfalsify import cache
+    from jaxfalsify.io import cache
 
     moved = tmp_path / "elsewhere" / "my_aeb.py"
     moved.parent.mkdir()
@@ -224,7 +226,7 @@ def _sut_with_helper(folder, module: str, helper: str, decel: float, body: str) 
     module it imports, ``helper`` (``DECEL = decel``)."""
     (folder / f"{helper}.py").write_text(f"DECEL = {decel}\n")
     (folder / f"{module}.py").write_text(
-        f"import jax.numpy as jnp\nimport {helper}\nfrom jaxfalsify.sut import SUT\n\n\n"
+        f"import jax.numpy as jnp\nimport {helper}\nfrom jaxfalsify.suts.registry import SUT\n\n\n"
         f"def act(obs, state, params, key):\n{body}\n\n\n"
         "def init(key, params):\n    return jnp.bool_(False)\n\n\n"
         f"AEB = SUT('{module.replace('_', '-')}', act, init, None, stochastic=False)\n")
@@ -238,7 +240,8 @@ def test_program_cache_keys_on_the_users_code(tmp_path, monkeypatch):
     import dataclasses
     import importlib
 
-    from jaxfalsify import campaign, search
+    from jaxfalsify import search
+    from jaxfalsify.engine import campaign
     from jaxfalsify.search.base import Strategy
 
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -279,8 +282,9 @@ def test_ground_truths_and_fingerprints_follow_helpers_and_parameter_order(tmp_p
     the user's SUT imports changes (a stale truth or a resume joining two versions' results
     was possible), and two spaces listing the same parameters in another order (another
     scenario numbering) get their own truths: each equals a fresh sweep of its own space."""
-    from jaxfalsify import cache, truth
-    from jaxfalsify.space import space_from_dict
+    from jaxfalsify.engine import truth
+    from jaxfalsify.io import cache
+    from jaxfalsify.scenario.space import space_from_dict
 
     monkeypatch.syspath_prepend(str(tmp_path))
     _sut_with_helper(tmp_path, "gt_sut", "gt_helper", 8.0,
@@ -310,7 +314,7 @@ def test_a_sut_that_is_never_finite_gets_a_summary_not_a_traceback(tiny, tmp_pat
     """Every rollout NaN (the SUT commands NaN): the sweep and compare report no global
     maximum (None, zero ties) and count the non-finite rollouts instead of failing."""
     f = tmp_path / "nan_aeb.py"
-    f.write_text("import jax.numpy as jnp\nfrom jaxfalsify import sut\n\n"
+    f.write_text("import jax.numpy as jnp\nfrom jaxfalsify.suts import registry as sut\n\n"
                  "def act(obs, state, params, key):\n"
                  "    return jnp.float32(jnp.nan) * obs.ego_speed, state\n\n"
                  "AEB = sut.SUT('nan-aeb', act, lambda key, params: jnp.int32(0),\n"
@@ -360,7 +364,8 @@ def test_a_space_varying_a_sut_parameter_round_trips(tmp_path):
     figures re-simulate rows of different calibrations (each equal to simulating that
     calibration alone), ``--config`` repeats it, and an interrupted sweep resumes: the
     recorded config.toml leaves the varied parameter to the space."""
-    from jaxfalsify import runs, sweep, sweep_config
+    from jaxfalsify.engine import sweep_config
+    from jaxfalsify.jobs import runs, sweep
 
     space = tmp_path / "sutdim.toml"
     space.write_text(SUT_DIM_SPACE)

@@ -1,0 +1,147 @@
+"""Reading a finished run folder: its space, resolved configuration, summary and evaluated
+scenarios (:func:`load_run`, every file checked against the others), and the trajectories of
+any evaluated scenario simulated again as the run simulated it (:func:`resimulate`). Used by
+the figures, the report, replay and export."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from jaxfalsify.core import sim
+from jaxfalsify.engine.campaign import RECORD_FIELDS, evaluation_key
+from jaxfalsify.engine.problem import RunConfig
+from jaxfalsify.scenario.space import Space, is_sut_parameter
+from jaxfalsify.suts import registry as sut_lib
+
+__all__ = [
+    "RunFolder", "load_run", "check_config_matches", "check_simulated", "indices_of",
+    "resimulate"
+]
+
+
+class RunFolder(NamedTuple):
+    """A finished run folder, read and checked (:func:`load_run`); unpacks as ``space,
+    config, summary, evaluations``."""
+
+    space: Space  # the run's discretised logical scenario
+    config: RunConfig  # config.toml, resolved
+    summary: dict  # summary.json
+    evaluations: dict  # evaluations.parquet: column name -> (N,) NumPy array
+
+
+def load_run(run_dir: Path) -> RunFolder:
+    """A finished run folder: its space, resolved config, summary and evaluations columns,
+    every file checked against the others (one-line ValueError naming the damaged file)."""
+    import pyarrow.parquet as pq
+
+    run_dir = Path(run_dir)
+    missing = [f for f in ("config.toml", "summary.json", "evaluations.parquet")
+               if not (run_dir / f).exists()]
+    if missing:
+        raise ValueError(f"{run_dir} is not a finished run folder (missing "
+                         f"{', '.join(missing)})")
+    rc = RunConfig.from_toml(run_dir / "config.toml")
+    sp = rc.build().space
+    where = run_dir / "summary.json"
+    try:
+        summary = json.loads(where.read_text())
+    except (ValueError, UnicodeDecodeError) as e:
+        raise ValueError(f"{where} is damaged ({e})") from None
+    need = ("first_collision_evaluation", "n_collisions", "n_distinct_critical", "best",
+            "evaluations", "batch", "strategy", "space", "space_seed", "sut", "seed")
+    gone = [k for k in need if not isinstance(summary, dict) or k not in summary]
+    if gone:
+        raise ValueError(f"{where} is damaged (no '{gone[0]}')")
+    where = run_dir / "evaluations.parquet"
+    try:
+        table = pq.read_table(where)
+        ep = {k: table.column(k).to_numpy() for k in table.column_names}
+    except Exception as e:  # pyarrow raises several kinds for a damaged file
+        raise ValueError(f"{where} is damaged ({type(e).__name__}: {str(e)[:120]})") from None
+    cols = ["evaluation", *RECORD_FIELDS,
+            *(c for n in sp.names for c in (f"{n}_idx", n))]
+    gone = [c for c in cols if c not in ep]
+    if gone:
+        raise ValueError(f"{where} is damaged (no column '{gone[0]}')")
+    if len(ep["evaluation"]) == 0:
+        raise ValueError(f"{where} holds no evaluation")
+    for n, size in zip(sp.names, sp.shape):
+        i = ep[f"{n}_idx"]
+        if not np.issubdtype(i.dtype, np.integer) or i.min() < 0 or i.max() >= size:
+            raise ValueError(f"{where} is damaged: column '{n}_idx' outside 0..{size - 1}")
+    check_config_matches(run_dir, sp, rc, summary, ep)
+    return RunFolder(sp, rc, summary, ep)
+
+
+def check_config_matches(run_dir: Path, sp, rc, summary: dict, ep: dict) -> None:
+    """ValueError (one line) where the folder's ``config.toml`` no longer describes its
+    results (edited after the run): the seeds, strategy and SUT that ``summary.json`` records,
+    and every evaluated scenario's values in ``evaluations.parquet`` against the space the config
+    builds at their recorded indices."""
+    for key in ("space_seed", "seed", "strategy", "sut"):
+        if summary[key] != getattr(rc, key):
+            raise ValueError(f"{run_dir}/config.toml does not match the run's results: {key} "
+                             f"= {getattr(rc, key)!r} there, {summary[key]!r} in summary.json "
+                             "(edited after the run?)")
+    for p, n in enumerate(sp.names):
+        want = np.asarray(sp.values[p], np.float64)[ep[f"{n}_idx"]]
+        got = np.asarray(ep[n], np.float64)
+        bad = ~np.isclose(got, want, rtol=1e-5, atol=1e-6)
+        if bad.any():
+            j = int(np.argmax(bad))
+            raise ValueError(f"{run_dir}/config.toml does not match the run's results: {n} of "
+                             f"evaluation {int(ep['evaluation'][j])} is {got[j]:g} in "
+                             f"evaluations.parquet but {want[j]:g} in the space config.toml "
+                             "builds (edited after the run?)")
+
+
+def check_simulated(run_dir: Path, rc, what: str) -> None:
+    """ValueError (one line) for a run whose scenarios an external evaluator evaluated: there
+    is no JAX SUT to simulate them again for ``what`` (replay, export)."""
+    if rc.evaluator:
+        raise ValueError(f"{run_dir} was evaluated by {rc.evaluator!r} outside JAX: {what} "
+                         "needs the run's JAX SUT to simulate its scenarios again")
+
+
+def indices_of(ep: dict, space, rows) -> np.ndarray:
+    return np.stack([ep[f"{n}_idx"][rows] for n in space.names], -1)
+
+
+def resimulate(sp, rc, ep: dict, rows, world=None):
+    """Trajectories ``(len(rows), T)`` of a run's evaluated ``rows`` as the run simulated
+    them: its space, SUT and SUT parameters, and for a stochastic SUT each evaluation's own
+    draw (the campaign's key, offset by the evaluation number)."""
+    rows = np.asarray(rows)
+    key = 0
+    if sut_lib.resolve(rc.sut).stochastic:
+        key = evaluation_key(rc.seed)
+    scen = sp.scenario(indices_of(ep, sp, rows))
+    offsets = np.asarray(ep["evaluation"])[rows] - 1
+
+    def run(sel):
+        return sim.simulate({k: np.asarray(v)[sel] for k, v in scen.items()}, sut=rc.sut,
+                           sut_params=dict(rc.sut_params), world=world or sim.WORLD, key=key,
+                           offsets=offsets[sel])
+
+    calib = [k for k in scen if is_sut_parameter(k)]  # a space's sut.NAME dimensions
+    if not calib or rows.size == 0:
+        return run(np.arange(rows.size))
+    # one call per calibration (simulate takes one value of each SUT parameter), each padded
+    # to the full size so every call reuses one compiled program
+    values = np.stack([np.asarray(scen[k], np.float64) for k in calib], -1)
+    _, group = np.unique(values, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    out = None
+    for g in range(int(group.max()) + 1):
+        sel = np.nonzero(group == g)[0]
+        traj = run(np.concatenate([sel, np.full(rows.size - sel.size, sel[0])]))
+        if out is None:
+            out = {f.name: np.array(getattr(traj, f.name)) for f in dataclasses.fields(traj)}
+        for name, arr in out.items():
+            arr[sel] = np.asarray(getattr(traj, name))[:sel.size]
+    return sim.Trajectory(**out)

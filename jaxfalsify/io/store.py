@@ -1,0 +1,416 @@
+"""Result folders (a run's, sweep's, comparison's, suite's or estimate's): the checks before one
+is written (:func:`check_out`), its lock, its ``status.json``, and the removal of earlier
+results (``--force``) or of what a failed command wrote.
+
+One concern: result folders: their checks, locks, status and removal.
+
+**Locks.** A process writing a run, sweep or comparison folder holds an exclusive ``flock`` on
+``.lock`` in it (the kernel releases it when the process dies, kill -9 included); a second
+writer is refused with the holder's pid (:class:`FolderLock`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import itertools
+import json
+import os
+import shlex
+import shutil
+import stat
+import tempfile
+from pathlib import Path
+
+from jaxfalsify.base.config import read_toml
+from jaxfalsify.io.files import write_json
+
+__all__ = [
+    "FolderError", "FIGURES", "folder_kind", "check_out", "clear", "FolderLock", "discard",
+    "open_folder", "open_new_folder", "shell_path", "write_status", "run_folder_lock",
+    "check_out_plain", "Interrupted"
+]
+
+
+class FolderError(ValueError):
+    """An output folder that cannot be used as asked (one line naming it and what to do)."""
+
+
+FIGURES = [  # a run's figures under figures/, with their captions in report.md
+           ("reward_per_evaluation.png", "Reward per evaluation (paper Fig. 6)"),
+           ("distance_challenging.png", "Distance over time, best critical vs typical "
+            "non-critical; red = high-risk (paper Fig. 7)"),
+           ("high_risk_second_half.png", "High-risk share in the second half (paper Fig. 8)"),
+           ("distance_14_scenarios.png", "14 evaluated scenarios, the critical ones red "
+            "(paper Fig. 9)"),
+           ("critical_regions.png", "Critical regions from the exhaustive sweep, with a "
+            "subsample of the evaluated scenarios (collisions as red crosses)"),
+           ("search_distribution.png", "Where the search went: each parameter's values among "
+            "the evaluations of each stretch of the run"),
+           ("failure_clusters.png", "Failure clusters: their sizes, and the distinct critical "
+            "scenarios on the two parameters they vary most, coloured by cluster (stars: each "
+            "cluster's best-reward member)")]
+RESULT_FILES = {
+    "run": ("evaluations.parquet", "summary.json", "critical.csv", "timing.json", "report.md",
+            "best.rrd", "trajectories.npz"),
+    "sweep": ("sweep.parquet", "summary.json", "timing.json"),
+    "compare": ("compare.json", "compare.md", "timing.json"),
+    "suite": ("suite.json", "suite.md", "timing.json"),
+    "estimate": ("summary.json", "timing.json"),
+}
+FINISHED = {"run": "summary.json", "sweep": "summary.json", "compare": "compare.json",
+            "suite": "suite.json", "estimate": "summary.json"}
+
+
+def _result_names(kind: str) -> list[str]:
+    """Every file a finished ``kind`` writes, relative to its folder."""
+    names = list(RESULT_FILES[kind]) + ["status.json"]
+    if kind == "run":
+        names += [f"figures/{f}" for f, _ in FIGURES] + ["campaign.rrd"]
+    return names
+
+
+def folder_kind(out: Path) -> str | None:
+    """``run``, ``sweep`` or ``compare`` from the folder's ``config.toml`` (None if absent);
+    a FolderError if that file cannot be read."""
+
+    path = Path(out) / "config.toml"
+    if not path.exists():
+        return None
+    try:
+        kind = read_toml(path).get("kind")
+    except ValueError as e:
+        raise FolderError(str(e)) from None
+    if kind not in RESULT_FILES:
+        raise FolderError(f"{path}: not a jaxfalsify run, sweep, compare or suite "
+                          f"(kind = {kind!r})")
+    return kind
+
+
+def _checkpoints(out: Path) -> list[Path]:
+    """A run's or sweep's checkpoint folders in ``out`` (exact names: a user's own
+    ``checkpoints/`` is not one)."""
+    out = Path(out)
+    return [p for p in [out / "checkpoint", *out.glob("checkpoint-part-*-of-*")] if p.exists()]
+
+
+def unfinished(out: Path) -> bool:
+    out = Path(out)
+    return (out / "status.json").exists() or bool(_checkpoints(out))
+
+
+STATES = ("running", "interrupted", "failed", "complete")
+
+
+def status_damage(out: Path) -> str | None:
+    """What is wrong with ``out``'s ``status.json`` (None when it is absent or a JSON object
+    whose ``state`` is one of :data:`STATES`)."""
+    path = Path(out) / "status.json"
+    if not path.exists():
+        return None
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError) as e:
+        return f"unreadable: {getattr(e, 'strerror', None) or type(e).__name__}"
+    except ValueError:
+        return "not JSON"
+    state = doc.get("state") if isinstance(doc, dict) else None
+    if state not in STATES:
+        return f"state {state!r} is not one of {', '.join(STATES)}"
+    return None
+
+
+def complete(out: Path, kind: str) -> bool:
+    """``out`` holds finished results of ``kind``: its final file, and a status (if any) that
+    says complete. A run that failed while writing its outputs (summary.json written, figures
+    not) is unfinished and can be resumed."""
+    out = Path(out)
+    if not (out / FINISHED[kind]).exists():
+        return False
+    try:
+        return json.loads((out / "status.json").read_text()).get("state") == "complete"
+    except FileNotFoundError:
+        return True  # a compare or suite writes no status
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False) -> None:
+    """Refuse an output folder that is a file, holds another kind of result, holds finished
+    results (without ``force``) or unfinished ones (without ``resume`` or ``force``), or cannot
+    be written (probed by creating and removing a temporary file, so it holds for root too).
+    Raises :class:`FolderError`."""
+    out = Path(out)
+    flag = f"--resume {out}" if resume else f"--out {out}"
+    if out.exists() and not out.is_dir():
+        raise FolderError(f"{flag} exists and is not a folder")
+    if out.is_symlink() and not out.exists():
+        raise FolderError(f"{flag} is a link to nothing ({os.readlink(out)})")
+    have = folder_kind(out)
+    if resume:
+        if have is None:
+            raise FolderError(f"--resume {out}: no config.toml there (not a {kind} folder)")
+        if have != kind:
+            raise FolderError(f"--resume {out}: that folder holds a {have}, not a {kind}")
+        damaged = status_damage(out)
+        if damaged:
+            raise FolderError(f"--resume {out}: status.json is damaged ({damaged}), so whether "
+                              f"the {kind} finished is unknown; start it over with --out "
+                              f"{shell_path(out)} --force")
+        if complete(out, kind):
+            raise FolderError(f"--resume {out}: the {kind} is already complete "
+                              f"({FINISHED[kind]})")
+    else:
+        if have is not None and have != kind:
+            raise FolderError(f"--out {out} holds a {have}; a {kind} is never written into it "
+                              "(choose another folder)")
+        if complete(out, kind) and not force:
+            raise FolderError(f"--out {out} already holds {FINISHED[kind]}; pass --force to "
+                              "overwrite")
+        if kind not in ("compare", "suite") and unfinished(out) and not force:
+            raise FolderError(f"--out {out} holds an unfinished {kind}; pass --resume "
+                              f"{shell_path(out)} to "
+                              "continue it or --force to start over")
+        if have is None and not force:  # a user's files under the names a result takes
+            theirs = [n for n in _result_names(kind) if (out / n).exists()]
+            if theirs:
+                raise FolderError(f"--out {out} already holds {theirs[0]} (not written by "
+                                  "jaxfalsify); pass --force to overwrite it or choose "
+                                  "another folder")
+    parent = out if out.exists() else next((a for a in out.parents if a.exists()), Path("."))
+    if not parent.is_dir():
+        raise FolderError(f"{flag}: {parent} is not a folder")
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        raise FolderError(f"{flag}: cannot write in {parent} ({e.strerror})") from None
+
+
+def clear(out: Path, kind: str) -> None:
+    """Remove a folder's earlier results, status and checkpoints (``--force``): the files of
+    those names, its checkpoint folders, and where ``config.toml`` says the folder holds a
+    run, that run's figures and recordings by name; a user's own files (``checkpoints/``,
+    ``figures/plot.png``) stay."""
+    out = Path(out)
+    ours = folder_kind(out) == kind
+    for name in RESULT_FILES[kind] + ("status.json", "config.toml"):
+        (out / name).unlink(missing_ok=True)
+    for p in out.glob(".summary.part-*.json"):
+        p.unlink(missing_ok=True)
+    for p in _checkpoints(out):
+        shutil.rmtree(p, ignore_errors=True)
+    if ours and kind == "run":  # the earlier run's figures and the recordings replay wrote
+        for p in [*(out / "figures" / f for f, _ in FIGURES), out / "campaign.rrd",
+                  *out.glob("replay-*.rrd")]:
+            p.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # only if nothing else is in it
+            (out / "figures").rmdir()
+    for p in out.glob("sweep.part-*.parquet"):
+        p.unlink(missing_ok=True)
+
+
+class FolderLock:
+    """An exclusive OS lock (``flock``) on ``OUT/.lock``, held while a process writes the folder:
+    a second writer gets a :class:`FolderError` naming the holder's pid. The kernel releases
+    it when the process ends however it ends, so no stale lock survives a kill -9."""
+
+    def __init__(self, out: Path, name: str = ".lock"):
+        self.path = Path(out) / name
+        self.fd: int | None = None
+
+    def acquire(self, kind: str) -> "FolderLock":
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:  # never through a link: claim() truncates the file
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        except OSError as e:
+            raise FolderError(f"{self.path}: cannot be used as the folder's lock file "
+                              f"({e.strerror}; a link or a folder there?)") from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise FolderError(f"{self.path} is not a plain file; remove it")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                holder = os.pread(fd, 64, 0).decode(errors="replace").split()
+            finally:
+                os.close(fd)
+            pid = holder[0] if holder else "unknown"
+            what = holder[1] if len(holder) > 1 else "jaxfalsify"
+            raise FolderError(f"{self.path.parent} is being written by process {pid} "
+                              f"({what}); wait for it to end or choose another folder") from None
+        self.fd = fd
+        self.claim(kind)  # the holder's pid is readable from the moment the lock is held
+        return self
+
+    def check_free(self) -> None:
+        """Raise the :class:`FolderError` naming the holder if another process holds this
+        lock (an existing lock file only: nothing is created); else return."""
+        try:
+            fd = os.open(self.path, os.O_RDONLY | os.O_NOFOLLOW)
+        except OSError:
+            return
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                return
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 64, 0).decode(errors="replace").split()
+                pid = holder[0] if holder else "unknown"
+                what = holder[1] if len(holder) > 1 else "jaxfalsify"
+                raise FolderError(f"{self.path.parent} is being written by process {pid} "
+                                  f"({what}); wait for it to end or choose another folder"
+                                  ) from None
+            fcntl.flock(fd, fcntl.LOCK_UN)
+        finally:
+            os.close(fd)
+
+    def claim(self, kind: str) -> None:
+        """Record this process as the writer in the lock file, as soon as it holds the lock
+        (so a second writer is told whose it is while this one still validates; a resume then
+        refused leaves its pid there, the lock file's only content: no result changes)."""
+        if self.fd is not None:
+            os.ftruncate(self.fd, 0)
+            os.pwrite(self.fd, f"{os.getpid()} jaxfalsify-{kind}\n".encode(), 0)
+
+    def release(self) -> None:
+        if self.fd is not None:
+            fcntl.flock(self.fd, fcntl.LOCK_UN)
+            os.close(self.fd)
+            self.fd = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
+
+
+def lock(out: Path, kind: str, name: str = ".lock") -> FolderLock:
+    """Take ``out``'s lock (creating the folder), or raise FolderError naming the holder."""
+    return FolderLock(out, name).acquire(kind)
+
+
+def discard(out: Path, kind: str, lk: "FolderLock", existed: bool) -> None:
+    """Remove what a failed command wrote to ``out`` (a user's SUT that raised: its results
+    mean nothing): results, status, config and checkpoints (:func:`clear`), the lock file, and
+    the folder itself if the command created it and nothing else is in it."""
+    out = Path(out)
+    clear(out, kind)
+    with contextlib.suppress(OSError):
+        lk.path.unlink()
+    lk.release()
+    if not existed:
+        with contextlib.suppress(OSError):
+            out.rmdir()
+
+
+def open_folder(out: Path, kind: str, *, force: bool = False, resume: bool = False,
+                name: str = ".lock") -> FolderLock:
+    """Check ``out`` (:func:`check_out`), lock it, and check again under the lock (another
+    process may have written it meanwhile). On failure nothing is left behind: a folder this
+    call created for its lock file is removed again."""
+    out = Path(out)
+    try:
+        check_out(out, kind, force=force, resume=resume)
+    except FolderError:  # the folder looks unfinished because another process writes it:
+        FolderLock(out, name).check_free()  # name that process instead
+        raise
+    existed = out.exists()
+    lk = lock(out, kind, name)
+    try:
+        check_out(out, kind, force=force, resume=resume)
+    except BaseException:
+        lk.release()
+        if not existed:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    return lk
+
+
+def open_new_folder(base: Path, kind: str) -> tuple[Path, FolderLock]:
+    """A folder of a default name (``runs/<time>-<strategy>``) created here, exclusively:
+    ``base``, or ``base-2``, ``base-3``, ... when another command (one started in the same
+    second) has it, then locked. Returns the folder and its lock."""
+    base = Path(base)
+    base.parent.mkdir(parents=True, exist_ok=True)
+    for k in itertools.count(1):
+        out = base if k == 1 else base.with_name(f"{base.name}-{k}")
+        try:
+            out.mkdir()
+            break
+        except FileExistsError:
+            continue
+    try:
+        return out, open_folder(out, kind)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
+def shell_path(path: Path | str) -> str:
+    """A folder as a shell word for a command to paste: quoted, and ``./`` before a relative
+    name that starts with ``-`` (which the command line would read as a flag)."""
+    text = str(path)
+    if text.startswith("-"):
+        text = "./" + text
+    return shlex.quote(text)
+
+
+def write_status(out: Path, kind: str, state: str, **extra) -> None:
+    """``status.json``: ``running``, ``interrupted`` or ``complete``, and how to resume."""
+    doc = {"state": state, **extra}
+    if state != "complete":
+        doc.setdefault("resume", f"jaxfalsify {kind} --resume {shell_path(out)}")
+    write_json(Path(out) / "status.json", doc, indent=2)
+
+
+def run_folder_lock(run_dir: Path, what: str) -> FolderLock:
+    """The lock of a finished run's folder, claimed for ``what`` (``figures``, ``replay``):
+    held while a command writes into the folder, never while the run itself or another
+    writer holds it (one-line ValueError then, and for a folder that is no run)."""
+    if not (Path(run_dir) / "config.toml").is_file():
+        raise ValueError(f"{run_dir} is not a finished run folder (no config.toml)")
+    lk = lock(Path(run_dir), "run")
+    lk.claim(what)
+    return lk
+
+
+def check_out_plain(out: Path, patterns: tuple[str, ...], force: bool) -> None:
+    """An output folder for files that are not a run, sweep or compare (exports): refuse a
+    file in the way, a result folder, a file matching one of the glob ``patterns`` (what the
+    command writes) without ``force``, or no write access."""
+    import fnmatch
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise FolderError(f"--out {out} exists and is not a folder")
+    if folder_kind(out) is not None:
+        raise FolderError(f"--out {out} holds a {folder_kind(out)}; choose another folder")
+    there = sorted(f.name for f in out.iterdir() if any(
+        fnmatch.fnmatch(f.name, p) for p in patterns)) if out.is_dir() else []
+    if there and not force:
+        raise FolderError(f"--out {out} already holds {there[0]}"
+                          f"{f' (and {len(there) - 1} more)' if len(there) > 1 else ''}; "
+                          "pass --force to overwrite")
+    parent = out if out.exists() else next((a for a in out.parents if a.exists()), Path("."))
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        raise FolderError(f"--out {out}: cannot write in {parent} ({e.strerror})") from None
+
+class Interrupted(Exception):
+    """A run or sweep stopped on request (Ctrl-C, SIGTERM, ``stop()``); everything done is
+    committed and ``resume`` continues it."""
+
+    def __init__(self, kind: str, out: Path, done: int, total: int, unit: str,
+                 resumable: bool = True):
+        self.kind, self.out, self.done, self.total = kind, Path(out), done, total
+        self.resume = (f"jaxfalsify {kind} --resume {shell_path(out)}" if resumable
+                       else None)  # a command to paste into a shell
+        super().__init__(f"interrupted after {done} of {total} {unit}; " + (
+            f"{out} is resumable: {self.resume}" if resumable
+            else f"nothing was written to {out}; run the {kind} again"))
