@@ -84,9 +84,9 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
             if x is None or not math.isfinite(x):
                 raise ValueError(f"{where}: {k}={v!r} is not a finite number")
             params[k] = x
-        elif k == "signal" and k in known_s:  # a name in SIGNALS or a function
+        elif k in known_s and k in cls.FUNCTION_OPTIONS:  # a name or a function
             try:
-                resolve_signal(v)
+                cls.FUNCTION_OPTIONS[k](v)
             except ValueError as e:
                 raise ValueError(f"{where}: {e}") from None
             static[k] = v

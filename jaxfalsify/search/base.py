@@ -38,6 +38,7 @@ from jaxfalsify.base import pytree
 
 __all__ = [
     "Strategy", "near_miss_ttc", "shaped_signal", "SIGNALS", "resolve_signal", "centred_ranks",
+    "standardised", "ADVANTAGES", "resolve_advantage",
     "uniform", "sample_uniform", "value_mask", "sample_categorical",
     "categorical_from_uniform", "uniform_indices", "rank_order"
 ]
@@ -59,6 +60,9 @@ class Strategy:
     # what tell_outcome learns from: a name in SIGNALS or a signal function (a strategy that
     # lets users choose declares a ``signal`` field)
     signal: ClassVar[str | Callable] = "reward"
+    # options that take a name or, from Python, a function: option -> its resolver (a
+    # one-line ValueError on a bad value)
+    FUNCTION_OPTIONS: ClassVar[dict[str, Callable]] = {"signal": lambda v: resolve_signal(v)}
 
     def default_params(self):
         return self.Params()
@@ -161,6 +165,37 @@ def centred_ranks(x: jax.Array, valid: jax.Array | None = None) -> jax.Array:
     num = 2 * below + jnp.maximum(ties, 0) - (n - 1)
     rank = num.astype(jnp.float32) / (2 * jnp.maximum(n - 1, 1)).astype(jnp.float32)
     return jnp.where(valid & (n > 1), rank, 0.0).astype(jnp.float32)
+
+
+def standardised(x: jax.Array, valid: jax.Array) -> jax.Array:
+    """Fitness shaping over the last axis: the valid entries minus their mean over their
+    standard deviation (invalid entries, and every entry when all valid ones are equal, get
+    exactly 0)."""
+    v = jnp.where(valid, x, 0.0)
+    n = jnp.maximum(jnp.sum(valid, -1, keepdims=True), 1)
+    mean = jnp.sum(v, -1, keepdims=True) / n
+    std = jnp.sqrt(jnp.sum(jnp.where(valid, (v - mean) ** 2, 0.0), -1, keepdims=True) / n)
+    # all equal: exactly 0 (v - mean is float32 noise there, which the division by a std of
+    # the same noise would blow up to O(1))
+    flat = jnp.max(jnp.where(valid, x, -jnp.inf), -1, keepdims=True) \
+        <= jnp.min(jnp.where(valid, x, jnp.inf), -1, keepdims=True)
+    return jnp.where(valid & ~flat, (v - mean) / (std + 1e-8), 0.0)
+
+
+# Advantage functions ``(signal (..., n), valid (..., n)) -> (..., n)`` a strategy may be
+# given by name (``advantage="rank"``); from Python any such function.
+ADVANTAGES: dict[str, Callable] = {"rank": centred_ranks, "normalised": standardised}
+
+
+def resolve_advantage(advantage) -> Callable:
+    """The advantage function ``advantage`` names (a key of :data:`ADVANTAGES`), or
+    ``advantage`` itself when it is a function; one-line ValueError otherwise."""
+    if isinstance(advantage, str) and advantage in ADVANTAGES:
+        return ADVANTAGES[advantage]
+    if callable(advantage) and not isinstance(advantage, str):
+        return advantage
+    raise ValueError(f"advantage must be one of {', '.join(ADVANTAGES)} or a function "
+                     f"(got {advantage!r})")
 
 
 def uniform(key, shape: tuple[int, ...]) -> jax.Array:

@@ -1,7 +1,13 @@
 """REINFORCE on an autoregressive LSTM controller: ``reinforce/screened``.
 
-One concern: the ``reinforce/screened`` strategy (its controller is in
-``autoregressive``, its GP in ``surrogate``).
+One concern: the ``reinforce/screened`` strategy, composed of pieces that live apart: its
+controller (:mod:`jaxfalsify.search.autoregressive`), the memory of evaluated and of the best
+distinct scenarios (:class:`~jaxfalsify.search.memory.NoRepeats`,
+:func:`~jaxfalsify.search.memory.top_distinct`), the GP screen
+(:class:`~jaxfalsify.search.surrogate.GPScreen`), the advantage and the learning signal
+(functions: :func:`~jaxfalsify.search.base.resolve_advantage`,
+:func:`~jaxfalsify.search.base.resolve_signal`). Its options say which pieces are on
+(:attr:`AutoregressiveReinforce.no_repeats`, :attr:`AutoregressiveReinforce.screen`).
 
 The paper's method (a recurrent controller trained by the policy gradient, Eq. 2-3, with
 Adam), made strong where the original struggles: a factorised policy, a handful of updates,
@@ -94,16 +100,21 @@ from jaxfalsify.search import surrogate as gp
 from jaxfalsify.search.base import (
     Strategy,
     categorical_from_uniform,
-    centred_ranks,
     near_miss_ttc,
+    resolve_advantage,
     resolve_signal,
     uniform,
     uniform_indices,
 )
+from jaxfalsify.search.memory import (
+    MemoryState,
+    NoRepeats,
+    equals_an_earlier,
+    scenario_hash,
+    top_distinct,
+)
 
-__all__ = ["scenario_hash", "top_distinct", "AutoregressiveReinforce", "ARParams", "ARState"]
-
-ADVANTAGES = ("rank", "normalised")
+__all__ = ["AutoregressiveReinforce", "ARParams", "ARState"]
 
 
 @pytree.dataclass
@@ -165,43 +176,9 @@ class ARState:
     queue: jax.Array  # (L, K, P) int32, each learner's best distinct scenarios, best first
     queue_signal: jax.Array  # (L, K) float32, their signals (-inf: empty slot)
     queue_hit: jax.Array  # (L, K) bool, which of them collided
-    memory: jax.Array  # (M,) uint32, hashes of the evaluated scenarios (a ring buffer)
-    memory_at: jax.Array  # () int32, hashes written so far (slot = memory_at % M)
     told: jax.Array  # () int32, updates so far
-    history: jax.Array  # (H, P) int32, the last H evaluated scenarios (surrogate; H >= 1)
-    history_signal: jax.Array  # (H,) float32, their signals (-inf: empty slot)
-    history_at: jax.Array  # () int32, evaluations written so far
-    ell: jax.Array  # (P,) float32, the GP's length scales (surrogate; fractions of each range)
-
-
-def _equals_an_earlier(eq: jax.Array) -> jax.Array:
-    """``(n,)`` bool from pairwise equality ``eq (n, n)``: item i equals some item j < i."""
-    return jnp.any(eq & jnp.tril(jnp.ones(eq.shape, bool), -1), axis=-1)
-
-
-def scenario_hash(indices: jax.Array) -> jax.Array:
-    """A 32-bit hash ``(...)`` uint32 of index vectors ``(..., P)`` (FNV-1a over the indices;
-    two distinct scenarios share a hash with probability ~2^-32, which at worst makes a new
-    scenario look evaluated)."""
-    h = jnp.full(indices.shape[:-1], 2166136261, jnp.uint32)
-    for p in range(indices.shape[-1]):
-        h = (h ^ indices[..., p].astype(jnp.uint32)) * jnp.uint32(16777619)
-    return h
-
-
-def top_distinct(indices: jax.Array, signal: jax.Array, k: int, hit: jax.Array | None = None):
-    """The ``k`` best distinct rows of ``indices (N, P)`` by ``signal (N,)`` (best first; a
-    row seen twice counts once; ``-inf`` rows last): ``(indices (k, P), signal (k,))``, and
-    their entries of ``hit (N,)`` (collided) as a third element when it is given."""
-    order = jnp.argsort(-signal, stable=True)
-    idx, sig = indices[order], signal[order]
-    same = jnp.all(idx[:, None, :] == idx[None, :, :], axis=-1)
-    earlier = jnp.tril(same, k=-1)  # an equal row earlier in the order (better or equal)
-    sig = jnp.where(jnp.any(earlier, axis=-1), -jnp.inf, sig)
-    second = jnp.argsort(-sig, stable=True)[:k]
-    if hit is None:
-        return idx[second], sig[second]
-    return idx[second], sig[second], hit[order][second] & jnp.isfinite(sig[second])
+    memory: MemoryState | None  # the evaluated scenarios' hashes (``resample`` > 1)
+    screen: gp.ScreenState | None  # the GP screening's data and length scales (``surrogate``)
 
 
 MAX_TABLE = 2**28  # entries of the candidates' repeat-check tables (N x N, N x memory)
@@ -221,7 +198,7 @@ class AutoregressiveReinforce(Strategy):
 
     hidden: int = 32
     learners: int = 4
-    advantage: str = "rank"
+    advantage: str | Callable = "rank"
     signal: str | Callable = "shaped"
     queue: int = 0
     anchored: bool = False
@@ -232,15 +209,14 @@ class AutoregressiveReinforce(Strategy):
     kernel: str = "se"
 
     Params = ARParams
+    FUNCTION_OPTIONS = {"signal": resolve_signal, "advantage": resolve_advantage}
     # sizes a CPU can hold and a campaign can compile (refused before any folder is written)
     RANGES = {"hidden": "[1, 1024]", "learners": "[1, 1024]", "queue": "[0, 4096]",
               "resample": "[1, 256]", "explore": "[1, 256]", "memory": "[1, 1048576]",
               "surrogate": "[0, 1024]"}
 
     def __post_init__(self):
-        if self.advantage not in ADVANTAGES:
-            raise ValueError(f"advantage must be one of {', '.join(ADVANTAGES)} "
-                             f"(got {self.advantage!r})")
+        resolve_advantage(self.advantage)  # one-line errors on a bad one
         resolve_signal(self.signal)  # a one-line error on a bad one
         gp.check_kernel(self.kernel)
         if self.hidden < 1:
@@ -269,6 +245,18 @@ class AutoregressiveReinforce(Strategy):
     def per_learner(self) -> int:
         return self.batch // self.learners
 
+    # the pieces this strategy is composed of, as its options configure them (None: off)
+    @property
+    def no_repeats(self) -> NoRepeats | None:
+        """The evaluated scenarios remembered, so candidates are new (``resample`` > 1)."""
+        return NoRepeats(self.memory) if self.resample > 1 else None
+
+    @property
+    def screen(self) -> gp.GPScreen | None:
+        """The GP that picks which candidates are asked until a collision (``surrogate``)."""
+        return gp.GPScreen(self.surrogate, self.kernel, tuple(self.shape)) \
+            if self.surrogate else None
+
     def _lsm(self, params):
         return jnp.log(jnp.clip(params.sigma_min, 1e-4, 1.0))
 
@@ -293,11 +281,8 @@ class AutoregressiveReinforce(Strategy):
                        jnp.zeros((self.batch, P), jnp.int32), jnp.zeros(self.batch, bool),
                        jnp.zeros(self.batch, jnp.float32), jnp.zeros((L, K, P), jnp.int32),
                        jnp.full((L, K), -jnp.inf, jnp.float32), jnp.zeros((L, K), bool),
-                       jnp.zeros(self.memory if self.resample > 1 else 1, jnp.uint32),
-                       jnp.int32(0), jnp.int32(0),
-                       jnp.zeros((max(self.surrogate, 1), P), jnp.int32),
-                       jnp.full(max(self.surrogate, 1), -jnp.inf, jnp.float32), jnp.int32(0),
-                       jnp.full(P, gp.ARD_START, jnp.float32))
+                       jnp.int32(0), self.no_repeats and self.no_repeats.init(),
+                       self.screen and self.screen.init())
 
     def probs(self, state, learner: int = 0, params=None) -> jax.Array:
         """``(P, max_n)``: each parameter's probabilities (draws without an anchor) given the
@@ -369,8 +354,8 @@ class AutoregressiveReinforce(Strategy):
         allowed = jnp.ones((L, C), bool)
         if M > 1:
             h = scenario_hash(idx).reshape(-1)
-            repeated = _equals_an_earlier(h[:, None] == h[None, :])
-            fresh = (~self._evaluated(h, state) & ~repeated).reshape(L, C)
+            repeated = equals_an_earlier(h[:, None] == h[None, :])
+            fresh = (~self.no_repeats.evaluated(state.memory, h) & ~repeated).reshape(L, C)
             # a learner with a collision may repeat, for a share repeat_found of its draws,
             # one of its own collisions (a queue entry that collided; without a queue, none):
             # a repeated non-collision teaches nothing, and a learner whose policy drifted
@@ -388,72 +373,25 @@ class AutoregressiveReinforce(Strategy):
         c = self.candidates(key, state, params)
         if self.resample > 1:  # per learner, b of the allowed candidates
             plain = jnp.argsort(~c["allowed"], axis=-1, stable=True)[:, :b]  # in drawing order
-            if self.surrogate:  # until a collision, the GP picks among the allowed candidates
-                order, state = jax.lax.cond(
-                    jnp.all(state.seen), lambda: (plain, state),
-                    lambda: self._screen(state, c["idx"], c["allowed"], params))
+            if self.screen:  # until a collision, the GP picks among the allowed candidates
+                best = state.queue.reshape(-1, P)
+                order, screen = jax.lax.cond(
+                    jnp.all(state.seen), lambda: (plain, state.screen),
+                    lambda: self.screen.pick(state.screen, best, state.queue_signal.reshape(-1),
+                                             state.told, c["idx"], c["allowed"], b,
+                                             params.kappa, params.prior_mean))
+                state = dataclasses.replace(state, screen=screen)
                 order = jnp.where(state.seen[:, None], plain, order)
             else:
                 order = plain
             c = {k: jnp.take_along_axis(v, order.reshape(order.shape + (1,) * (v.ndim - 2)),
                                         axis=1) for k, v in c.items()}
-            state = self._remember(state, scenario_hash(c["idx"]).reshape(-1))
+            state = dataclasses.replace(state, memory=self.no_repeats.remember(
+                state.memory, scenario_hash(c["idx"]).reshape(-1)))
         return c["idx"].reshape(self.batch, P), dataclasses.replace(
             state, explored=c["explored"].reshape(self.batch),
             anchors=c["anchors"].reshape(self.batch, P),
             anchored=c["present"].reshape(self.batch), zooms=c["zooms"].reshape(self.batch))
-
-    def _screen(self, state, idx, allowed, params):
-        """GP-BUCB picks ``(L, b)`` among each learner's candidates ``idx (L, C, P)`` (only
-        ``allowed (L, C)`` ones while any is left), with the GP's length scales refined
-        first: during the first updates (as many as the parameters with two or more values)
-        every such parameter's in turn, then one per update in turn."""
-        L, K, P = self.learners, max(self.queue, 1), self.n_params
-        q = state.queue.reshape(L * K, P)
-        # the GP's data: the last evaluations and the best ones, a scenario counted once
-        # (repeats are asked once the learner has a collision)
-        hist = state.history
-        dup = jnp.any(jnp.all(hist[:, None, :] == q[None, :, :], -1)
-                      & jnp.isfinite(state.queue_signal.reshape(-1))[None, :], -1) \
-            | _equals_an_earlier(jnp.all(hist[:, None, :] == hist[None, :, :], -1))
-        x = gp.unit(jnp.concatenate([hist, q]), self.shape)
-        y = jnp.concatenate([jnp.where(dup, -jnp.inf, state.history_signal),
-                             state.queue_signal.reshape(-1)])
-        movable = [p for p, n in enumerate(self.shape) if n > 1] or [0]
-
-        def refine(p, ell):
-            return gp.refine(x, y, ell, p, params.prior_mean, self.kernel)
-
-        def sweep():  # every movable parameter's scale in turn (a coordinate sweep), in a
-            # loop: one GP refinement compiled, not one per parameter
-            ps = jnp.asarray(movable)
-            blank = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype),
-                                 jax.eval_shape(refine, ps[0], state.ell))
-            return jax.lax.fori_loop(0, len(movable), lambda i, m: refine(
-                ps[i], jnp.where(i == 0, state.ell, m.ell)), blank)
-
-        def one():  # round robin: one parameter per update
-            return refine(jnp.asarray(movable)[state.told % len(movable)], state.ell)
-
-        # the first len(movable) updates sweep every scale, so all are fitted from the first
-        # data on (a round robin alone leaves the last parameter at its starting scale for
-        # len(movable) updates, while the rare spaces' first collisions come after 3-5)
-        model = jax.lax.cond(state.told < len(movable), sweep, one)
-        z = gp.unit(idx, self.shape)
-        order = jax.vmap(lambda zl, al: gp.batch_ucb(
-            model, zl, al, params.kappa, self.per_learner, self.kernel))(z, allowed)
-        return order, dataclasses.replace(state, ell=model.ell)
-
-    def _evaluated(self, h, state):
-        """``h (N,)`` uint32 -> bool: among the remembered hashes."""
-        filled = jnp.arange(self.memory) < state.memory_at
-        return jnp.any((h[:, None] == state.memory[None, :]) & filled[None, :], axis=-1)
-
-    def _remember(self, state, h):
-        """Write hashes ``h (B,)`` into the ring buffer."""
-        slots = (state.memory_at + jnp.arange(h.shape[0])) % self.memory
-        return dataclasses.replace(state, memory=state.memory.at[slots].set(h),
-                                   memory_at=jnp.minimum(state.memory_at + h.shape[0], 2**30))
 
     def tell(self, key, state, indices, rewards, params):
         return self._update(state, indices, rewards, state.seen, params,
@@ -474,18 +412,7 @@ class AutoregressiveReinforce(Strategy):
         lsm = self._lsm(params)
         sig = signal.reshape(L, b)
         ok = jnp.isfinite(sig) & ~state.explored.reshape(L, b)
-        if self.advantage == "rank":
-            adv = centred_ranks(sig, ok)
-        else:
-            x = jnp.where(ok, sig, 0.0)
-            n = jnp.maximum(jnp.sum(ok, -1, keepdims=True), 1)
-            mean = jnp.sum(x, -1, keepdims=True) / n
-            std = jnp.sqrt(jnp.sum(jnp.where(ok, (x - mean) ** 2, 0.0), -1, keepdims=True) / n)
-            # all equal: exactly 0 (x - mean is float32 noise there, which the division by
-            # a std of the same noise would blow up to O(1))
-            flat = jnp.max(jnp.where(ok, sig, -jnp.inf), -1, keepdims=True) \
-                <= jnp.min(jnp.where(ok, sig, jnp.inf), -1, keepdims=True)
-            adv = jnp.where(ok & ~flat, (x - mean) / (std + 1e-8), 0.0)
+        adv = resolve_advantage(self.advantage)(sig, ok)
         done = (state.told * self.batch).astype(jnp.float32)  # evaluations before this batch
         fade = jnp.where(params.entropy_until > 0,
                          jnp.clip(1.0 - done / jnp.maximum(params.entropy_until, 1.0), 0.0, 1.0),
@@ -529,13 +456,8 @@ class AutoregressiveReinforce(Strategy):
                 jnp.where(jnp.isfinite(sig), sig, -jnp.inf), collided.reshape(L, b))
         else:
             q, qs, qh = state.queue, state.queue_signal, state.queue_hit
-        hist, hist_s, hist_at = state.history, state.history_signal, state.history_at
-        if self.surrogate:  # a ring buffer of the last evaluations for the GP
-            slots = (hist_at + jnp.arange(self.batch)) % self.surrogate
-            hist = hist.at[slots].set(indices.reshape(self.batch, P))
-            hist_s = hist_s.at[slots].set(jnp.where(jnp.isfinite(signal), signal, -jnp.inf))
-            hist_at = jnp.minimum(hist_at + self.batch, 2**30)
+        screen = self.screen.record(state.screen, indices.reshape(self.batch, P), signal) \
+            if self.screen else state.screen
         return dataclasses.replace(state, weights=weights, opt=opt, seen=seen, queue=q,
                                    queue_signal=qs, queue_hit=qh, told=state.told + 1,
-                                   history=hist,
-                                   history_signal=hist_s, history_at=hist_at)
+                                   screen=screen)

@@ -27,17 +27,20 @@ for the Traffic Manager) gets a long scale and stops spreading the candidates.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
+from jaxfalsify.base import pytree
 from jaxfalsify.search.controller import mm  # full float32 products (not TF32) on GPUs
+from jaxfalsify.search.memory import equals_an_earlier
 
 __all__ = [
     "LENGTH_SCALES", "ARD_SCALES", "ARD_START", "NOISE", "unit", "cholesky", "solve_lower",
     "solve_upper", "KERNELS", "check_kernel", "kernel", "fit", "best_fit", "refine", "predict",
-    "posterior", "ucb", "batch_ucb"
+    "posterior", "ucb", "batch_ucb", "ScreenState", "GPScreen"
 ]
 
 LENGTH_SCALES = (0.03, 0.06, 0.12, 0.25, 0.5)  # candidates, fractions of every range
@@ -248,3 +251,82 @@ def batch_ucb(m: Model, z: jax.Array, allowed: jax.Array, kappa, b: int,
 
     init = (var, jnp.zeros((b, n), jnp.float32), jnp.zeros(n, bool))
     return jax.lax.scan(pick, init, jnp.arange(b))[1].astype(jnp.int32)
+
+
+@pytree.dataclass
+class ScreenState:
+    history: jax.Array  # (H, P) int32, the last H evaluated scenarios
+    history_signal: jax.Array  # (H,) float32, their signals (-inf: empty slot)
+    history_at: jax.Array  # () int32, evaluations written so far
+    ell: jax.Array  # (P,) float32, the length scales (fractions of each range)
+
+
+@dataclasses.dataclass(frozen=True)
+class GPScreen:
+    """Surrogate screening, a piece of a strategy: a GP fitted to the last ``size``
+    evaluations (:meth:`record`) and to the strategy's best scenarios picks which candidates
+    are asked (:meth:`pick`, GP-BUCB), its ``kernel`` (``se``, ``matern52`` or ``auto``) and
+    length scales refined by marginal likelihood: during the first updates (as many as the
+    parameters with two or more values) every such parameter's scale in turn, then one per
+    update in turn. ``shape``: values per parameter."""
+
+    size: int
+    kernel: str
+    shape: tuple[int, ...]
+
+    def __post_init__(self):
+        check_kernel(self.kernel)
+
+    def init(self) -> ScreenState:
+        P = len(self.shape)
+        return ScreenState(jnp.zeros((self.size, P), jnp.int32),
+                           jnp.full(self.size, -jnp.inf, jnp.float32), jnp.int32(0),
+                           jnp.full(P, ARD_START, jnp.float32))
+
+    def record(self, st: ScreenState, indices: jax.Array, signal: jax.Array) -> ScreenState:
+        """The evaluations ``indices (B, P)``, ``signal (B,)`` into the ring buffer."""
+        slots = (st.history_at + jnp.arange(indices.shape[0])) % self.size
+        return dataclasses.replace(
+            st, history=st.history.at[slots].set(indices),
+            history_signal=st.history_signal.at[slots].set(
+                jnp.where(jnp.isfinite(signal), signal, -jnp.inf)),
+            history_at=jnp.minimum(st.history_at + indices.shape[0], 2**30))
+
+    def pick(self, st: ScreenState, best: jax.Array, best_signal: jax.Array, told: jax.Array,
+             idx: jax.Array, allowed: jax.Array, b: int, kappa, prior_mean):
+        """GP-BUCB's ``(L, b)`` picks among each learner's candidates ``idx (L, C, P)`` (only
+        ``allowed (L, C)`` ones while any is left), and the state with the refined length
+        scales. ``best (N, P)``, ``best_signal (N,)`` (-inf: empty): the best scenarios found,
+        data beside the history; ``told``: updates so far (which scales to refine)."""
+        # the GP's data: the last evaluations and the best ones, a scenario counted once
+        # (repeats are asked once the learner has a collision)
+        hist = st.history
+        dup = jnp.any(jnp.all(hist[:, None, :] == best[None, :, :], -1)
+                      & jnp.isfinite(best_signal)[None, :], -1) \
+            | equals_an_earlier(jnp.all(hist[:, None, :] == hist[None, :, :], -1))
+        x = unit(jnp.concatenate([hist, best]), self.shape)
+        y = jnp.concatenate([jnp.where(dup, -jnp.inf, st.history_signal), best_signal])
+        movable = [p for p, n in enumerate(self.shape) if n > 1] or [0]
+
+        def one_scale(p, ell):
+            return refine(x, y, ell, p, prior_mean, self.kernel)
+
+        def sweep():  # every movable parameter's scale in turn (a coordinate sweep), in a
+            # loop: one GP refinement compiled, not one per parameter
+            ps = jnp.asarray(movable)
+            blank = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype),
+                                 jax.eval_shape(one_scale, ps[0], st.ell))
+            return jax.lax.fori_loop(0, len(movable), lambda i, m: one_scale(
+                ps[i], jnp.where(i == 0, st.ell, m.ell)), blank)
+
+        def round_robin():  # one parameter per update
+            return one_scale(jnp.asarray(movable)[told % len(movable)], st.ell)
+
+        # the first len(movable) updates sweep every scale, so all are fitted from the first
+        # data on (a round robin alone leaves the last parameter at its starting scale for
+        # len(movable) updates, while the rare spaces' first collisions come after 3-5)
+        model = jax.lax.cond(told < len(movable), sweep, round_robin)
+        z = unit(idx, self.shape)
+        order = jax.vmap(lambda zl, al: batch_ucb(model, zl, al, kappa, b, self.kernel))(
+            z, allowed)
+        return order, dataclasses.replace(st, ell=model.ell)

@@ -15,7 +15,7 @@ from jaxfalsify import search
 from jaxfalsify.base import pytree
 from jaxfalsify.search import autoregressive as ar
 from jaxfalsify.search import base, cmaes, surrogate
-from jaxfalsify.search.reinforce_ar import scenario_hash, top_distinct
+from jaxfalsify.search.memory import scenario_hash, top_distinct
 
 SHAPE = (4, 6, 3)
 
@@ -836,7 +836,7 @@ def _np_screen(st, cand, allowed, shape, kappa, b, prior=0.0, kind="se"):
     standardised targets (a constant added back to every candidate's mean ranks them alike).
     Returns (picks, ell)."""
     span = np.maximum(np.array(shape) - 1.0, 1.0)
-    hist, hs = np.asarray(st.history), np.asarray(st.history_signal, np.float64)
+    hist, hs = np.asarray(st.screen.history), np.asarray(st.screen.history_signal, np.float64)
     q, qs = np.asarray(st.queue[0]), np.asarray(st.queue_signal[0], np.float64)
     dup = np.array([any((r == qr).all() and np.isfinite(v) for qr, v in zip(q, qs))
                     or any((r == e).all() for e in hist[:i]) for i, r in enumerate(hist)])
@@ -845,7 +845,7 @@ def _np_screen(st, cand, allowed, shape, kappa, b, prior=0.0, kind="se"):
     x, y = x[np.isfinite(y)], y[np.isfinite(y)]
     t = (y - y.mean()) / y.std() - prior
     movable = [p for p, n in enumerate(shape) if n > 1]
-    ell = np.asarray(st.ell, np.float64)
+    ell = np.asarray(st.screen.ell, np.float64)
     for p in (movable if int(st.told) < len(movable)
               else [movable[int(st.told) % len(movable)]]):
         ell, _, chosen = _np_ard_step(x, t, ell, p, kind)
@@ -876,7 +876,8 @@ def test_surrogate_screening_asks_the_gp_bucb_picks():
 
     st = jax.lax.scan(upd, on.init(jax.random.key(0), p),
                       jax.random.split(jax.random.key(1), 3))[0]
-    assert np.isfinite(np.asarray(st.history_signal)).sum() == 64  # 3 x 32 evaluated, ring 64
+    hs = np.asarray(st.screen.history_signal)
+    assert np.isfinite(hs).sum() == 64  # 3 x 32 evaluated, ring 64
     key = jax.random.key(5)
     c = jax.jit(on.candidates)(key, st, p)
     cand, allowed = np.asarray(c["idx"][0]), np.asarray(c["allowed"][0])
@@ -889,7 +890,7 @@ def test_surrogate_screening_asks_the_gp_bucb_picks():
                                 float(p.prior_mean), on.kernel)
         idx, st2 = ask(key, st_t, p)
         np.testing.assert_array_equal(np.asarray(idx), cand[picks])
-        np.testing.assert_allclose(np.asarray(st2.ell), ell, rtol=1e-6)
+        np.testing.assert_allclose(np.asarray(st2.screen.ell), ell, rtol=1e-6)
         assert len({tuple(i) for i in np.asarray(idx)}) == on.batch
     seen = dataclasses.replace(st, seen=jnp.ones_like(st.seen))
     np.testing.assert_array_equal(np.asarray(ask(key, seen, p)[0]),

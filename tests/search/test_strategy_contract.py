@@ -120,7 +120,9 @@ def test_option_types_and_intervals():
                         (dict(hidden=np.float32(1.5)), "not a whole number"),
                         (dict(lr=np.array([0.1, 0.2])), "not a finite number"),
                         (dict(lr=np.bool_(True)), "not a finite number"),
-                        (dict(advantage=1), "not a string"),
+                        (dict(kernel=1), "kernel=1 is not a string"),
+                        (dict(advantage=1), r"advantage must be one of rank, normalised or a "
+                         r"function \(got 1\)"),
                         (dict(sigma_min=0.0), r"sigma_min=0.0 is outside \[0.0001, 1\]"),
                         (dict(global_share=1.01), r"outside \[0, 1\]"),
                         (dict(hidden=10**30), r"hidden=10{30} is outside \[1, 1024\]"
