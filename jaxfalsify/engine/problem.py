@@ -1,4 +1,6 @@
-"""The problem a run, sweep or comparison is given, described and validated in one place: the
+"""One concern: the problem a job is given, described and validated in one place.
+
+The problem a run, sweep or comparison is given, described and validated in one place: the
 space (built-in name, TOML path or table) and its discretisation seed, the SUT and its
 parameters, and for a run the strategy, its options, budget, batch and seed
 (:class:`RunConfig`, built into a :class:`Built`), with the shared checks of seeds, counts and
@@ -28,7 +30,7 @@ from jaxfalsify.suts import registry as sut_lib
 
 __all__ = [
     "PAPER_BUDGET", "SEED_LIMIT", "check_int", "build_space", "space_sut_names",
-    "fixed_sut_params", "check_space_sut", "check_mapping", "Built", "RunConfig",
+    "fixed_sut_params", "check_space_sut", "check_mapping", "Built", "Problem", "RunConfig",
     "CONFIG_KEYS", "build_requirement", "SETTINGS", "configure"
 ]
 
@@ -114,16 +116,32 @@ class Built:
 
 
 @dataclasses.dataclass(frozen=True)
-class RunConfig:
+class Problem:
+    """The problem every job is given, its fields declared once for every job's
+    configuration (run, sweep, compare, estimate): the logical scenario and the system under
+    test. ``sut_params``: name -> value (a sweep also takes lists: calibrations)."""
+
+    space: Any = "paper"  # built-in name, TOML path, or a space description table
+    space_seed: int = 0  # discretisation seed of the space
+    sut: str = "carla-tm"  # registry name or import path module:attr
+    sut_params: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+
+    def check_space_seed(self) -> None:
+        check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
+
+    def built_space(self) -> Space:
+        """The space, its seed checked; one-line ValueError on a bad one."""
+        self.check_space_seed()
+        return build_space(self.space, self.space_seed)
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig(Problem):
     """What a run needs. Defaults: the paper's space (space seed 0), ``carla-tm``,
     ``reinforce/default``, search seed 0, the strategy's default budget
     (:func:`jaxfalsify.search.default_evaluations`: 1,228,800 evaluations, 300 updates of 4096,
     for ``reinforce/default``; the paper's 4000 for ``reinforce/paper`` and the others)."""
 
-    space: Any = "paper"  # built-in name, TOML path, or a space description table
-    space_seed: int = 0  # discretisation seed of the space
-    sut: str = "carla-tm"  # registry name or import path module:attr
-    sut_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
     strategy: str = "reinforce/default"
     strategy_params: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     evaluations: int | None = None  # the budget, in evaluated scenarios (None: the strategy's)
@@ -144,7 +162,7 @@ class RunConfig:
         self._check_numbers()
         if not isinstance(self.sut, str) or not isinstance(self.strategy, str):
             raise ValueError("sut and strategy must be names")
-        sp = build_space(self.space, self.space_seed)
+        sp = self.built_space()
         given = check_mapping("sut_params", self.sut_params)
         sut, sut_params = sut_lib.make(self.sut, **given)
         check_space_sut(sp, sut, given)
@@ -160,7 +178,7 @@ class RunConfig:
 
     def _check_numbers(self) -> None:
         check_int("seed", self.seed, 0, SEED_LIMIT - 1)
-        check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
+        self.check_space_seed()
         if self.evaluations is not None:
             check_int("evaluations", self.evaluations, 1, 10**9)
         if self.batch is not None:
@@ -188,7 +206,7 @@ class RunConfig:
                              "an evaluator, its results decide what is critical")
         if not isinstance(self.strategy, str):
             raise ValueError("strategy must be a name")
-        sp = build_space(self.space, self.space_seed)
+        sp = self.built_space()
         bad = [n for n in sp.names if is_sut_parameter(n)]
         if bad:
             raise ValueError(f"space parameter '{bad[0]}': sut.NAME parameters set a JAX SUT's "

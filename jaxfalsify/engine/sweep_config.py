@@ -20,8 +20,8 @@ from jaxfalsify.base import config as cfg
 from jaxfalsify.core import sim
 from jaxfalsify.engine.problem import (
     SEED_LIMIT,
+    Problem,
     build_requirement,
-    build_space,
     check_int,
     check_mapping,
     fixed_sut_params,
@@ -104,13 +104,9 @@ def calibrations(sut: sut_lib.SUT, sut_params: Mapping[str, Any]) -> Calibration
 
 
 @dataclasses.dataclass(frozen=True)
-class SweepConfig:
-    """What a sweep needs."""
+class SweepConfig(Problem):
+    """What a sweep needs (``sut_params``: a value or a list of values each)."""
 
-    space: Any = "paper"  # built-in name, TOML path, or a space description table
-    space_seed: int = 0  # discretisation seed
-    sut: str = "carla-tm"
-    sut_params: Mapping[str, Any] = dataclasses.field(default_factory=dict)  # value or list
     seed: int = 0  # the SUT's randomness (sensor noise); deterministic SUTs ignore it
     chunk: int | None = None  # most scenarios (x calibrations) per compiled call; None:
     # the backend's default (sim.default_chunk), resolved by execute once any distributed
@@ -127,7 +123,7 @@ class SweepConfig:
         return (None, None) if req is None else (req, params)
 
     def build(self) -> tuple[Space, Calibrations]:
-        check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
+        self.check_space_seed()
         check_int("seed", self.seed, 0, SEED_LIMIT - 1)
         if self.chunk is not None:
             check_int("chunk", self.chunk, 1, 1 << 24)
@@ -135,7 +131,7 @@ class SweepConfig:
             raise ValueError(f"rows must be one of {', '.join(ROWS)} (got {self.rows!r})")
         if not isinstance(self.sut, str):
             raise ValueError(f"sut must be a name (got {self.sut!r})")
-        sp = build_space(self.space, self.space_seed)
+        sp = self.built_space()
         sut = sut_lib.resolve(self.sut)
         self.requirement_of()
         return sp, calibrations(sut, check_mapping("sut_params", self.sut_params))

@@ -61,7 +61,7 @@ from jaxfalsify.base.progress import Clock, Progress
 from jaxfalsify.core import requirements, sim
 from jaxfalsify.engine import campaign
 from jaxfalsify.engine.lifecycle import sut_raised
-from jaxfalsify.engine.problem import RunConfig, check_int
+from jaxfalsify.engine.problem import Problem, RunConfig, check_int
 from jaxfalsify.engine.truth import ground_truth
 from jaxfalsify.io import cache, store
 from jaxfalsify.io.files import sha256, write_atomic, write_json
@@ -88,14 +88,10 @@ DEFAULT_STRATEGIES = ("reinforce/screened", "reinforce/factorised", "reinforce/p
 
 
 @dataclasses.dataclass(frozen=True)
-class CompareConfig:
+class CompareConfig(Problem):
     strategies: tuple[str, ...] = DEFAULT_STRATEGIES
     seeds: int = 10
     evaluations: int = 4000
-    space: Any = "paper"
-    space_seed: int = 0
-    sut: str = "carla-tm"
-    sut_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
     overhead: bool = True  # time each strategy's ask/tell alone (search overhead)
     budgets: tuple[int, ...] = ()  # also report at these smaller budgets (first evaluations)
     # options per strategy, e.g. {"cem": {"elite_frac": 0.2}} (the registry's defaults otherwise)

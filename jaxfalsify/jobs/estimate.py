@@ -36,7 +36,7 @@ import dataclasses
 import math
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Mapping
 
 import jax
 import jax.numpy as jnp
@@ -49,7 +49,7 @@ from jaxfalsify.core import sim
 from jaxfalsify.engine.lifecycle import Status, sut_raised
 from jaxfalsify.engine.problem import (
     SEED_LIMIT,
-    build_space,
+    Problem,
     check_int,
     check_mapping,
     check_space_sut,
@@ -73,16 +73,12 @@ ELITE_MIN = 100  # violating draws of a cross-entropy level that end the levels 
 
 
 @dataclasses.dataclass(frozen=True)
-class EstimateConfig:
+class EstimateConfig(Problem):
     """What an estimate needs. ``samples``: most draws of the final stage; ``batch``: draws per
     compiled call; ``ce_*``: the cross-entropy stage (draws per level, the elite quantile, the
     most levels, the mixture's components); ``defensive``: the uniform share of the final
     proposal."""
 
-    space: Any = "paper"
-    space_seed: int = 0
-    sut: str = "carla-tm"
-    sut_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
     requirement: str = req_lib.DEFAULT
     requirement_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
     method: str = "is"
@@ -103,7 +99,7 @@ class EstimateConfig:
         check_int("samples", self.samples, 1, 10**12)
         check_int("batch", self.batch, 1, 1 << 22)
         check_int("seed", self.seed, 0, SEED_LIMIT - 1)
-        check_int("space_seed", self.space_seed, 0, SEED_LIMIT - 1)
+        self.check_space_seed()
         check_int("ce_samples", self.ce_samples, 1, 1 << 22)
         check_int("ce_levels", self.ce_levels, 1, 1000)
         check_int("ce_components", self.ce_components, 1, 256)
@@ -116,7 +112,7 @@ class EstimateConfig:
     def build(self):
         """``(space, sut, sut_params, requirement, requirement_params)``, checked."""
         self.check()
-        sp = build_space(self.space, self.space_seed)
+        sp = self.built_space()
         if self.method == "exact" and sp.size > MAX_SIZE:
             raise ValueError(f"method exact: space {sp.name} has {sp.size:.3g} scenarios, more "
                              f"than can be evaluated one by one ({MAX_SIZE:,}); use is or mc")

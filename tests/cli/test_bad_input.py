@@ -382,7 +382,7 @@ CASES = [
     (["run", "--strategy", "reinforce/screened", "--strategy-param", "memory=99999999999"],
      "memory=99999999999 is outside"),
     (["run", "--strategy", "reinforce/screened", "--strategy-param", "advantage=3"],
-     "advantage=3 is not a string"),
+     "advantage must be one of rank, normalised or a function (got 3)"),
     (["run", "--strategy", "cem", "--strategy-param", "elite_frac=1.5"],
      "elite_frac=1.5 is outside (0, 1]"),
     (["run", "--strategy-param", "lr=-1"], "lr=-1.0 is outside [0, inf)"),
