@@ -6,13 +6,12 @@ Its modules load on first access (``jaxfalsify.base.config`` after ``import jaxf
 """
 
 import importlib as _importlib
+from pathlib import Path as _Path
 
 __all__ = []
 
-_MODULES = frozenset({'config', 'distributed', 'progress', 'pytree', 'worker'})
-
 
 def __getattr__(name: str):
-    if name in _MODULES:
+    if (_Path(__file__).parent / f"{name}.py").is_file():  # a module of this folder
         return _importlib.import_module(f"{__name__}.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

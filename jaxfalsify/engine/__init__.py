@@ -6,16 +6,12 @@ Its modules load on first access (``jaxfalsify.engine.campaign`` after ``import 
 """
 
 import importlib as _importlib
+from pathlib import Path as _Path
 
 __all__ = []
 
-_MODULES = frozenset({
-    'campaign', 'lifecycle', 'pools', 'problem', 'rundir', 'sweep_chunks', 'sweep_config',
-    'sweep_merge', 'sweep_totals', 'truth'
-})
-
 
 def __getattr__(name: str):
-    if name in _MODULES:
+    if (_Path(__file__).parent / f"{name}.py").is_file():  # a module of this folder
         return _importlib.import_module(f"{__name__}.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -5,16 +5,12 @@ Its modules load on first access (``jaxfalsify.jobs.compare`` after ``import jax
 """
 
 import importlib as _importlib
+from pathlib import Path as _Path
 
 __all__ = []
 
-_MODULES = frozenset({
-    'compare', 'compare_stats', 'compare_tables', 'estimate', 'evaluators', 'external', 'runs',
-    'suites', 'sweep'
-})
-
 
 def __getattr__(name: str):
-    if name in _MODULES:
+    if (_Path(__file__).parent / f"{name}.py").is_file():  # a module of this folder
         return _importlib.import_module(f"{__name__}.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
