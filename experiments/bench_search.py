@@ -74,10 +74,11 @@ def truth_clusters(b, sut, sut_params):
     return labels, int(comp.max()) + 1 if comp.size else 0
 
 
-def one(space_name, strategy, seeds, batch, evaluations, every):
+def one(space_name, strategy, seeds, batch, evaluations, every, options=None):
     space, sut, sut_params = SPACES[space_name]
     rc = runs.RunConfig(space=str(space), sut=sut, sut_params=sut_params, strategy=strategy,
-                        evaluations=evaluations, batch=batch, checkpoint_every=every)
+                        strategy_params=options or {}, evaluations=evaluations, batch=batch,
+                        checkpoint_every=every)
     b = rc.build()
     truth = truth_clusters(b, sut, sut_params) if b.space.size <= 20_000_000 else None
     rows = []
@@ -146,10 +147,12 @@ def controller_cost(space, sut, sut_params, batch, updates=20, repeats=3):
 
 def learning(seeds: int, batch: int, evaluations: int | None):
     """The paper space's learning target: per seed, the last update's mean reward over the
-    global maximum (the exhaustive sweep's, cached per machine)."""
+    global maximum (the exhaustive sweep's, cached per machine). With ``evaluations`` given,
+    ``novelty_until`` is half of it (as the default is half the default budget)."""
     from jaxfalsify.engine import truth
 
-    b = runs.RunConfig(batch=batch, evaluations=evaluations).build()
+    options = {} if evaluations is None else {"novelty_until": float(evaluations // 2)}
+    b = runs.RunConfig(batch=batch, evaluations=evaluations, strategy_params=options).build()
     gmax = float(np.max(truth.ground_truth(b.space, "carla-tm")["reward"]))
     out = []
     for seed in range(seeds):
@@ -200,7 +203,15 @@ def main(argv=None):
     ap.add_argument("--learning", type=int, default=0, metavar="SEEDS",
                     help="first the paper space's learning target over this many seeds (the "
                     "main job's budget)")
+    ap.add_argument("--learning-updates", type=int, nargs="*", default=[], metavar="UPDATES",
+                    help="with --learning, also these budgets (in updates of the batch)")
+    ap.add_argument("--default-param", action="append", default=[], metavar="NAME=VALUE",
+                    help="an option of reinforce/default (e.g. novelty_until=614400)")
     a = ap.parse_args(argv)
+    default_options = {}
+    for item in a.default_param:
+        k, _, v = item.partition("=")
+        default_options[k] = int(v) if v.lstrip("-").isdigit() else float(v)
     out = {}
     if a.learning:
         gmax, ratios = learning(a.learning, a.batch, None)
@@ -208,6 +219,12 @@ def main(argv=None):
               f"({gmax:.4f}) per seed: {', '.join(f'{r:.3f}' for r in ratios)}; >= 0.9 in "
               f"{sum(r >= 0.9 for r in ratios)}/{len(ratios)}", flush=True)
         out["learning"] = {"global_max": gmax, "last_update_over_max": ratios}
+        for u in a.learning_updates:
+            gmax, ratios = learning(a.learning, a.batch, u * a.batch)
+            print(f"paper space, {u} updates: last update's mean reward / global maximum per "
+                  f"seed: {', '.join(f'{r:.3f}' for r in ratios)}; >= 0.9 in "
+                  f"{sum(r >= 0.9 for r in ratios)}/{len(ratios)}", flush=True)
+            out[f"learning_{u}_updates"] = {"global_max": gmax, "last_update_over_max": ratios}
     if a.cost:
         print(f"controller cost per update at batch {a.batch} (ask + tell of reinforce/default "
               f"alone) against the simulator's (a random campaign's search time per update):")
@@ -230,7 +247,8 @@ def main(argv=None):
         base = None
         for st in a.strategies:
             t0 = time.perf_counter()
-            rows = one(sp, st, list(range(a.seeds)), a.batch, a.evaluations, a.every)
+            rows = one(sp, st, list(range(a.seeds)), a.batch, a.evaluations, a.every,
+                       default_options if st == "reinforce/default" else None)
             med, cens = median_time(rows)
             firsts = [r["first_collision"] or a.evaluations for r in rows]
             if st == "random":

@@ -164,7 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
     strategies = ", ".join(search.names())
 
     r = sub.add_parser("run", help="falsification campaign (the main job); no arguments: the "
-                       "paper space, carla-tm, reinforce/default, seed 0, 300 updates of 4096 "
+                       "paper space, carla-tm, reinforce/default, seed 0, 100 updates of 4096 "
                        "scenarios")
     r.add_argument("--config", type=Path, help="a run's config.toml to repeat; flags override it")
     r.add_argument("--space", help="built-in name (paper, paper-extended) or TOML file")
@@ -181,7 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="NAME=VALUE", help="set a strategy option (repeatable)")
     r.add_argument("--evaluations", type=_int("--evaluations", 1),
                    help="budget in evaluated scenarios (default: the strategy's; "
-                   "reinforce/default 1,228,800 = 300 updates of 4096, reinforce/paper and the "
+                   "reinforce/default 409,600 = 100 updates of 4096, reinforce/paper and the "
                    "others the paper's 4000)")
     r.add_argument("--batch", type=_int("--batch", 1), help="scenarios per update (default: "
                    "the strategy's; reinforce/default 4096 on a CPU, 65,536 on a GPU)")

@@ -139,7 +139,7 @@ class Problem:
 class RunConfig(Problem):
     """What a run needs. Defaults: the paper's space (space seed 0), ``carla-tm``,
     ``reinforce/default``, search seed 0, the strategy's default budget
-    (:func:`jaxfalsify.search.default_evaluations`: 1,228,800 evaluations, 300 updates of 4096,
+    (:func:`jaxfalsify.search.default_evaluations`: 409,600 evaluations, 100 updates of 4096,
     for ``reinforce/default``; the paper's 4000 for ``reinforce/paper`` and the others)."""
 
     strategy: str = "reinforce/default"

@@ -137,7 +137,7 @@ class BatchedParams:
     entropy: float = 0.01  # bonus on the components' mean log-width
     novelty: float = 0.5  # signal taken off a collision seen before (elite or collision) ...
     revisit: float = 0.01  # ... off a scenario seen before that did not collide ...
-    novelty_until: float = 614400.0  # ... until this many evaluations were told (then the
+    novelty_until: float = 204800.0  # ... until this many evaluations were told (then the
     # policy converges on the best failures)
     ttc_weight: float = 0.0  # near misses told apart by their min TTC [m per s] (0: off)
     ttc_below: float = -0.5  # ... below this robustness [m]

@@ -13,9 +13,11 @@ from jaxfalsify import search
 from jaxfalsify.jobs import compare, runs, suites
 
 
-def test_default_run_is_300_updates_of_4096_and_the_paper_preset_keeps_4000():
+def test_default_run_is_100_updates_of_4096_and_the_paper_preset_keeps_4000():
     b = runs.RunConfig().build()
-    assert (b.strategy.batch, b.plan.evaluations, b.plan.n_updates) == (4096, 1_228_800, 300)
+    assert (b.strategy.batch, b.plan.evaluations, b.plan.n_updates) == (4096, 409_600, 100)
+    # the search explores among failures for half the default budget, then converges
+    assert b.strategy_params.novelty_until == b.plan.evaluations / 2
     paper = runs.RunConfig(strategy="reinforce/paper").build()
     assert (paper.strategy.batch, paper.plan.evaluations) == (25, 4000)
     screened = runs.RunConfig(strategy="reinforce/screened").build()
@@ -27,11 +29,11 @@ def test_default_run_is_300_updates_of_4096_and_the_paper_preset_keeps_4000():
 def test_config_records_the_resolved_budget_and_batch():
     rc = runs.RunConfig()
     doc = tomllib.loads(rc.resolved().to_toml())
-    assert (doc["evaluations"], doc["batch"], doc["strategy"]) == (1_228_800, 4096,
+    assert (doc["evaluations"], doc["batch"], doc["strategy"]) == (409_600, 4096,
                                                                     "reinforce/default")
     doc.pop("kind")
     again = runs.RunConfig.from_dict(doc).build()
-    assert (again.plan.evaluations, again.strategy.batch) == (1_228_800, 4096)
+    assert (again.plan.evaluations, again.strategy.batch) == (409_600, 4096)
 
 
 def test_accelerator_batch(monkeypatch):
