@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxfalsify.base.config import parse_assignments
 from jaxfalsify.engine import campaign
 from jaxfalsify.jobs import runs
 from jaxfalsify.outputs import analysis
@@ -208,23 +209,17 @@ def main(argv=None):
     ap.add_argument("--default-param", action="append", default=[], metavar="NAME=VALUE",
                     help="an option of reinforce/default (e.g. novelty_until=614400)")
     a = ap.parse_args(argv)
-    default_options = {}
-    for item in a.default_param:
-        k, _, v = item.partition("=")
-        default_options[k] = int(v) if v.lstrip("-").isdigit() else float(v)
+    default_options = parse_assignments(a.default_param, "--default-param")
     out = {}
     if a.learning:
-        gmax, ratios = learning(a.learning, a.batch, None)
-        print(f"paper space, the main job's budget: last update's mean reward / global maximum "
-              f"({gmax:.4f}) per seed: {', '.join(f'{r:.3f}' for r in ratios)}; >= 0.9 in "
-              f"{sum(r >= 0.9 for r in ratios)}/{len(ratios)}", flush=True)
-        out["learning"] = {"global_max": gmax, "last_update_over_max": ratios}
-        for u in a.learning_updates:
-            gmax, ratios = learning(a.learning, a.batch, u * a.batch)
-            print(f"paper space, {u} updates: last update's mean reward / global maximum per "
-                  f"seed: {', '.join(f'{r:.3f}' for r in ratios)}; >= 0.9 in "
+        for u in [None, *a.learning_updates]:  # None: the main job's budget
+            gmax, ratios = learning(a.learning, a.batch, u and u * a.batch)
+            budget = f"{u} updates" if u else "the main job's budget"
+            print(f"paper space, {budget}: last update's mean reward / global maximum "
+                  f"({gmax:.4f}) per seed: {', '.join(f'{r:.3f}' for r in ratios)}; >= 0.9 in "
                   f"{sum(r >= 0.9 for r in ratios)}/{len(ratios)}", flush=True)
-            out[f"learning_{u}_updates"] = {"global_max": gmax, "last_update_over_max": ratios}
+            out[f"learning_{u}_updates" if u else "learning"] = {
+                "global_max": gmax, "last_update_over_max": ratios}
     if a.cost:
         print(f"controller cost per update at batch {a.batch} (ask + tell of reinforce/default "
               f"alone) against the simulator's (a random campaign's search time per update):")

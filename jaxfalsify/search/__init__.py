@@ -17,7 +17,7 @@ import numpy as np
 from jaxfalsify.base import pytree
 from jaxfalsify.search.anneal import Anneal
 from jaxfalsify.search.base import SIGNALS, Strategy, resolve_signal
-from jaxfalsify.search.batched import BatchedReinforce
+from jaxfalsify.search.batched import DEFAULT_EVALUATIONS, BatchedReinforce
 from jaxfalsify.search.cem import CEM
 from jaxfalsify.search.cmaes import CMAES
 from jaxfalsify.search.grid import Grid
@@ -132,7 +132,7 @@ def _typed(value, default, what: str):
 
 
 register("reinforce/default", BatchedReinforce, batch=4096, batch_accelerator=65536,
-         evaluations=100 * 4096,
+         evaluations=DEFAULT_EVALUATIONS,
          doc="the Flax LSTM controller + REINFORCE (optax Adam) on thousands of scenarios per "
          "update: a mixture of discretised logistics over the value ranks (cost independent of "
          "the number of values), rank-based advantages of the STL-robustness-shaped signal, a "

@@ -66,13 +66,14 @@ from jaxfalsify.search.controller import Linear, LSTMCell
 
 __all__ = [
     "SIGMA_MIN_STEPS", "LOG_SIGMA_MAX", "BatchedReinforce", "MixtureController",
-    "BatchedParams", "BatchedState", "SIGMA_INIT"
+    "BatchedParams", "BatchedState", "SIGMA_INIT", "DEFAULT_EVALUATIONS"
 ]
 
 SIGMA_MIN_STEPS = 0.1  # narrowest component's logistic scale, in value steps (98.7 % of its
 # mass on one value: S(5) - S(-5))
 LOG_SIGMA_MAX = 0.0  # widest component: sigma = 1 (the whole range)
 SIGMA_INIT = 0.165  # initial logistic scale, in rank units (a standard deviation of 0.3)
+DEFAULT_EVALUATIONS = 100 * 4096  # a run's default budget: 100 updates of the CPU batch
 
 
 class MixtureController(nn.Module):
@@ -137,8 +138,8 @@ class BatchedParams:
     entropy: float = 0.01  # bonus on the components' mean log-width
     novelty: float = 0.5  # signal taken off a collision seen before (elite or collision) ...
     revisit: float = 0.01  # ... off a scenario seen before that did not collide ...
-    novelty_until: float = 204800.0  # ... until this many evaluations were told (then the
-    # policy converges on the best failures)
+    novelty_until: float = DEFAULT_EVALUATIONS / 2  # ... until this many evaluations were
+    # told (half the default budget; then the policy converges on the best failures)
     ttc_weight: float = 0.0  # near misses told apart by their min TTC [m per s] (0: off)
     ttc_below: float = -0.5  # ... below this robustness [m]
 
