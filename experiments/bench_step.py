@@ -98,7 +98,10 @@ def zero_sut() -> sut_lib.SUT:
 
 
 HASHES = Path(__file__).parent / "results" / "outcome_hashes.json"
-NEWER = ("min_rss_margin",)  # outcome fields added after the hashes were stored
+# not in the hashes: min_rss_margin (added after they were stored) and final_distance (the
+# centre distance, whose last bits depend on how XLA fuses the step: a sample of it is checked
+# within 2 ulp by tests/core/test_stored_outcomes.py; docs/performance.md)
+UNHASHED = ("min_rss_margin", "final_distance")
 
 
 def outcome_hash(space_name: str, sut: str, chunk: int = 250_000) -> str:
@@ -113,7 +116,7 @@ def outcome_hash(space_name: str, sut: str, chunk: int = 250_000) -> str:
         out = jf.evaluate({k: np.asarray(v, np.float32) for k, v in sp.scenario(idx).items()},
                           sut=sut, chunk_size=chunk)
         for k in sorted(vars(out)):
-            if k in NEWER:
+            if k in UNHASHED:
                 continue
             h.update(k.encode())
             h.update(np.ascontiguousarray(getattr(out, k)).tobytes())

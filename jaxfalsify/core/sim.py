@@ -181,6 +181,28 @@ STILL = 6  # the original profile is constant for steps 0..5 (pdf.py, starting_s
 WINDOW = 6  # the original speed-change window covers steps T..T+5 (change_speed_timesteps + 1)
 
 
+def _once(one, tree):
+    """``tree``'s float arrays divided by ``one``, a traced 1.0: the same values (``x / 1 == x``
+    exactly; booleans through float32; integers, whose division x86 does not vectorise, as they
+    are), each computed once per step.
+
+    XLA's CPU fusion copies chains of cheap element-wise operations into every kernel that
+    consumes them, but never a division: left alone, each of the ~17 kernels that update the
+    carry recomputed the SUT's command, the tick and the contact test (``lax.optimization_barrier``
+    does not stop that on CPU). Routed through a division, each value is computed by one
+    kernel, stored, and read by the others (docs/performance.md, 'Where a step's time goes').
+    """
+    def stored(x):
+        x = jnp.asarray(x)
+        if x.dtype == jnp.bool_:
+            return x.astype(jnp.float32) / one != 0
+        if not jnp.issubdtype(x.dtype, jnp.floating):
+            return x
+        return x / one.astype(x.dtype)
+
+    return jax.tree.map(stored, tree)
+
+
 def ped_profile_constants(ped_speed, ped_accel):
     """(start speed [m/s], number of growth steps) of the original code's profile."""
     start = ped_speed - 5.0 * ped_accel
@@ -351,7 +373,9 @@ def _parts(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array, world:
             road_right=f32(w.road_right), road_left=f32(w.road_left), weather=weather_idx)
         k_step = jax.random.fold_in(k_act, k) if sut.stochastic else k_act
         cmd, new_sut_state = sut.act(obs, c.sut_state, params, k_step)
-        cmd = jnp.asarray(cmd, jnp.float32)
+        # one: 1.0 that XLA cannot fold (it cannot prove k >= 0), for _once
+        one = jnp.where(k >= 0, jnp.float32(1.0), jnp.float32(2.0))
+        cmd, new_sut_state, vp = _once(one, (jnp.asarray(cmd, jnp.float32), new_sut_state, vp))
 
         # --- the tick (exact for constant acceleration over the step; stops at v = 0)
         a = jnp.clip(cmd, -w.max_brake, w.max_accel)
@@ -364,23 +388,26 @@ def _parts(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array, world:
         valid = c.alive & (k < w.horizon)
         bad = ~(jnp.isfinite(cmd) & jnp.isfinite(dx) & jnp.isfinite(v1))
         move = valid & ~bad
+        a, v1, x1, y1, valid, bad, move = _once(one, (a, v1, x1, y1, valid, bad, move))
 
         # --- metrics on the state after the tick
         gap_x, gap_y = box_gap(x1, y1)
         dist = metrics.box_distance(gap_x, gap_y)
         d_min = metrics.rss_safe_distance(v1)
         d_centre = centre(x1, y1)
+        d_min, d_centre = _once(one, (d_min, d_centre))
         # the pedestrian is RSS's front object until the ego's front bumper has passed it
         ahead = w.crosswalk_x + w.ped_length / 2 > x1 + w.ego_length / 2
         hr = move & ahead & (d_min > d_centre)
         # contact at any instant of the tick, not only at its end: the walker can clip a
         # corner of the passing car between two samples
         overlap = ((gap_x <= 0) & (gap_y <= 0)) | swept_contact(c.ego_x, c.ego_v, a, c.ped_y, vp)
+        overlap = _once(one, overlap)
         dist = jnp.where(overlap, 0.0, dist)
         closing_y = jnp.where(y1 < w.ego_y, vp, -vp)
         ttc = metrics.time_to_collision(gap_x, gap_y, jnp.where(w.crosswalk_x > x1, v1, -v1),
                                         closing_y, 2 * half_x, 2 * half_y)
-        ttc = jnp.where(move, jnp.where(overlap, 0.0, ttc), jnp.inf)
+        ttc = _once(one, jnp.where(move, jnp.where(overlap, 0.0, ttc), jnp.inf))
 
         nonfinite = c.nonfinite | (valid & bad)
         collided_now = move & overlap

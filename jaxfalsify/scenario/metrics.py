@@ -51,7 +51,7 @@ def box_distance(gap_x: ArrayLike, gap_y: ArrayLike) -> jnp.ndarray:
     """Euclidean distance between the closest points of two boxes, 0 when they overlap [m]."""
     gx = jnp.maximum(gap_x, 0.0)
     gy = jnp.maximum(gap_y, 0.0)
-    return jnp.sqrt(gx * gx + gy * gy)
+    return jnp.sqrt(gy * gy + gx * gx)
 
 
 def time_to_collision(gap_x: ArrayLike, gap_y: ArrayLike, closing_x: ArrayLike,
