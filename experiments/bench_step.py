@@ -3,7 +3,8 @@
     python experiments/bench_step.py              # all 100,000 scenarios of the paper space
     python experiments/bench_step.py --n 20000    # a strided sample (quicker)
     python experiments/bench_step.py --check      # first: every outcome of 2.1e6 scenarios
-                                                  # bit-identical to the stored hashes
+                                                  # bit-identical to the stored hashes (all
+                                                  # but the centre distance: UNHASHED)
 
 Every figure is measured in this one process, side by side (best of ``--repeats`` warm calls
 of the compiled program; compilation excluded), on the same scenarios:
@@ -125,7 +126,8 @@ def outcome_hash(space_name: str, sut: str, chunk: int = 250_000) -> str:
 
 def check_outcomes() -> bool:
     """Every outcome of the paper space (each SUT) and of paper-extended (carla-tm, 2,000,000
-    scenarios) against the hashes stored from the simulator before its speed-ups."""
+    scenarios) against the hashes stored from the simulator before its speed-ups (all fields
+    but ``UNHASHED``)."""
     want = json.loads(HASHES.read_text())
     ok = True
     for key, digest in want.items():

@@ -599,6 +599,7 @@ def batch_rollout(flat: dict, offsets: jax.Array, key: jax.Array, sut: sut_lib.S
     return jax.vmap(one)(flat, over, keys)
 
 
+PAD = 8  # run_batch pads a batch of host arrays to a multiple of this many scenarios
 LANES_PER = 8  # a batch of n scenarios runs on n / LANES_PER lanes, refilled as episodes end
 MIN_LANES = 4096  # but on no fewer lanes than this (a batch up to it: one scenario per lane)
 
@@ -715,14 +716,23 @@ def _batch_program(sut: sut_lib.SUT, record: bool, n: int, params_tree, params_a
 def run_batch(flat: dict, offsets, key_data, sut: sut_lib.SUT, params, world: World,
               record: bool = False):
     """:func:`batch_rollout` compiled: host arrays in, ``(Outcome, Trajectory | None)`` of
-    NumPy arrays out."""
+    NumPy arrays out.
+
+    A batch of host arrays runs padded to a multiple of ``PAD`` scenarios (copies of its last,
+    dropped from the results): on CPUs XLA's kernels ran 2-5x slower per scenario on an odd
+    number of lanes than on an even one (docs/performance.md, 'Lanes')."""
     p_leaves, p_tree = jax.tree.flatten(as_float32(params))
     w_leaves, w_tree = jax.tree.flatten(as_float32(world))
     avals = tuple(jax.ShapeDtypeStruct(x.shape, x.dtype) for x in p_leaves)
     n = int(np.shape(offsets)[0])
-    prog = _batch_program(sut, record, n, p_tree, avals, w_tree)
+    size = n
+    if n % PAD and isinstance(offsets, np.ndarray):
+        size = -(-n // PAD) * PAD
+        edge = lambda v: np.pad(np.asarray(v), (0, size - n), mode="edge")  # noqa: E731
+        flat, offsets = {k: edge(v) for k, v in flat.items()}, edge(offsets)
+    prog = _batch_program(sut, record, size, p_tree, avals, w_tree)
     out, traj = prog(flat, offsets, key_data, p_leaves, w_leaves)
-    host = lambda d: {k: np.asarray(v) for k, v in d.items()}  # noqa: E731
+    host = lambda d: {k: np.asarray(v)[:n] for k, v in d.items()}  # noqa: E731
     return Outcome(**host(out)), (Trajectory(**host(traj)) if record else None)
 
 

@@ -51,6 +51,9 @@ def box_distance(gap_x: ArrayLike, gap_y: ArrayLike) -> jnp.ndarray:
     """Euclidean distance between the closest points of two boxes, 0 when they overlap [m]."""
     gx = jnp.maximum(gap_x, 0.0)
     gy = jnp.maximum(gap_y, 0.0)
+    # the order is part of the result on CPUs: XLA contracts the first product of a sum into a
+    # fused multiply-add, and this order keeps the simulator's stored outcomes
+    # (docs/performance.md, 'The centre distance's last bits')
     return jnp.sqrt(gy * gy + gx * gx)
 
 

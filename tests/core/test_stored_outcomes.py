@@ -57,3 +57,25 @@ def test_outcomes_are_bit_identical_to_the_stored_ones(stored, sut, chunk, lanes
             np.testing.assert_array_max_ulp(got[ok], want[ok], maxulp=2)
             continue
         np.testing.assert_array_equal(got.view(np.uint8), want.view(np.uint8), err_msg=k)
+
+
+@pytest.mark.parametrize("sut", ["none", "carla-tm", "sensor-aeb"])
+def test_an_odd_batch_is_padded_and_changes_no_outcome(stored, sut, monkeypatch):
+    """A batch of 999 (padded to 1,000 scenarios by ``run_batch``) and one of 1 give the stored
+    outcomes of the same scenarios."""
+    calls = []
+    program = sim._batch_program
+    monkeypatch.setattr(sim, "_batch_program", lambda *a: calls.append(a[2]) or program(*a))
+    sp = jf.load_space("paper-extended")
+    idx = np.stack(np.unravel_index(stored["index"][:1000], sp.shape), -1)
+    sc = {k: np.asarray(v, np.float32) for k, v in sp.scenario(idx).items()}
+    for lo, hi in ((0, 999), (999, 1000)):
+        out = jf.evaluate({k: v[lo:hi] for k, v in sc.items()}, sut=sut)
+        for f, got in vars(out).items():
+            key = f"{sut}/{f}"
+            if key not in stored or f == "final_distance":
+                continue
+            want = stored[key][lo:hi]
+            assert got.shape == want.shape, key
+            np.testing.assert_array_equal(got.view(np.uint8), want.view(np.uint8), err_msg=key)
+    assert calls == [1000, 8]
