@@ -190,7 +190,7 @@ def _once(one, tree):
     consumes them, but never a division: left alone, each of the ~17 kernels that update the
     carry recomputed the SUT's command, the tick and the contact test (``lax.optimization_barrier``
     does not stop that on CPU). Routed through a division, each value is computed by one
-    kernel, stored, and read by the others (docs/performance.md, 'Where a step's time goes').
+    kernel, stored, and read by the others (docs/performance.md, 'Each value once per step').
     """
     def stored(x):
         x = jnp.asarray(x)
