@@ -247,13 +247,11 @@ class BatchedReinforce(Strategy):
             return lp
         return jax.nn.logsumexp(lp, axis=0) - jnp.log(float(self.learners))
 
-    def _log_prob_one(self, weights, indices, params) -> jax.Array:
+    def _log_prob_one(self, weights, indices, params, dist=None) -> jax.Array:
         """``(B,)`` log pi of each scenario ``indices (B, P)`` under one learner's policy
-        ``weights``."""
-        mix, mu, log_sigma = self.module.apply({"params": weights})
-        log_z = discretised.log_normaliser(mu, log_sigma, self.shape)
-        return jax.vmap(lambda x: discretised.log_prob(mix, mu, log_sigma, x, self.shape,
-                                                       params.eps, log_z))(indices)
+        ``weights`` (``dist``: the policy's ``module.apply``, when already computed)."""
+        mix, mu, log_sigma = self.module.apply({"params": weights}) if dist is None else dist
+        return discretised.log_prob(mix, mu, log_sigma, indices, self.shape, params.eps)
 
     def tell(self, key, state, indices, rewards, params):
         return self._learn(key, state, indices, rewards, jnp.zeros(rewards.shape, bool),
@@ -344,8 +342,9 @@ class BatchedReinforce(Strategy):
         elite = indices[at]
 
         def loss(weights):
-            lp = self._log_prob_one(weights, elite, params)
-            _, _, log_sigma = self.module.apply({"params": weights})
+            dist = self.module.apply({"params": weights})
+            lp = self._log_prob_one(weights, elite, params, dist)
+            log_sigma = dist[2]
             return -jnp.sum(w * lp) - params.entropy * jnp.mean(log_sigma)
 
         def adam_step(carry, _):

@@ -151,6 +151,57 @@ def test_log_mass_keeps_far_tails(lo, hi):
     assert got == pytest.approx(want, abs=2e-3 * abs(want) + 1e-3)
 
 
+@pytest.mark.parametrize("shape", [(7, 1, 40, 3, 1000), (3,) * 18 + (1,)])
+def test_mixture_gradient_matches_automatic_differentiation(shape):
+    """log_prob's written-out gradient (and value) against JAX's automatic differentiation of
+    the plain expression (log_probs_by_component, one logarithm per parameter), including
+    one-value parameters and more than 16 parameters (products taken in groups)."""
+    P, K = len(shape), 6
+    k = jax.random.split(jax.random.key(0), 5)
+    mix = jax.random.normal(k[0], (K,))
+    mu = jax.random.uniform(k[1], (K, P), minval=-0.05, maxval=1.05)
+    lo = np.log(batched.SIGMA_MIN_STEPS / np.maximum(np.asarray(shape) - 1, 1))
+    log_sigma = lo + (batched.LOG_SIGMA_MAX - lo) * jax.random.uniform(k[2], (K, P))  # the
+    # controller's range: from 0.1 value steps to the whole range
+    acts = jax.random.randint(k[3], (50, P), 0, jnp.asarray(shape))
+    w = jax.random.uniform(k[4], (50,))
+    eps = 0.01
+    log_uniform = -float(np.sum(np.log(np.asarray(shape, np.float64))))
+
+    def plain(mix, mu, log_sigma):
+        comp = jax.nn.log_softmax(mix)[:, None] + discretised.log_probs_by_component(
+            mu, log_sigma, acts, shape)
+        return jnp.logaddexp(jnp.log1p(-eps) + jax.nn.logsumexp(comp, axis=0),
+                             jnp.log(eps) + log_uniform)
+
+    def fast(mix, mu, log_sigma):
+        return discretised.log_prob(mix, mu, log_sigma, acts, shape, eps)
+
+    np.testing.assert_allclose(fast(mix, mu, log_sigma), plain(mix, mu, log_sigma),
+                               rtol=1e-5, atol=1e-4)
+    want = jax.grad(lambda *a: jnp.sum(w * plain(*a)), argnums=(0, 1, 2))(mix, mu, log_sigma)
+    got = jax.grad(lambda *a: jnp.sum(w * fast(*a)), argnums=(0, 1, 2))(mix, mu, log_sigma)
+    for g, x in zip(got, want):
+        np.testing.assert_allclose(g, x, rtol=1e-4, atol=1e-4 * float(jnp.max(jnp.abs(x))))
+
+
+@pytest.mark.parametrize("v, at", [(494, 500), (507, 500), (500, 500.3)])
+def test_a_bin_far_in_a_tail_keeps_its_mass(v, at):
+    """A narrow component (0.1 value steps, located at value ``at``) puts on a value 6-7
+    steps away a mass of about e^-60, where CDF differences round to 0 in float32: the closed
+    form keeps it (oracle: the float64 CDF difference taken in the tail where the bin lies)."""
+    shape, sigma, mu = (1000,), 0.1 / 999, at / 999
+    got = float(discretised.log_probs_by_component(
+        jnp.asarray([[mu]], jnp.float32), jnp.asarray([[math.log(sigma)]], jnp.float32),
+        jnp.asarray([[v]]), shape)[0, 0])
+    h, r = 0.5 / 999, v / 999
+    lo, hi = (r - h - mu) / sigma, (r + h - mu) / sigma
+    mass = _np_cdf(-lo) - _np_cdf(-hi) if lo > 0 else _np_cdf(hi) - _np_cdf(lo)
+    norm = _np_cdf((1 + h - mu) / sigma) - _np_cdf((-h - mu) / sigma)
+    want = math.log(mass / norm)
+    assert got == pytest.approx(want, rel=1e-4, abs=1e-3)
+
+
 def test_cost_does_not_grow_with_the_number_of_values():
     """The distribution has the same parameters for 10 or 4,000 values per parameter: its
     size (and a scenario's log-probability's work) does not depend on the values."""
