@@ -208,8 +208,16 @@ def main(argv=None):
                     help="with --learning, also these budgets (in updates of the batch)")
     ap.add_argument("--default-param", action="append", default=[], metavar="NAME=VALUE",
                     help="an option of reinforce/default (e.g. novelty_until=614400)")
+    ap.add_argument("--variant", action="append", default=[], metavar="NAME=VALUE,...",
+                    help="one more row: reinforce/default with these options on top of "
+                    "--default-param (e.g. steps=4,lr=0.06); repeatable")
     a = ap.parse_args(argv)
     default_options = parse_assignments(a.default_param, "--default-param")
+    rows_of = [(st, st, default_options if st == "reinforce/default" else None)
+               for st in a.strategies]  # (label, strategy, options)
+    for v in a.variant:
+        extra = parse_assignments([x for x in v.split(",") if x], "--variant")
+        rows_of.append((f"default[{v}]", "reinforce/default", {**default_options, **extra}))
     out = {}
     if a.learning:
         for u in [None, *a.learning_updates]:  # None: the main job's budget
@@ -240,10 +248,10 @@ def main(argv=None):
               f"{'median s to first':>18s} {'x random':>9s} {'distinct':>9s} "
               f"{'s/update':>9s} {'compile s':>9s}")
         base = None
-        for st in a.strategies:
+        for st, strategy, options in rows_of:
             t0 = time.perf_counter()
-            rows = one(sp, st, list(range(a.seeds)), a.batch, a.evaluations, a.every,
-                       default_options if st == "reinforce/default" else None)
+            rows = one(sp, strategy, list(range(a.seeds)), a.batch, a.evaluations, a.every,
+                       options)
             med, cens = median_time(rows)
             firsts = [r["first_collision"] or a.evaluations for r in rows]
             if st == "random":

@@ -11,7 +11,7 @@ weights: the policy is a mixture of ``K`` products of discretised truncated logi
 distributions with a uniform floor (:mod:`jaxfalsify.search.discretised`). The components are
 joint modes: each ties a value of every parameter to the others (a diagonal band of ``ego_offset`` x
 ``ped_speed`` is a chain of components, which independent per-parameter heads cannot hold). A
-scenario's probability costs ``O(K P)`` sigmoids whatever the number of values, and the
+scenario's probability costs ``O(K P)`` exponentials whatever the number of values, and the
 LSTM runs once per update, not once per scenario.
 
 **The update** (Eq. 2-3): each update draws ``batch`` scenarios, the campaign rolls them out

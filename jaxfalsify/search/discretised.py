@@ -16,7 +16,7 @@ A scenario's probability is a mixture over ``K`` components, each a product over
 with a uniform floor of weight ``eps`` that keeps every scenario reachable:
     pi(a) = (1 - eps) sum_k w_k prod_p m_kp(a_p) + eps prod_p 1 / n_p.
 
-Its cost per scenario is ``O(K P)`` sigmoids whatever the number of values (a softmax head
+Its cost per scenario is ``O(K P)`` exponentials whatever the number of values (a softmax head
 over the values costs ``O(n_p)``): a parameter with 4,000 values costs what one with 10 does.
 Sampling is exact: the component by inverse CDF, then each parameter's value by the truncated
 logistic's inverse CDF (the logit), binned. One-value parameters have mass 1 on their value.
