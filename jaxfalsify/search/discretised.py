@@ -174,7 +174,9 @@ def log_prob(mix_logits: jax.Array, mu: jax.Array, log_sigma: jax.Array, actions
     (``mix_logits (K,)``, ``mu, log_sigma (K, P)``) with a uniform floor of weight ``eps`` in
     (0, 1) (``prepared``: :func:`prepare` of ``mu, log_sigma``, when already computed). The
     same value as :func:`log_probs_by_component`'s mixture, with a gradient written out for
-    speed (checked against automatic differentiation of that function)."""
+    speed (checked against automatic differentiation of that function). Every ``sigma`` at
+    least ``0.1`` value steps, as the controller keeps them (``batched.SIGMA_MIN_STEPS``): a
+    bin is then at most 10 standard units wide, which the closed form's float32 range needs."""
     if prepared is None:
         prepared = prepare(mu, log_sigma, shape)
     log_w = jax.nn.log_softmax(mix_logits)
