@@ -430,7 +430,7 @@ def cmd_run(args, stop, startup) -> int:
         _no_evaluator_flags(args)
         o = runs.execute(rc, out, resume=args.resume is not None, force=args.force,
                          progress=_progress(args.quiet), stop=stop, figures=not args.no_figures,
-                         rerun=args.rerun, startup_seconds=startup)
+                         rerun=args.rerun, startup_seconds=startup())
     if not args.quiet:
         print(runs.closing_report(o))
     print(f"wrote {o.out}/ (config.toml, evaluations.parquet, summary.json, critical.csv, "
@@ -519,7 +519,7 @@ def cmd_sweep(args, stop, startup) -> int:
     pid, n_proc = _start_distributed(args)
     s = sweep.execute(config, out, resume=args.resume is not None, force=args.force,
                       progress=_progress(args.quiet), stop=stop, process_id=pid,
-                      num_processes=n_proc, startup_seconds=startup)
+                      num_processes=n_proc, startup_seconds=startup())
     if pid != 0:
         print(f"process {pid}: done ({s['out']})")
         return 0
@@ -576,7 +576,7 @@ def cmd_compare(args, stop, startup) -> int:
     pid, n_proc = _start_distributed(args)
     result = compare.execute(config, args.out, force=args.force, progress=_progress(args.quiet),
                              stop=stop, process_id=pid, num_processes=n_proc,
-                             startup_seconds=startup)
+                             startup_seconds=startup())
     if pid != 0:
         print(f"process {pid}: done")
         return 0
@@ -623,7 +623,7 @@ def _compare_suite(args, names, stop, startup) -> int:
                               batch=args.batch)
     result = suites.execute_suite(suite, args.out, force=args.force,
                                   progress=_progress(args.quiet), stop=stop,
-                                  startup_seconds=startup)
+                                  startup_seconds=startup())
     print(suites.suite_markdown(result))
     print(f"wall time {timing_line(result['timing'])}")
     print(f"wrote {result['out']}/suite.json, suite.md (and a comparison folder per space)")
@@ -726,7 +726,7 @@ def cmd_estimate(args, stop, startup) -> int:
         f"{space.name}-{folder_name(config.sut)}-{folder_name(config.requirement)}-"
         f"{config.method}-s{config.seed}")
     s = estimate.execute(config, out, force=args.force, progress=_progress(args.quiet),
-                         stop=stop, startup_seconds=startup)
+                         stop=stop, startup_seconds=startup())
     for line in estimate.summary_lines(s):
         print(line)
     print(f"wrote {out}/summary.json")
@@ -742,6 +742,12 @@ def main(argv=None, startup: float = 0.0) -> int:
     """Run the command line ``argv``; returns the exit code. ``startup``: seconds the process
     spent before (the console script passes its start-up, for ``timing.json``)."""
     import os
+    import time
+
+    entered = time.perf_counter()
+
+    def since_start() -> float:  # a job's start-up: the process's time until the job begins
+        return startup + time.perf_counter() - entered
 
     stop = StopFlag().install()
     # a host callback that raises is reported in one line (sut.callback_error), not also logged
@@ -756,7 +762,7 @@ def main(argv=None, startup: float = 0.0) -> int:
             os.environ["JAXFALSIFY_NO_CACHE"] = "1"
             from jaxfalsify.io.cache import enable_compilation_cache
             enable_compilation_cache()
-        return COMMANDS[args.command](args, stop, startup)
+        return COMMANDS[args.command](args, stop, since_start)
     except (UsageError, ValueError) as e:
         print(f"jaxfalsify: error: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
               file=sys.stderr)

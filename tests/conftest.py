@@ -7,6 +7,9 @@ if "JAXFALSIFY_TEST_SESSION_CACHE" not in os.environ:
     os.environ["JAXFALSIFY_TEST_SESSION_CACHE"] = tempfile.mkdtemp(
         prefix="jaxfalsify-test-cache-")
 os.environ["JAXFALSIFY_CACHE_DIR"] = os.environ["JAXFALSIFY_TEST_SESSION_CACHE"]
+# runs draw every figure in their own process: the suite keeps every core busy already
+# (tests/outputs/test_figure_process.py turns the second process on)
+os.environ["JAXFALSIFY_FIGURE_PROCESS"] = "0"
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402

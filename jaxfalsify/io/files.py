@@ -19,7 +19,7 @@ from jaxfalsify.base.config import jsonable
 
 __all__ = [
     "sha256", "write_atomic", "write_all_atomic", "replace_files", "atomic_path", "save_npz",
-    "write_parquet", "write_json"
+    "write_parquet", "write_json", "jsonable"
 ]
 
 

@@ -47,9 +47,9 @@ from jaxfalsify.engine.problem import (  # the run's configuration
     configure,
 )
 from jaxfalsify.io import cache, checkpoints, store
-from jaxfalsify.io.files import write_atomic, write_json, write_parquet
+from jaxfalsify.io.files import jsonable, write_atomic, write_json, write_parquet
 from jaxfalsify.io.store import Interrupted
-from jaxfalsify.outputs import analysis
+from jaxfalsify.outputs import analysis, figure_process
 from jaxfalsify.outputs import figures as figures_lib
 from jaxfalsify.outputs import replay as replay_lib
 from jaxfalsify.outputs import report as report_lib
@@ -97,10 +97,12 @@ def cluster_entries(space: Space, fc: analysis.FailureClusters, fields: dict,
     return out
 
 
-def summary_dict(res: campaign.Result, rc: RunConfig) -> dict:
-    """``summary.json`` (``rc`` resolved): bit-identical for the same config and seed."""
+def summary_dict(res: campaign.Result, rc: RunConfig,
+                 clusters: analysis.FailureClusters | None = None) -> dict:
+    """``summary.json`` (``rc`` resolved): bit-identical for the same config and seed.
+    ``clusters``: the run's failure clusters, when already computed."""
     b = analysis.best(res.fields)
-    fc = analysis.failure_clusters(res.indices, res.fields)
+    fc = clusters if clusters is not None else analysis.failure_clusters(res.indices, res.fields)
     best = {"params": res.space.values_at(res.indices[b]),
             "indices": [int(i) for i in res.indices[b]], "evaluation": b + 1,
             **{k: cfg.plain(res.fields[k][b]) for k in
@@ -123,21 +125,26 @@ def summary_dict(res: campaign.Result, rc: RunConfig) -> dict:
             "versions": cfg.versions()}
 
 
-def critical_csv(res: campaign.Result) -> str:
+def critical_csv(res: campaign.Result,
+                 clusters: analysis.FailureClusters | None = None) -> str:
     """``critical.csv``: one row per distinct critical scenario, ranked by reward, with its
-    failure cluster (the number ``summary.json`` lists it under)."""
+    failure cluster (the number ``summary.json`` lists it under). ``clusters``: the run's
+    failure clusters, when already computed."""
     buf = io.StringIO()
     w = csv.writer(buf)
     names = list(res.space.names)
     w.writerow(["rank", "cluster", *names, "reward", "min_distance",
                 "high_risk_share_second_half", "first_evaluation", "times_evaluated"])
-    labels = analysis.failure_clusters(res.indices, res.fields).labels
-    for rank, c in enumerate(analysis.distinct_critical(res.indices, res.fields), 1):
-        vals = res.space.values_at(c["indices"])
-        w.writerow([rank, int(labels[rank - 1]), *(f"{vals[n]:g}" for n in names),
-                    f"{c['reward']:.6f}", f"{c['min_distance']:.4f}",
-                    f"{c['high_risk_share_second_half']:.4f}",
-                    c["first_evaluation"], c["times_evaluated"]])
+    fc = clusters if clusters is not None else analysis.failure_clusters(res.indices, res.fields)
+    keys, rows, counts = analysis.distinct_critical_rows(res.indices, res.fields)
+    values = [np.asarray(res.space.table[p], np.float64)[keys[:, p]].tolist()
+              for p in range(len(names))]
+    shown = [np.asarray(res.fields[f])[rows].tolist()
+             for f in ("reward", "min_distance", "high_risk_share_second_half")]
+    for i, (row, count) in enumerate(zip(rows.tolist(), counts.tolist())):
+        w.writerow([i + 1, int(fc.labels[i]), *(f"{v[i]:g}" for v in values),
+                    f"{shown[0][i]:.6f}", f"{shown[1][i]:.4f}", f"{shown[2][i]:.4f}",
+                    row + 1, count])
     return buf.getvalue()
 
 
@@ -240,22 +247,23 @@ def _stats_progress(progress: Progress, total: int, desc: str, start_from: int =
 
 
 class _Preparing:
-    """The figures' preparation (ground truth, compiled programs, matplotlib, the
-    critical-region map) in a background thread: XLA compiles and runs without the GIL, so
-    this overlaps the campaign's own compilation and search. A failure here is ignored (the
-    figures redo the work)."""
+    """The figures' preparation (matplotlib, the compiled trajectory program, with
+    ``critical`` the ground truth and the critical-region map) in a background thread: XLA
+    compiles and runs without the GIL, so this overlaps the campaign's own compilation and
+    search. A failure here is ignored (the figures redo the work)."""
 
-    def __init__(self, b: Built):
+    def __init__(self, b: Built, critical: bool = True):
         import threading
 
         self.result = None
-        self.thread = threading.Thread(target=self._work, args=(b,), daemon=True,
+        self.thread = threading.Thread(target=self._work, args=(b, critical), daemon=True,
                                        name="jaxfalsify-prepare-figures")
         self.thread.start()
 
-    def _work(self, b: Built) -> None:
+    def _work(self, b: Built, critical: bool) -> None:
         try:
-            self.result = figures_lib.prepare(b.space, b.sut, b.sut_params, WORLD)
+            self.result = figures_lib.prepare(b.space, b.sut, b.sut_params, WORLD,
+                                              critical=critical)
         except Exception:  # noqa: BLE001 - make_figures repeats it and reports errors
             pass
 
@@ -344,6 +352,21 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
     status.running(evaluations=b.plan.evaluations, resumed_from_evaluation=start_from)
     if start_from:
         progress.message(f"resuming {out} at evaluation {start_from} of {b.plan.evaluations}")
+    # a second process draws the figures that need no trajectory, from its start (imports,
+    # the critical-region map) on the core the compile and the writing leave idle
+    helper = (figure_process.FigureProcess(b.space, rc, WORLD)
+              if figures and figure_process.wanted() else None)
+    try:
+        return _search_and_finish(b, rc, out, ckpt, resumed, start_from, status, progress,
+                                  stop, figures, rerun, clock, helper)
+    finally:
+        if helper is not None:
+            helper.close()
+
+
+def _search_and_finish(b: Built, rc: RunConfig, out: Path, ckpt, resumed, start_from: int,
+                       status: Status, progress: Progress, stop, figures: bool, rerun: bool,
+                       clock: Clock, helper) -> RunOutcome:
     try:
         t0 = time.perf_counter()
         progress.phase(f"compiling {rc.strategy} x {rc.sut} on {b.space.name}")
@@ -354,7 +377,7 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
                          1)  # export (or load) the program
         clock.add("compile", time.perf_counter() - t0)
         # then, while XLA compiles it (without the GIL), prepare the figures in the background
-        prep = _Preparing(b) if figures else None
+        prep = _Preparing(b, critical=helper is None) if figures else None
         res = campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan,
                            rc.seed, progress=_stats_progress(progress, b.plan.evaluations,
                                                              f"{rc.strategy} on {b.space.name}",
@@ -379,7 +402,7 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
     clock.add("search", res.search_seconds)
     try:
         return _finish(b, rc, out, res, ckpt, start_from, prep, figures, rerun, progress, clock,
-                       status)
+                       status, helper)
     except BaseException as e:
         status.failed(e, evaluations_done=res.n, evaluations=res.n)  # the search is done, its
         raise  # outputs are not
@@ -387,25 +410,33 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
 
 def _finish(b: Built, rc: RunConfig, out: Path, res: campaign.Result, ckpt, start_from: int,
             prep, figures: bool, rerun: bool, progress: Progress, clock: Clock,
-            status: Status) -> RunOutcome:
+            status: Status, helper=None) -> RunOutcome:
     """Write the results, figures, timing, and finally ``status.json`` = complete."""
     with clock("writing"):
-        summary = summary_dict(res, rc)
-        write_parquet(out / "evaluations.parquet", evaluations_table(res))
-        write_atomic(out / "critical.csv", critical_csv(res))
+        table = evaluations_table(res)
+        if helper is not None:
+            helper.draw(table)  # it draws while this process writes
+        clusters = analysis.failure_clusters(res.indices, res.fields)
+        summary = summary_dict(res, rc, clusters)
+        write_parquet(out / "evaluations.parquet", table)
+        write_atomic(out / "critical.csv", critical_csv(res, clusters))
         write_json(out / "summary.json", summary, indent=2)
+    # the folder as rundir.load_run reads it back, without reading it back
+    folder = rundir.RunFolder(b.space, rc, json.loads(json.dumps(jsonable(summary))), table)
     if figures:
         progress.phase("drawing figures")
 
         with clock("figures"):
-            figures_lib.make_figures(out, world=WORLD, prepared=prep.join())
+            figures_lib.make_figures(out, world=WORLD, prepared=prep.join(),
+                                     drawn_elsewhere=helper and helper.collect, folder=folder)
     if rerun:
         with clock("rerun"):
             replay_lib.record(out, "best", save=out / "best.rrd", overlay=14)
     if figures:  # report.md shows the wall time up to itself; timing.json includes it
         with clock("figures"):
             report_lib.write_report(out, timing={**clock.summary(),
-                                                 "resumed_from_evaluation": start_from})
+                                                 "resumed_from_evaluation": start_from},
+                                    folder=folder)
     timing = {**clock.summary(), "resumed_from_evaluation": start_from}
     write_json(out / "timing.json", timing, indent=2)
     status.complete(evaluations_done=res.n, evaluations=res.n)

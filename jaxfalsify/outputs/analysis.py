@@ -17,9 +17,9 @@ from jaxfalsify.base.config import plain
 __all__ = [
     "ranked_reward", "collided", "critical", "best", "first_collision", "first_critical",
     "best_reached", "moving_mean", "learner_converged", "typical_non_critical",
-    "distinct_critical", "ALIGNED_DIMS", "chebyshev_components", "FailureClusters",
-    "failure_clusters", "from_evaluations", "OUTCOME_ROWS", "table_ii", "format_value",
-    "text_table", "markdown_table"
+    "distinct_critical", "distinct_critical_rows", "ALIGNED_DIMS", "chebyshev_components",
+    "FailureClusters", "failure_clusters", "from_evaluations", "OUTCOME_ROWS", "table_ii",
+    "format_value", "text_table", "markdown_table"
 ]
 
 
@@ -113,7 +113,7 @@ def typical_non_critical(fields: dict) -> int | None:
     return int(ok[np.argsort(r, kind="stable")[len(ok) // 2]])
 
 
-def _distinct_critical_rows(indices: np.ndarray, fields: dict):
+def distinct_critical_rows(indices: np.ndarray, fields: dict):
     """The distinct critical scenarios in :func:`distinct_critical`'s order, as arrays:
     ``(index vectors (n, P), first evaluation's row (n,), times evaluated (n,))``."""
     idx = np.asarray(indices)
@@ -138,7 +138,7 @@ def distinct_critical(indices: np.ndarray, fields: dict) -> list[dict]:
     """Distinct collision scenarios, ranked by reward (then by first evaluation): per scenario
     its ``indices``, ``row`` (first evaluation's row), ``first_evaluation``,
     ``times_evaluated`` and the first evaluation's fields."""
-    keys, first_rows, counts = _distinct_critical_rows(indices, fields)
+    keys, first_rows, counts = distinct_critical_rows(indices, fields)
     return [{"indices": tuple(int(v) for v in k), "row": int(r), "first_evaluation": int(r) + 1,
              "times_evaluated": int(c), **{f: plain(np.asarray(v)[r]) for f, v in fields.items()}}
             for k, r, c in zip(keys, first_rows, counts)]
@@ -287,7 +287,7 @@ def failure_clusters(indices: np.ndarray, fields: dict) -> FailureClusters:
       :class:`FailureClusters` (empty arrays when nothing collided).
     """
     idx = np.asarray(indices)
-    keys, rows, _ = _distinct_critical_rows(idx, fields)
+    keys, rows, _ = distinct_critical_rows(idx, fields)
     comp = chebyshev_components(keys)  # numbered by first member in rank order
     sizes = np.bincount(comp) if comp.size else np.zeros(0, np.int64)
     order = np.argsort(-sizes, kind="stable")  # ties: smaller best rank first

@@ -41,7 +41,7 @@ from jaxfalsify.outputs import analysis
 
 __all__ = [
     "fig10_rows", "prepare", "make_figures", "critical_region_figure", "search_figure",
-    "cluster_figure", "distance_figure"
+    "cluster_figure", "distance_figure", "png", "sweep_figures", "SWEEP_FIGURES"
 ]
 
 FIGSIZE = (8, 4.5)
@@ -186,42 +186,74 @@ class Prepared:
         return base
 
 
-def prepare(space, sut, sut_params, world) -> Prepared | None:
+def prepare(space, sut, sut_params, world, *, trajectories: bool = True,
+            critical: bool = True) -> Prepared | None:
     """Build what :func:`make_figures` needs, ahead of time (``runs.execute`` calls it in a
-    background thread while the campaign compiles and searches): matplotlib, the ground truth
-    of the space (per-user cache), the compiled trajectory program, and the critical-region
-    map up to the run's own scenarios."""
+    background thread while the campaign compiles and searches): matplotlib, with
+    ``trajectories`` the compiled trajectory program, with ``critical`` the ground truth of
+    the space (per-user cache) and the critical-region map up to the run's own scenarios."""
     plt = _plt()
-    truth = None
-    if space.size <= TRUTH_LIMIT:
-        truth = ground_truth(space, sut, sut_params, world)
-    sim.simulate(space.scenario(np.zeros((N_TRAJECTORIES, len(space.shape)), np.int32)),
-                sut=sut, sut_params=sut_params, world=world)
-    if truth is None or sum(n > 1 for n in space.shape) < 2:
+    if trajectories:
+        sim.simulate(space.scenario(np.zeros((N_TRAJECTORIES, len(space.shape)), np.int32)),
+                     sut=sut, sut_params=sut_params, world=world)
+    if not critical or space.size > TRUTH_LIMIT or sum(n > 1 for n in space.shape) < 2:
         return None
+    truth = ground_truth(space, sut, sut_params, world)
     return Prepared(space, truth["collision"], _critical_base(plt, space, truth, overlay=True))
 
 
-def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) -> list[Path]:
+def png(plt, fig) -> bytes:
+    """The PNG file of ``fig`` (closed afterwards)."""
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, dpi=DPI, format="png", pil_kwargs=PNG)
+    finally:
+        plt.close(fig)
+    return buf.getvalue()
+
+
+SWEEP_FIGURES = ("critical_regions.png", "search_distribution.png", "failure_clusters.png")
+
+
+def sweep_figures(sp, rc, ep: dict, world, prepared: Prepared | None = None
+                  ) -> dict[str, bytes]:
+    """The figures drawn from the evaluations alone, no trajectory simulated: the
+    critical-region map (a run of a JAX SUT on a space of up to ``TRUTH_LIMIT`` scenarios),
+    where the search went and the failure clusters; ``{file name: PNG}`` in that order (a
+    subset of :data:`SWEEP_FIGURES`). ``runs.execute`` draws them in a second process
+    (:mod:`jaxfalsify.outputs.figure_process`) while it writes the run's files."""
+    plt = _plt()
+    out = {}
+    if not rc.evaluator and sp.size <= TRUTH_LIMIT and sum(n > 1 for n in sp.shape) >= 2:
+        truth = ground_truth(sp, rc.sut, dict(rc.sut_params), world)
+        base = prepared and prepared.critical_base(sp, truth["collision"])
+        out["critical_regions.png"] = png(plt, critical_region_figure(plt, sp, truth, ep,
+                                                                      base=base))
+    out["search_distribution.png"] = png(plt, search_figure(plt, sp, ep, rc.strategy))
+    out["failure_clusters.png"] = png(plt, cluster_figure(plt, sp, ep))
+    return out
+
+
+def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None,
+                 drawn_elsewhere=None, folder=None) -> list[Path]:
     """Draw every figure into ``run_dir/figures``; returns the files written. The scenarios
     shown are re-simulated in one call; the critical-region map uses the cached ground truth
     (:func:`jaxfalsify.engine.truth.ground_truth`) for spaces of up to 5e6 scenarios. ``prepared``:
-    what :func:`prepare` built for this run (used only where it matches)."""
+    what :func:`prepare` built for this run (used only where it matches).
+    ``drawn_elsewhere``: a callable returning :func:`sweep_figures`' files drawn by another
+    process for this run (or None when that failed: they are drawn here). ``folder``: the
+    run folder's contents as :func:`~jaxfalsify.engine.rundir.load_run` reads them, when the
+    caller holds them (the run that just wrote them); else read from ``run_dir``."""
     world = world or sim.WORLD
     plt = _plt()
     run_dir = Path(run_dir)
-    sp, rc, summary, ep = load_run(run_dir)
+    sp, rc, summary, ep = folder if folder is not None else load_run(run_dir)
     out = run_dir / "figures"
     drawn: dict[Path, bytes] = {}  # written together at the end: a failure while drawing
     # leaves the earlier figures as they were, not some redrawn and some not
 
     def save(fig, name):
-        buf = io.BytesIO()
-        try:
-            fig.savefig(buf, dpi=DPI, format="png", pil_kwargs=PNG)
-        finally:
-            plt.close(fig)
-        drawn[out / name] = buf.getvalue()
+        drawn[out / name] = png(plt, fig)
 
     # Fig. 6: reward per episode
     fig, ax, place = _single(plt, (8, 5), top=TITLE, legend=True)
@@ -251,11 +283,13 @@ def make_figures(run_dir: Path, world=None, prepared: Prepared | None = None) ->
     save(fig, "reward_per_evaluation.png")
 
     if not rc.evaluator:  # an evaluator's run has no JAX SUT to simulate its scenarios
-        _simulated_figures(plt, save, sp, rc, ep, world, prepared)
+        _simulated_figures(plt, save, sp, rc, ep, world)
     else:  # but perhaps the trajectories its evaluator returned
         _told_figures(plt, save, run_dir, ep, rc)
-    save(search_figure(plt, sp, ep, rc.strategy), "search_distribution.png")
-    save(cluster_figure(plt, sp, ep), "failure_clusters.png")
+    rest = drawn_elsewhere() if drawn_elsewhere is not None else None
+    if rest is None:
+        rest = sweep_figures(sp, rc, ep, world, prepared)
+    drawn.update({out / name: data for name, data in rest.items()})
     out.mkdir(exist_ok=True)
     write_all_atomic(drawn)
     return list(drawn)
@@ -316,9 +350,8 @@ def _told_figures(plt, save, run_dir: Path, ep: dict, rc) -> None:
              "distance_14_scenarios.png")
 
 
-def _simulated_figures(plt, save, sp, rc, ep, world, prepared) -> None:
-    """The figures that simulate the run's scenarios again (Fig. 7-10) and the
-    critical-region map of the exhaustive sweep."""
+def _simulated_figures(plt, save, sp, rc, ep, world) -> None:
+    """The figures that simulate the run's scenarios again (Fig. 7-9)."""
     # every scenario shown below, simulated in one call
     rows = pick(ep)
     typical = rows["typical"] if rows["typical"] is not None else rows["best"]
@@ -371,12 +404,6 @@ def _simulated_figures(plt, save, sp, rc, ep, world, prepared) -> None:
     # Fig. 9: 14 scenarios, the critical ones (collisions, or the requirement's violations) red
     save(distance_figure(plt, ep, rc, chosen, np.asarray(traj.t)[2:], np.asarray(traj.distance)[2:],
                          np.asarray(traj.valid)[2:]), "distance_14_scenarios.png")
-
-    # Critical-region maps from the exhaustive sweep
-    if sp.size <= TRUTH_LIMIT and sum(n > 1 for n in sp.shape) >= 2:
-        truth = ground_truth(sp, rc.sut, dict(rc.sut_params), world)
-        base = prepared and prepared.critical_base(sp, truth["collision"])
-        save(critical_region_figure(plt, sp, truth, ep, base=base), "critical_regions.png")
 
 
 def axis_label(sp, p: int) -> str:

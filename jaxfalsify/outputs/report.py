@@ -87,11 +87,13 @@ def cluster_section(sp, fc: analysis.FailureClusters, fields: dict) -> list[str]
             "member.", "", analysis.markdown_table(header, rows)]
 
 
-def write_report(run_dir: Path, timing: dict | None = None) -> Path:
+def write_report(run_dir: Path, timing: dict | None = None, folder=None) -> Path:
     """Write ``run_dir/report.md``; ``timing``: the run's wall-time split (else read from its
-    ``timing.json``; the run itself passes it, so report.md's writing counts in timing.json)."""
+    ``timing.json``; the run itself passes it, so report.md's writing counts in timing.json).
+    ``folder``: the run folder's contents as :func:`~jaxfalsify.engine.rundir.load_run` reads
+    them, when the caller holds them; else read from ``run_dir``."""
     run_dir = Path(run_dir)
-    sp, rc, s, ep = load_run(run_dir)
+    sp, rc, s, ep = folder if folder is not None else load_run(run_dir)
     if timing is None:
         timing = (json.loads((run_dir / "timing.json").read_text())
                   if (run_dir / "timing.json").exists() else {})

@@ -207,6 +207,32 @@ def test_startup_does_not_count_a_program_that_ran_before_in_the_same_process():
     assert float(out[0]) == pytest.approx(float(out[1]), abs=0.05)  # a plain start: its age
 
 
+def test_a_jobs_startup_counts_the_command_line_up_to_the_job(monkeypatch):
+    """What the command line does before the job (parsing, imports, resolving the config)
+    is start-up in ``timing.json``: the job is given the process's start-up plus that time
+    (oracle: a clock that advances by a known step on every reading)."""
+    import itertools
+    import time
+
+    from jaxfalsify.jobs import runs
+
+    ticks = itertools.count(1000.0, 0.25)  # every reading 0.25 s after the one before
+    monkeypatch.setattr(time, "perf_counter", lambda: next(ticks))
+    given = {}
+
+    def execute(config, out, **kwargs):
+        given["startup"] = kwargs["startup_seconds"]
+        given["now"] = time.perf_counter()
+        raise ValueError("stopped here")
+
+    monkeypatch.setattr(runs, "execute", execute)
+    assert main(["run", "--evaluations", "10"], startup=2.0) == 2
+    # main's first reading (on entry) was 1000.0; the job's start-up was read just before
+    # the stub's own reading, after the command line's work in between
+    assert given["startup"] == pytest.approx(2.0 + (given["now"] - 0.25) - 1000.0)
+    assert given["startup"] > 2.0
+
+
 @pytest.mark.parametrize("env, says", [
     ({"JAX_PLATFORMS": "tpu"}, "JAX_PLATFORMS='tpu': Unable to initialize backend 'tpu'"),
     ({"JAX_DEFAULT_MATMUL_PRECISION": "bogus"},

@@ -189,6 +189,16 @@ def test_run_outputs_agree_with_the_oracle(run_folder):
     seen = [tuple(int(v) for v in idx[int(r["first_evaluation"]) - 1]) for r in rows]
     assert seen == ranked
     assert [int(r["cluster"]) for r in rows] == number
+    # each row's values, outcome and count, read off the evaluations one row at a time
+    crit = [tuple(int(v) for v in idx[j]) for j in range(len(idx))
+            if ep["collision"][j] and not ep["nonfinite"][j]]
+    for r, key in zip(rows, seen):
+        j = int(r["first_evaluation"]) - 1
+        assert [r[n] for n in sp.names] == [f"{float(sp.table[p][key[p]]):g}"
+                                            for p in range(len(sp.names))]
+        assert r["reward"] == f"{float(np.float32(ep['reward'][j])):.6f}"
+        assert r["min_distance"] == f"{float(np.float32(ep['min_distance'][j])):.4f}"
+        assert int(r["times_evaluated"]) == crit.count(key)
     s = json.loads((out / "summary.json").read_text())
     assert s["n_failure_clusters"] == k and s["n_distinct_critical"] == len(ranked)
     listed = s["failure_clusters"]
