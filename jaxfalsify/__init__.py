@@ -28,6 +28,9 @@ if _command_line() and "--no-cache" in _sys.argv[1:]:  # before the cache is set
     _os.environ["JAXFALSIFY_NO_CACHE"] = "1"
 
 try:  # importing JAX takes most of a second: a Ctrl-C then ends the command in one line
+    from jaxfalsify.base import threads as _threads
+
+    _threads.configure()  # XLA's CPU thread count, before JAX's CPU client exists
     from jaxfalsify.core.sim import WORLD, Outcome, Trajectory, World, evaluate, simulate
     from jaxfalsify.io import cache as _cache
     from jaxfalsify.scenario.metrics import rss_safe_distance
@@ -36,7 +39,8 @@ try:  # importing JAX takes most of a second: a Ctrl-C then ends the command in 
 
     _cache.enable_compilation_cache()
 except ValueError as _e:  # a JAX setting from the environment that JAX refuses at import
-    if not _command_line() or "JAX flag" not in str(_e):
+    if not _command_line() or ("JAX flag" not in str(_e) and "JAXFALSIFY_XLA_THREADS"
+                                   not in str(_e)):
         raise
     print(f"jaxfalsify: error: {str(_e).splitlines()[0]} (set in the environment: fix or unset "
           f"it)", file=_sys.stderr)

@@ -59,6 +59,7 @@ class FigureProcess:
     def __init__(self, space, config, world):
         self._answer: bytes | None = None
         self._reader: threading.Thread | None = None
+        self._sender: threading.Thread | None = None
         try:
             self._proc = subprocess.Popen(command(), stdin=subprocess.PIPE,
                                           stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
@@ -68,7 +69,11 @@ class FigureProcess:
         self._send(("prepare", space, config, world), close=False)
 
     def _send(self, message, close: bool) -> None:
+        before = self._sender
+
         def work():
+            if before is not None:  # one message after the other
+                before.join()
             try:
                 pickle.dump(message, self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
                 self._proc.stdin.flush()
@@ -79,7 +84,8 @@ class FigureProcess:
 
         # the process reads a message only when it is ready for it: a large one is written
         # from a thread (the pipe's write releases the GIL)
-        threading.Thread(target=work, daemon=True, name="jaxfalsify-figure-send").start()
+        self._sender = threading.Thread(target=work, daemon=True, name="jaxfalsify-figure-send")
+        self._sender.start()
 
     def draw(self, evaluations: dict) -> None:
         """Send the run's evaluated scenarios (``evaluations.parquet``'s columns); the
