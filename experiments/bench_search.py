@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -272,6 +273,7 @@ def main(argv=None):
                                           "wall_seconds": time.perf_counter() - t0}
     if a.json:
         a.json.write_text(json.dumps({"args": {k: str(v) for k, v in vars(a).items()},
+                                      "xla_cpu_threads": os.environ.get("NPROC"),
                                       "results": out}, indent=1))
 
 

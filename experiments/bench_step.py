@@ -207,7 +207,8 @@ def main() -> None:
 
     base = steps_mini / rows[0][1]
     print(f"{n:,} scenarios of the paper space; {jax.devices()[0].device_kind}, "
-          f"{jax.device_count()} device(s); best of {args.repeats}")
+          f"{jax.device_count()} device(s), XLA CPU threads "
+          f"{os.environ.get('NPROC', 'XLA default')}; best of {args.repeats}")
     print(f"{'model':<20}{'seconds':>9}{'steps':>12}{'M steps/s':>11}{'ns/step':>9}"
           f"{'x minimal':>11}")
     table = []
@@ -227,7 +228,9 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"n": n, "repeats": args.repeats, "rows": table,
                                     "versions": versions(),
-                                    "device": jax.devices()[0].device_kind}, indent=1) + "\n")
+                                    "device": jax.devices()[0].device_kind,
+                                    "xla_cpu_threads": os.environ.get("NPROC")}, indent=1)
+                        + "\n")
 
 
 if __name__ == "__main__":

@@ -188,7 +188,8 @@ def main() -> None:
         print(f"peak memory ratio 1e7 / 1e5: {mem[10_000_000] / mem[100_000]:.2f}")
     result = {"device": jax.devices()[0].device_kind, "device_count": jax.device_count(),
               "chunk": CHUNK,
-              "cpu_count": os.cpu_count(), "platform": platform.platform(),
+              "cpu_count": os.cpu_count(), "xla_cpu_threads": os.environ.get("NPROC"),
+              "platform": platform.platform(),
               "versions": versions(), "rows": rows, "sweeps": sweeps,
               "peak_rss_mib": {str(k): v for k, v in mem.items()}}
     args.out.parent.mkdir(parents=True, exist_ok=True)

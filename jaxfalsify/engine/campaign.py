@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import time
 from typing import Any, Callable, NamedTuple
 
@@ -186,9 +187,14 @@ def environment() -> dict:
     settings (:func:`jaxfalsify.io.cache.program_settings`), the backend (float32 results differ
     between CPU and GPU) and the local device count (on several devices the batch is sharded,
     and the partitioned program's float math can differ in the last bits, which a learning
-    strategy such as ``reinforce/default`` amplifies into other proposals)."""
-    return {**cache.program_settings(), "backend": jax.default_backend(),
-            "local_devices": jax.local_device_count()}
+    strategy such as ``reinforce/default`` amplifies into other proposals), and on a CPU
+    XLA's thread count (:mod:`jaxfalsify.base.threads`: the simulator's outcomes are the same
+    bits on any, a CMA-ES update's linear algebra not always)."""
+    env = {**cache.program_settings(), "backend": jax.default_backend(),
+           "local_devices": jax.local_device_count()}
+    if env["backend"] == "cpu":
+        env["xla_cpu_threads"] = os.environ.get("NPROC")
+    return env
 
 
 def is_key(x) -> bool:
