@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["ENV", "configure", "wanted"]
+__all__ = ["ENV", "cores", "configure", "wanted"]
 
 ENV = "JAXFALSIFY_XLA_THREADS"
 XLA_ENV = "NPROC"  # what XLA's CPU client reads for its thread pool's size

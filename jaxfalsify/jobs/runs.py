@@ -420,9 +420,10 @@ def _finish(b: Built, rc: RunConfig, out: Path, res: campaign.Result, ckpt, star
         summary = summary_dict(res, rc, clusters)
         write_parquet(out / "evaluations.parquet", table)
         write_atomic(out / "critical.csv", critical_csv(res, clusters))
-        write_json(out / "summary.json", summary, indent=2)
+        summary_text = json.dumps(jsonable(summary), indent=2) + "\n"
+        write_atomic(out / "summary.json", summary_text)
     # the folder as rundir.load_run reads it back, without reading it back
-    folder = rundir.RunFolder(b.space, rc, json.loads(json.dumps(jsonable(summary))), table)
+    folder = rundir.RunFolder(b.space, rc, json.loads(summary_text), table)
     if figures:
         progress.phase("drawing figures")
 

@@ -25,6 +25,8 @@ import sys
 import threading
 from pathlib import Path
 
+from jaxfalsify.base import threads
+
 __all__ = ["FigureProcess", "command", "wanted", "main"]
 
 ENV = "JAXFALSIFY_FIGURE_PROCESS"  # "0": draw every figure in the run's own process
@@ -35,11 +37,7 @@ def wanted() -> bool:
     this process two or more cores and ``JAXFALSIFY_FIGURE_PROCESS`` is not ``0``."""
     if os.environ.get(ENV, "").strip().lower() in ("0", "false", "no"):
         return False
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
-    return cores >= 2
+    return threads.cores() >= 2
 
 
 def command() -> list[str]:
