@@ -111,19 +111,34 @@ class MixtureController(nn.Module):
         return mix_logits, mu, log_sigma
 
 
-def _initial_bias(shape, K):
+def _initial_bias(shape, K, vertices=0.0, vertex_sigma=SIGMA_INIT):
+    """The controller's per-parameter head biases at init, ``(P, 2K)``: the components'
+    means' logits (drawn uniformly over 0.05-0.95 of the range) and widths' logits
+    (``SIGMA_INIT``); the first ``round(vertices * K)`` components instead start at a vertex
+    of the box (each parameter's mean at 0.02 or 0.98 of its range, a fair coin each) with
+    width ``vertex_sigma`` (rank units)."""
     n = np.asarray(shape, np.float64)
     lo = np.log(SIGMA_MIN_STEPS / np.maximum(n - 1, 1))
-    s = np.clip((np.log(SIGMA_INIT) - lo) / (LOG_SIGMA_MAX - lo), 0.01, 0.99)  # sigmoid(z) for
-    # the initial width (a one-value parameter: any)
-    z_sigma = np.log(s / (1 - s))
+
+    def z_of(sigma):  # sigmoid(z) for the width sigma (a one-value parameter: any)
+        s = np.clip((np.log(sigma) - lo) / (LOG_SIGMA_MAX - lo), 0.01, 0.99)
+        return jnp.asarray(np.log(s / (1 - s)), jnp.float32)[:, None]
+
+    z_sigma, z_vertex = z_of(SIGMA_INIT), z_of(vertex_sigma)
+    n_vertex = int(round(vertices * K))
 
     def init(key, size, dtype=jnp.float32):
         P, _ = size
-        m = jax.random.uniform(key, (P, K), minval=0.05, maxval=0.95)
-        return jnp.concatenate([jnp.log(m / (1 - m)),
-                                jnp.broadcast_to(jnp.asarray(z_sigma, jnp.float32)[:, None],
-                                                 (P, K))], axis=1).astype(dtype)
+        k_mean, k_vertex = jax.random.split(key)
+        m = jax.random.uniform(k_mean, (P, K), minval=0.05, maxval=0.95)
+        if n_vertex:
+            at = jnp.arange(K)[None, :] < n_vertex
+            corner = jnp.where(jax.random.bernoulli(k_vertex, 0.5, (P, K)), 0.98, 0.02)
+            m = jnp.where(at, corner, m)
+            zs = jnp.where(at, z_vertex, z_sigma)
+        else:
+            zs = jnp.broadcast_to(z_sigma, (P, K))
+        return jnp.concatenate([jnp.log(m / (1 - m)), zs], axis=1).astype(dtype)
 
     return init
 
@@ -164,7 +179,10 @@ class BatchedReinforce(Strategy):
     update, ``elite`` share learnt from, ``table`` slots of the collisions-seen hash table (a
     power of two), ``learners`` independent controllers, each drawing an equal share of the
     batch and learning from its own share's elite (the batch is their equal mixture; the last
-    share is cut short when they do not divide the batch)."""
+    share is cut short when they do not divide the batch); the last ``vertex_learners`` of
+    them (never the first) start with a share ``vertices`` of their components at vertices of
+    the box, of width ``vertex_sigma`` (rank units), where boundary-value testing looks first:
+    a system that gets worse monotonically in each parameter fails at a corner."""
 
     hidden: int = 32
     components: int = 32
@@ -172,10 +190,14 @@ class BatchedReinforce(Strategy):
     elite: float = 0.1
     table: int = 1 << 16
     learners: int = 4
+    vertex_learners: int = 2
+    vertices: float = 1.0
+    vertex_sigma: float = 0.02
 
     Params = BatchedParams
     RANGES = {"hidden": "[1, 1024]", "components": "[1, 256]", "steps": "[1, 64]",
-              "elite": "(0, 1]", "table": "[16, 16777216]", "learners": "[1, 256]"}
+              "elite": "(0, 1]", "table": "[16, 16777216]", "learners": "[1, 256]",
+              "vertex_learners": "[0, 256]", "vertices": "[0, 1]", "vertex_sigma": "(0, 1]"}
 
     def __post_init__(self):
         if self.table & (self.table - 1):
@@ -184,6 +206,12 @@ class BatchedReinforce(Strategy):
     @property
     def module(self) -> MixtureController:
         return MixtureController(tuple(self.shape), self.hidden, self.components)
+
+    @property
+    def n_vertex_learners(self) -> int:
+        """Learners that start at the box's vertices: the last ``vertex_learners``, never the
+        first (a single learner always starts spread over the space)."""
+        return min(self.vertex_learners, self.learners - 1)
 
     def _each(self, f):
         """``f`` over the learners: vmapped over a leading ``(L,)`` axis, or ``f`` itself for
@@ -204,7 +232,15 @@ class BatchedReinforce(Strategy):
 
     def init(self, key, params):
         # independent learners: a leading axis on every weight and Adam moment
-        weights = self._each(lambda k: self.module.init(k)["params"])(self._keys(key))
+        keys = self._keys(key)
+        weights = self._each(lambda k: self.module.init(k)["params"])(keys)
+        n_v = self.n_vertex_learners
+        if n_v:  # the last n_v learners' components (a share `vertices`) start at vertices
+            K, P = self.components, self.n_params
+            vertex = _initial_bias(self.shape, K, self.vertices, self.vertex_sigma)
+            vb = jax.vmap(lambda k: vertex(jax.random.fold_in(k, 1), (P, 2 * K)))(
+                keys[self.learners - n_v:])
+            weights["bias"] = weights["bias"].at[self.learners - n_v:].set(vb)
         opt = self._each(optax.scale_by_adam().init)(weights)
         found = jnp.zeros(() if self.learners == 1 else (self.learners,), bool)
         return BatchedState(weights, opt, jnp.zeros(self.table, jnp.uint32), jnp.int32(0),

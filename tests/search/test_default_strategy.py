@@ -430,3 +430,42 @@ def test_a_learner_whose_first_share_collides_takes_lr_not_lr_first():
         want = s.tell_outcome(jax.random.key(2), state, idx, rewards, rob, hit, q)
         for x, y in zip(jax.tree.leaves(got.params), jax.tree.leaves(want.params)):
             np.testing.assert_array_equal(np.asarray(x)[learner], np.asarray(y)[learner])
+
+
+def test_vertex_learners_start_at_the_box_vertices():
+    """The last ``vertex_learners`` learners start with every component at a vertex of the box
+    (each mean's logit that of 0.02 or 0.98 of the range, both corners drawn) and the width
+    ``vertex_sigma`` (through the controller's width map, in NumPy); every other weight, and
+    the other learners' biases, are those of the same strategy without vertex learners (same
+    key); a single learner never starts at the vertices."""
+    shape, K = (7, 1, 50), 5
+    kw = dict(hidden=8, components=K, learners=4)
+    s0, p = search.make("reinforce/default", shape, 64, vertex_learners=0, **kw)
+    s2, _ = search.make("reinforce/default", shape, 64, vertex_learners=2, vertex_sigma=0.03,
+                        **kw)
+    w0, w2 = s0.init(jax.random.key(3), p).params, s2.init(jax.random.key(3), p).params
+    for path, a in jax.tree_util.tree_leaves_with_path(w0):
+        b = np.asarray(dict(jax.tree_util.tree_leaves_with_path(w2))[path])
+        if jax.tree_util.keystr(path) == "['bias']":
+            np.testing.assert_array_equal(np.asarray(a)[:2], b[:2])
+            assert not np.array_equal(np.asarray(a)[2:], b[2:])
+        else:
+            np.testing.assert_array_equal(np.asarray(a), b)
+    bias = np.asarray(w2["bias"], np.float64)[2:]  # (2 learners, P, 2K)
+    mean = 1.0 / (1.0 + np.exp(-bias[..., :K]))
+    at = np.where(np.isclose(mean, 0.02, atol=1e-6), 0, np.where(np.isclose(mean, 0.98,
+                                                                             atol=1e-6), 1, -1))
+    assert np.all(at >= 0) and 0 < at.mean() < 1
+    n = np.asarray(shape, np.float64)
+    lo = np.log(batched.SIGMA_MIN_STEPS / np.maximum(n - 1, 1))
+    sigma = np.exp(lo[:, None] + (batched.LOG_SIGMA_MAX - lo[:, None])
+                   / (1.0 + np.exp(-bias[..., K:])))
+    np.testing.assert_allclose(sigma[:, [0, 2]], 0.03, rtol=1e-4)  # (a one-value parameter:
+    # any width)
+    one, _ = search.make("reinforce/default", shape, 64, vertex_learners=2, hidden=8,
+                         components=K, learners=1)
+    alone, _ = search.make("reinforce/default", shape, 64, vertex_learners=0, hidden=8,
+                           components=K, learners=1)
+    assert one.n_vertex_learners == 0
+    np.testing.assert_array_equal(np.asarray(one.init(jax.random.key(3), p).params["bias"]),
+                                  np.asarray(alone.init(jax.random.key(3), p).params["bias"]))
