@@ -101,6 +101,10 @@ def main() -> None:
         print(f"{'':<24}{'':>12}{'is':>10}{d:>14,.0f}{t:>9.1f}{mc_draws / d:>15.2f}"
               f"{f'{cov}/{args.seeds}':>9}", flush=True)
         rows.append(row)
+    _write(args, rows)
+
+
+def _write(args, rows: list[dict]) -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"target_rel_error": args.target, "seeds": args.seeds,
                                     "rows": rows}, indent=1, default=float) + "\n")
@@ -147,9 +151,7 @@ def large(args) -> None:
               f"{mc['samples'] / float(np.median(draws)):>15.2f}"
               f"{row['is']['holds_mc_estimate']:>7}/{args.seeds}", flush=True)
         rows.append(row)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"target_rel_error": args.target, "seeds": args.seeds,
-                                    "rows": rows}, indent=1, default=float) + "\n")
+    _write(args, rows)
 
 
 if __name__ == "__main__":

@@ -131,13 +131,9 @@ def _initial_bias(shape, K, vertices=0.0, vertex_sigma=SIGMA_INIT):
         P, _ = size
         k_mean, k_vertex = jax.random.split(key)
         m = jax.random.uniform(k_mean, (P, K), minval=0.05, maxval=0.95)
-        if n_vertex:
-            at = jnp.arange(K)[None, :] < n_vertex
-            corner = jnp.where(jax.random.bernoulli(k_vertex, 0.5, (P, K)), 0.98, 0.02)
-            m = jnp.where(at, corner, m)
-            zs = jnp.where(at, z_vertex, z_sigma)
-        else:
-            zs = jnp.broadcast_to(z_sigma, (P, K))
+        at = jnp.arange(K)[None, :] < n_vertex  # (1, K): the components at vertices
+        m = jnp.where(at, jnp.where(jax.random.bernoulli(k_vertex, 0.5, (P, K)), 0.98, 0.02), m)
+        zs = jnp.where(at, z_vertex, z_sigma)  # (P, K)
         return jnp.concatenate([jnp.log(m / (1 - m)), zs], axis=1).astype(dtype)
 
     return init

@@ -444,8 +444,9 @@ def test_vertex_learners_start_at_the_box_vertices():
     s2, _ = search.make("reinforce/default", shape, 64, vertex_learners=2, vertex_sigma=0.03,
                         **kw)
     w0, w2 = s0.init(jax.random.key(3), p).params, s2.init(jax.random.key(3), p).params
+    with_vertices = dict(jax.tree_util.tree_leaves_with_path(w2))
     for path, a in jax.tree_util.tree_leaves_with_path(w0):
-        b = np.asarray(dict(jax.tree_util.tree_leaves_with_path(w2))[path])
+        b = np.asarray(with_vertices[path])
         if jax.tree_util.keystr(path) == "['bias']":
             np.testing.assert_array_equal(np.asarray(a)[:2], b[:2])
             assert not np.array_equal(np.asarray(a)[2:], b[2:])
