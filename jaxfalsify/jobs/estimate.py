@@ -282,13 +282,17 @@ def fit_mixture(idx: np.ndarray, w: np.ndarray, shape: np.ndarray, k: int, rng,
         mass = rw.sum(0) + 1e-300
         log_weight = np.log(mass / mass.sum())
         prob = np.zeros((k, n_par, width))
+        rw_t = np.ascontiguousarray(rw.T)  # (K, N): each component's weights contiguous
         for j in range(n_par):
             for c in range(k):
-                prob[c, j] = np.bincount(idx[:, j], rw[:, c], minlength=width)[:width]
+                prob[c, j] = np.bincount(idx[:, j], rw_t[c], minlength=width)[:width]
         prob /= mass[:, None, None]
         prob = (1 - floor) * prob + floor * np.where(mask, 1.0 / shape[:, None], 0.0)[None]
         log_prob = np.where(mask[None], np.log(np.maximum(prob, 1e-300)), -np.inf)
-        per = log_prob[:, np.arange(n_par)[None, :], idx].sum(-1).T + log_weight  # (N, K)
+        per = log_prob[:, 0, idx[:, 0]]  # (K, N): one gather per parameter, summed in order
+        for j in range(1, n_par):
+            per = per + log_prob[:, j, idx[:, j]]
+        per = per.T + log_weight  # (N, K)
         per -= per.max(1, keepdims=True)
         resp = np.exp(per)
         resp /= resp.sum(1, keepdims=True)
