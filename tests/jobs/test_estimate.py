@@ -77,6 +77,47 @@ def test_weights_and_draws_follow_the_defensive_mixture(paper):
     np.testing.assert_allclose(rob[:2000], np.asarray(out.min_distance) - 1.0, atol=1e-5)
 
 
+def _em_one_by_one(idx, w, shape, k, start, iterations, floor):
+    """The cross-entropy stage's weighted EM written scenario by scenario and value by value in
+    plain Python: the reference for :func:`est.fit_mixture`."""
+    n, n_par = len(idx), len(idx[0])
+    resp = [[1.0 if start[i] == c else 0.0 for c in range(k)] for i in range(n)]
+    total = sum(w)
+    w = [x / total for x in w]
+    for _ in range(iterations):
+        mass = [sum(resp[i][c] * w[i] for i in range(n)) + 1e-300 for c in range(k)]
+        weight = [m / sum(mass) for m in mass]
+        prob = [[[0.0] * int(shape[j]) for j in range(n_par)] for _ in range(k)]
+        for c in range(k):
+            for i in range(n):
+                for j in range(n_par):
+                    prob[c][j][idx[i][j]] += resp[i][c] * w[i] / mass[c]
+            for j in range(n_par):
+                prob[c][j] = [(1 - floor) * v + floor / shape[j] for v in prob[c][j]]
+        for i in range(n):
+            like = [weight[c] * math.prod(prob[c][j][idx[i][j]] for j in range(n_par))
+                    for c in range(k)]
+            resp[i] = [x / sum(like) for x in like]
+    return weight, prob
+
+
+def test_the_mixture_fit_matches_em_computed_one_scenario_at_a_time():
+    rng = np.random.default_rng(5)
+    shape = np.array([4, 7, 3])
+    idx = np.stack([rng.integers(0, m, 60) for m in shape], 1)
+    w = rng.random(60) + 0.1
+    k, iterations, floor = 3, 6, 1e-2
+    start = np.random.default_rng(9).integers(0, k, 60)  # fit_mixture's random hard start
+    q = est.fit_mixture(idx, w, shape, k, np.random.default_rng(9), iterations, floor)
+    weight, prob = _em_one_by_one(idx.tolist(), w.tolist(), shape, k, start.tolist(),
+                                  iterations, floor)
+    np.testing.assert_allclose(np.exp(q.log_weight), weight, rtol=1e-5)
+    for c in range(k):
+        for j, m in enumerate(shape):
+            np.testing.assert_allclose(np.exp(q.log_prob[c, j, :m]), prob[c][j], rtol=1e-5)
+            assert np.all(np.isneginf(q.log_prob[c, j, m:]))
+
+
 @pytest.mark.parametrize("method, draws", [("mc", 1500), ("is", 600)])
 def test_intervals_cover_the_exact_rate(paper, exact, method, draws):
     """40 seeds of each estimator at a 95 % level: the interval holds the exact rate in at
