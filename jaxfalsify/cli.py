@@ -38,6 +38,9 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(message)
 
 
+POSITIONALS = {"params": "NAME=VALUE", "run_dir": "RUN_DIR"}  # named so in errors
+
+
 def parse(argv=None) -> argparse.Namespace:
     """The command line parsed; ``simulate``'s NAME=VALUE may also follow its options."""
     args, extra = build_parser().parse_known_args(argv)
@@ -47,6 +50,15 @@ def parse(argv=None) -> argparse.Namespace:
         extra = [a for a in extra if a not in values]
     if extra:
         raise UsageError(f"unrecognized arguments: {' '.join(extra)}")
+    for name, value in vars(args).items():
+        values = value if isinstance(value, list) else [value]
+        for v in (str(x) for x in values if isinstance(x, (str, Path))):
+            flag = POSITIONALS.get(name, f"--{name.replace('_', '-')}")
+            if isinstance(value, str) and not v.strip():  # names nothing: never a default
+                raise UsageError(f"{flag} {v!r}: an empty value")
+            if any(c < " " or c == "\x7f" for c in v):  # a name or path never holds one
+                raise UsageError(f"{flag} {v!r}: a control character (a newline, a tab, ...) "
+                                 "in a value")
     return args
 
 
@@ -111,6 +123,13 @@ class StopFlag:
         return 128 + (self.signum or signal.SIGINT)
 
 
+def _path(text: str) -> Path:
+    """A file or folder argument: a non-empty path (``Path('')`` is the working folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"an empty path ({text!r})")
+    return Path(text)
+
+
 def _folder(text: str) -> Path:
     """An output folder argument: a non-empty path (``--out ''`` would be the working folder)."""
     if not text.strip():
@@ -166,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="falsification campaign (the main job); no arguments: the "
                        "paper space, carla-tm, reinforce/default, seed 0, 100 updates of 4096 "
                        "scenarios")
-    r.add_argument("--config", type=Path, help="a run's config.toml to repeat; flags override it")
+    r.add_argument("--config", type=_path, help="a run's config.toml to repeat; flags override it")
     r.add_argument("--space", help="built-in name (paper, paper-extended) or TOML file")
     r.add_argument("--space-seed", type=_int("--space-seed"), dest="space_seed",
                    help="discretisation seed of the space (default 0)")
@@ -235,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "own), so that wall times compare at the same batch")
     c.add_argument("--budgets", help="also report at these budgets, comma-separated "
                    "(the first evaluations of the same runs)")
-    c.add_argument("--suite", type=Path, metavar="FILE",
+    c.add_argument("--suite", type=_path, metavar="FILE",
                    help="a benchmark suite (e.g. experiments/suite/suite.toml): every entry's "
                    "space and SUT, at every budget of the suite")
     c.add_argument("--entries", metavar="NAMES",
@@ -272,10 +291,10 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--seed", type=_int("--seed"), default=0, help="seed of the SUT's randomness")
 
     pl = sub.add_parser("replay", help="rerun recording of a run's scenario")
-    pl.add_argument("run_dir", type=Path, metavar="RUN_DIR")
+    pl.add_argument("run_dir", type=_path, metavar="RUN_DIR")
     pl.add_argument("--scenario", default="best", help="best, critical:K or eval:N")
     g = pl.add_mutually_exclusive_group()
-    g.add_argument("--save", type=Path, help="write FILE.rrd (default RUN_DIR/replay-<scenario>"
+    g.add_argument("--save", type=_path, help="write FILE.rrd (default RUN_DIR/replay-<scenario>"
                    ".rrd, a derived file rewritten like the figures); an existing FILE only "
                    "with --force")
     g.add_argument("--spawn", action="store_true", help="open a rerun viewer instead")
@@ -291,7 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     x = sub.add_parser("export", help="OpenSCENARIO (.xosc) + OpenDRIVE (.xodr) of a run's "
                        "scenarios and its logical scenario (parameter distributions)")
-    x.add_argument("run_dir", type=Path, metavar="RUN_DIR")
+    x.add_argument("run_dir", type=_path, metavar="RUN_DIR")
     x.add_argument("--scenario", default="best", help="best or critical (all distinct ones)")
     x.add_argument("--ego", default="controller",
                    help="controller (default: the ego gets its start, route and cruise "
@@ -326,7 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--quiet", action="store_true", help="no progress")
 
     f = sub.add_parser("figures", help="(re)draw a run's figures and report.md")
-    f.add_argument("run_dir", type=Path, metavar="RUN_DIR")
+    f.add_argument("run_dir", type=_path, metavar="RUN_DIR")
     return p
 
 
@@ -560,9 +579,10 @@ def cmd_compare(args, stop, startup) -> int:
     budgets = ()
     if args.budgets:
         try:
-            budgets = tuple(int(b) for b in args.budgets.split(",") if b.strip())
+            budgets = tuple(int(b) for b in args.budgets.split(","))
         except ValueError:
-            raise UsageError(f"--budgets {args.budgets!r}: comma-separated integers") from None
+            raise UsageError(f"--budgets {args.budgets!r}: comma-separated integers, "
+                             "e.g. 250,1000") from None
     given = {k: getattr(args, k) for k in ("seeds", "evaluations", "space", "space_seed", "sut",
                                            "jobs", "batch", "requirement")
              if getattr(args, k) is not None}
@@ -721,6 +741,12 @@ def cmd_estimate(args, stop, startup) -> int:
         requirement_params=_sut_values(args.requirement_param, "--requirement-param"))
     if not 0 < config.confidence < 1:
         raise UsageError(f"--confidence {config.confidence:g}: must be in (0, 1)")
+    if config.method == "exact":  # every scenario, no draws: these would be ignored
+        given = [f for f in ("target_rel_error", "samples", "batch", "confidence", "seed")
+                 if getattr(args, f) is not None]
+        if given:
+            raise UsageError(f"--{given[0].replace('_', '-')} does not apply to --method exact "
+                             "(every scenario evaluated once, no draws)")
     space = config.build()[0]
     out = args.out or Path("estimates") / (
         f"{space.name}-{folder_name(config.sut)}-{folder_name(config.requirement)}-"

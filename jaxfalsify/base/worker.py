@@ -69,7 +69,9 @@ def load(spec: str) -> Callable:
         raise EvaluatorError(f"evaluator '{spec}': expected an import path module:attr")
     try:
         if mod_name.endswith(".py") and not Path(mod_name).resolve().is_file():
-            raise EvaluatorError(f"evaluator '{spec}': no such file {mod_name}")
+            raise EvaluatorError(f"evaluator '{spec}': " + (
+                f"{mod_name} is a folder, not a Python file" if Path(mod_name).is_dir()
+                else f"no such file {mod_name}"))
         module = import_module(mod_name, "jaxfalsify_user_evaluator_")
     except EvaluatorError:
         raise

@@ -171,6 +171,9 @@ def with_params(req: Requirement, given: Mapping[str, float] | None = None,
         number = pytree.real_number(value)
         if number is None or not abs(number) < float("inf"):
             raise ValueError(f"{where}: {name}={value!r:.40} is not a finite number")
+        if abs(number) > pytree.FLOAT32_MAX:
+            raise ValueError(f"{where}: {name}={value!r:.40} is beyond float32's range (the "
+                             "robustness is computed in float32)")
         values[name] = number
     p = req.default_params
     if dataclasses.is_dataclass(p):

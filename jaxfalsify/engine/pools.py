@@ -248,8 +248,8 @@ class DaskPool:
         self._own = not isinstance(scheduler, distributed.Client)
         try:
             self.client = distributed.Client(scheduler, timeout=30) if self._own else scheduler
-        except (OSError, TimeoutError) as e:
-            raise EvaluatorError(f"scheduler {scheduler}: cannot connect ({e})") from None
+        except (OSError, TimeoutError, ValueError) as e:
+            raise EvaluatorError(f"scheduler {scheduler!r}: cannot connect ({e})") from None
         self.n = max(1, sum(w.get("nthreads", 1) for w in
                             self.client.scheduler_info()["workers"].values()))
         self.restarts = 0
@@ -318,8 +318,11 @@ def make_pool(spec: str, workers=None, timeout=None, retries: int = 1, chunk=Non
     return DaskPool(spec, scheduler, timeout, retries, chunk)
 
 
-def check_settings(workers, timeout, retries, chunk) -> None:
+def check_settings(workers, timeout, retries, chunk, scheduler=None) -> None:
     """One-line ValueError for a bad pool setting."""
+    if isinstance(scheduler, str) and not scheduler.strip():
+        raise ValueError(f"scheduler must be an address such as tcp://host:8786 (got "
+                         f"{scheduler!r})")
     for name, v, lo in (("workers", workers, 1), ("retries", retries, 0), ("chunk", chunk, 1)):
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < lo):
             raise ValueError(f"{name} must be an integer >= {lo} (got {v!r})")

@@ -62,7 +62,9 @@ def load_run(run_dir: Path) -> RunFolder:
         table = pq.read_table(where)
         ep = {k: table.column(k).to_numpy() for k in table.column_names}
     except Exception as e:  # pyarrow raises several kinds for a damaged file
-        raise ValueError(f"{where} is damaged ({type(e).__name__}: {str(e)[:120]})") from None
+        why = " ".join(str(e).split())
+        why = why if len(why) <= 120 else why[:120].rsplit(" ", 1)[0] + " ..."
+        raise ValueError(f"{where} is damaged ({type(e).__name__}: {why})") from None
     cols = ["evaluation", *RECORD_FIELDS,
             *(c for n in sp.names for c in (f"{n}_idx", n))]
     gone = [c for c in cols if c not in ep]
@@ -80,13 +82,18 @@ def load_run(run_dir: Path) -> RunFolder:
 
 def check_config_matches(run_dir: Path, sp, rc, summary: dict, ep: dict) -> None:
     """ValueError (one line) where the folder's ``config.toml`` no longer describes its
-    results (edited after the run): the seeds, strategy and SUT that ``summary.json`` records,
-    and every evaluated scenario's values in ``evaluations.parquet`` against the space the config
-    builds at their recorded indices."""
-    for key in ("space_seed", "seed", "strategy", "sut"):
-        if summary[key] != getattr(rc, key):
+    results (edited after the run): the seeds, strategy, SUT, SUT parameters and requirement
+    (with its parameters) that ``summary.json`` records, and every evaluated scenario's values in
+    ``evaluations.parquet`` against the space the config builds at their recorded indices."""
+    for key in ("space_seed", "seed", "strategy", "sut", "sut_params", "requirement",
+                "requirement_params"):
+        here, there = getattr(rc, key), summary.get(key, getattr(rc, key))
+        if isinstance(here, dict) and isinstance(there, dict) and here != there:
+            name = sorted(k for k in set(here) | set(there) if here.get(k) != there.get(k))[0]
+            key, here, there = f"{key}.{name}", here.get(name), there.get(name)
+        if here != there:
             raise ValueError(f"{run_dir}/config.toml does not match the run's results: {key} "
-                             f"= {getattr(rc, key)!r} there, {summary[key]!r} in summary.json "
+                             f"= {here!r} there, {there!r} in summary.json "
                              "(edited after the run?)")
     for p, n in enumerate(sp.names):
         want = np.asarray(sp.values[p], np.float64)[ep[f"{n}_idx"]]

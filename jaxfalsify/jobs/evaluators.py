@@ -82,17 +82,28 @@ def run(config: RunConfig, out: Path | str | None = None, *, workers: int | None
     if not config.evaluator or config.evaluator == "python":
         raise ValueError("run needs an evaluator module:attr (evaluator = 'python' is a "
                          "user's own ask/tell loop: jaxfalsify.Falsifier)")
-    check_settings(workers, timeout, retries, chunk)
+    check_settings(workers, timeout, retries, chunk, scheduler)
+    t = time.perf_counter()
     if scheduler is None:
         load(config.evaluator)  # here, in one line, before a folder or a worker exists
+        cluster = None
+    else:  # connected before the folder is touched: a bad address leaves it as it was
+        config.build()
+        cluster = make_pool(config.evaluator, workers, timeout, retries, chunk, scheduler)
+    connecting = time.perf_counter() - t
     progress = progress or Progress()
-    f = Falsifier.from_config(config, out, resume=resume, force=force, progress=progress)
+    try:
+        f = Falsifier.from_config(config, out, resume=resume, force=force, progress=progress)
+    except BaseException:
+        if cluster is not None:
+            cluster.close()
+        raise
     f.status_extra["pool"] = {"workers": workers, "timeout": timeout, "retries": retries,
                               "scheduler": None if scheduler is None else str(scheduler)}
     try:
         t = time.perf_counter()
-        pool = make_pool(config.evaluator, workers, timeout, retries, chunk, scheduler)
-        f.clock.add("workers_start", time.perf_counter() - t)
+        pool = cluster or make_pool(config.evaluator, workers, timeout, retries, chunk)
+        f.clock.add("workers_start", connecting + time.perf_counter() - t)
         with pool:
             drive(f, pool, progress, stop)
     except KeyboardInterrupt:
@@ -160,7 +171,7 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
     evaluation seconds to the first failure, distinct failures, failed evaluations. Each seed
     is a run folder ``OUT/runs/<strategy>-s<seed>/``; ``OUT/compare.json`` and ``compare.md``
     hold the table. Returns what ``compare.json`` holds."""
-    check_settings(workers, timeout, retries, None)
+    check_settings(workers, timeout, retries, None, scheduler)
     if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
         raise ValueError(f"seeds must be an integer >= 1 (got {seeds!r})")
     strategy_params = dict(strategy_params or {})
@@ -181,13 +192,22 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
                for name in strategies}
     for rc in configs.values():
         rc.build()  # every setting checked before anything is written
-    if scheduler is None:
-        load(evaluator)
+    clock = Clock(0.0)
+    with clock("workers_start"):
+        if scheduler is None:
+            load(evaluator)
+            cluster = None
+        else:  # connected before the folder is touched: a bad address leaves it as it was
+            cluster = make_pool(evaluator, workers, timeout, retries, None, scheduler)
     progress = progress or Progress()
     out = Path(out) if out is not None else Path("runs") / f"compare-{runs.timestamp()}"
-    lk = store.open_folder(out, "compare", force=force)
+    try:
+        lk = store.open_folder(out, "compare", force=force)
+    except BaseException:
+        if cluster is not None:
+            cluster.close()
+        raise
     rows = {}
-    clock = Clock(0.0)
     try:
         lk.claim("compare")
         if force:
@@ -209,7 +229,8 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
         status = Status(out, "compare")
         status.running()
         with clock("workers_start"):
-            pool = make_pool(evaluator, workers, timeout, retries, None, scheduler)
+            pool = cluster or make_pool(evaluator, workers, timeout, retries, None)
+        cluster = None  # the pool's own block closes it from here
         with pool:
             for name, rc in configs.items():
                 per_seed = []
@@ -255,6 +276,8 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
         Status(out, "compare").failed(e)
         raise
     finally:
+        if cluster is not None:
+            cluster.close()
         lk.release()
     return result
 

@@ -88,10 +88,10 @@ def check_name_known(name: str, key: str) -> None:
     if is_sut_parameter(name):
         rest = name[len(SUT_PREFIX):]
         if not rest.isidentifier():
-            raise ValueError(f"{key}: '{rest}' is not a SUT parameter name")
+            raise ValueError(f"{key}: {rest!r} is not a SUT parameter name")
         return
     if name not in KNOWN_PARAMETERS:
-        raise ValueError(f"{key}: unknown parameter '{name}' "
+        raise ValueError(f"{key}: unknown parameter {name!r} "
                          f"(known: {', '.join(KNOWN_PARAMETERS)}, or sut.NAME for a SUT "
                          "parameter)")
 _PARAM_KEYS = {"unit", "distribution", "low", "high", "mean", "sd", "samples", "values", "decimals"}
@@ -191,17 +191,20 @@ def make_parameter(name: str, distribution: str, args: tuple, samples: int,
     key = where or f"parameters.{name}"
     check_name_known(name, key)
     if distribution not in DISTRIBUTIONS:
-        raise ValueError(f"{key}.distribution: unknown distribution '{distribution}' "
+        raise ValueError(f"{key}.distribution: unknown distribution {distribution!r} "
                          f"(one of {', '.join(DISTRIBUTIONS)})")
+    names = {"uniform": ("low", "high"), "normal": ("mean", "sd"),
+             "integers": ("low", "high")}.get(distribution)
     for i, a in enumerate(args):
+        at = f"{key}.{names[i]}" if names and i < len(names) else f"{key}.values[{i}]"
         if isinstance(a, bool) or not isinstance(a, (int, float)):
-            raise ValueError(f"{key}: argument {a!r} is not a number")
+            raise ValueError(f"{at}: {a!r} is not a number")
         try:
             finite = math.isfinite(a) and abs(float(a)) <= FLOAT32_MAX
         except OverflowError:  # an int beyond float64
             finite = False
         if not finite:
-            raise ValueError(f"{key}: argument {str(a)[:40]} is not finite in float32 (the "
+            raise ValueError(f"{at}: {str(a)[:40]} is not finite in float32 (the "
                              "simulator's precision)")
     if distribution == "values" and len(args) == 0:
         raise ValueError(f"{key}.values is empty")
@@ -519,6 +522,9 @@ def parse_parameter(name: str, spec: Any, where: str) -> Parameter:
     dist = spec["distribution"]
     need = {"uniform": ("low", "high"), "normal": ("mean", "sd"),
             "integers": ("low", "high")}.get(dist)
+    if dist == "values":
+        raise ValueError(f"{where}.values is missing (distribution 'values' lists them: "
+                         "values = [1.0, 2.5, 4.0])")
     if need is None:
         raise ValueError(f"{where}.distribution: unknown distribution {dist!r} "
                          f"(one of {', '.join(DISTRIBUTIONS)})")
@@ -537,7 +543,7 @@ def space_from_dict(doc: dict[str, Any], seed: int = 0, default_name: str = "cus
     """Build a space from a parsed TOML document (see README, 'Your own logical scenario')."""
     unknown = set(doc) - _TOP_KEYS
     if unknown:
-        raise ValueError(f"unknown top-level key '{sorted(unknown)[0]}' "
+        raise ValueError(f"unknown top-level key {sorted(unknown)[0]!r} "
                          f"(allowed: {', '.join(sorted(_TOP_KEYS))})")
     if "description" in doc and not isinstance(doc["description"], str):
         raise ValueError(f"description must be a string (got "
@@ -553,6 +559,9 @@ def space_from_dict(doc: dict[str, Any], seed: int = 0, default_name: str = "cus
         else:
             items = [(n, s)]
         for k, v in items:
+            if not k.isprintable():  # every message names the key: keep it one line
+                raise ValueError(f"parameters: {k!r} is not a parameter name (known: "
+                                 f"{', '.join(KNOWN_PARAMETERS)}, or sut.NAME)")
             if k in flat:  # [parameters."sut.X"] and [parameters.sut.X] both
                 raise ValueError(f"parameters.{k}: declared twice (as [parameters.\"{k}\"] "
                                  f"and [parameters.sut.{k[len(SUT_PREFIX):]}])")

@@ -83,6 +83,9 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
             x = pytree.real_number(v)
             if x is None or not math.isfinite(x):
                 raise ValueError(f"{where}: {k}={v!r} is not a finite number")
+            if abs(x) > pytree.FLOAT32_MAX:
+                raise ValueError(f"{where}: {k}={v!r} is beyond float32's range (the search "
+                                 "computes in float32)")
             params[k] = x
         elif k in known_s and k in cls.FUNCTION_OPTIONS:  # a name or a function
             try:
@@ -125,6 +128,9 @@ def _typed(value, default, what: str):
         x = pytree.real_number(value)
         if x is None or not math.isfinite(x):
             raise ValueError(f"{what} is not a finite number")
+        if abs(x) > pytree.FLOAT32_MAX:
+            raise ValueError(f"{what} is beyond float32's range (the search computes in "
+                             "float32)")
         return float(x)
     if isinstance(default, str) and not isinstance(value, str):
         raise ValueError(f"{what} is not a string")

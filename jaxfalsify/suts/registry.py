@@ -84,7 +84,9 @@ def load_attr(spec: str, what: str = "SUT"):
         raise ValueError(f"{what} '{spec}': expected {known}an import path module:attr")
     try:
         if mod_name.endswith(".py") and not Path(mod_name).resolve().is_file():
-            raise ValueError(f"{what} '{spec}': no such file {mod_name}")
+            raise ValueError(f"{what} '{spec}': " + (
+                f"{mod_name} is a folder, not a Python file" if Path(mod_name).is_dir()
+                else f"no such file {mod_name}"))
         module = import_module(mod_name, "jaxfalsify_user_sut_")
     except ValueError:
         raise

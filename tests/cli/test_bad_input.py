@@ -143,7 +143,9 @@ def world(tmp_path_factory):
         (w / name / "status.json").write_text(text)
     # a finished run whose config.toml was edited afterwards (its space's values, its seed)
     for name, (old, new) in {"done_edited_values": ("1.237", "1.3"),
-                             "done_edited_seed": ("\nseed = 0\n", "\nseed = 1\n")}.items():
+                             "done_edited_seed": ("\nseed = 0\n", "\nseed = 1\n"),
+                             "done_edited_sut": ("\nspeed_limit = 40.0\n",
+                                                 "\nspeed_limit = 5.0\n")}.items():
         shutil.copytree(w / "done", w / name)
         text = (w / name / "config.toml").read_text()
         assert old in text
@@ -297,6 +299,25 @@ CASES = [
     (["figures", "done_figures_is_file"], "figures is not a folder; move it away"),
     (["export", "done_edited_seed", "--out", "x"],
      "does not match the run's results: seed = 1 there, 0 in summary.json"),
+    (["replay", "done_edited_sut", "--save", "x.rrd"],
+     "does not match the run's results: sut_params.speed_limit = 5.0 there, 40.0 in"),
+    # an empty value names nothing: refused, never taken for the default
+    (["run", "--strategy", ""], "--strategy '': an empty value"),
+    (["run", "--evaluator", " "], "--evaluator ' ': an empty value"),
+    (["compare", "--evaluator", ""], "--evaluator '': an empty value"),
+    (["simulate", "--sut", ""], "--sut '': an empty value"),
+    (["replay", ""], "an empty path"),
+    (["run", "--config", ""], "an empty path"),
+    (["compare", "--budgets", "100,"], "--budgets '100,': comma-separated integers"),
+    (["compare", "--budgets", ""], "--budgets '': an empty value"),
+    # numbers the float32 programs cannot hold
+    (["run", "--strategy", "cmaes", "--strategy-param", "std_init=1e39"],
+     "std_init=1e+39 is beyond float32's range"),
+    (["run", "--requirement", "clash", "--requirement-param", "epsilon=1e39"],
+     "epsilon=1e+39 is beyond float32's range"),
+    (["estimate", "--requirement", "rss", "--requirement-param", "margin=-1e39"],
+     "margin=-1e+39 is beyond float32's range"),
+    (["run", "--evaluator", "x.py:f", "--scheduler", ""], "--scheduler '': an empty value"),
     (["run", "--resume", "done_status_garbage"], "status.json is damaged (not JSON)"),
     (["run", "--resume", "done_status_int"], "status.json is damaged (state 5 is not one of"),
     (["sweep", "--resume", "sweep_status_list"], "status.json is damaged (state None"),
@@ -419,7 +440,7 @@ CASES = [
     (["simulate", "--sut", "datetime:datetime"], "could not be built"),
     (["run", "--sut", "exits.py:AEB"], "cannot import exits.py (SystemExit: 3)"),
     # empty lists and paths
-    (["compare", "--strategies", ""], "no strategy named"),
+    (["compare", "--strategies", ""], "--strategies '': an empty value"),
     (["compare", "--strategies", " , "], "no strategy named"),
     (["run", "--out", ""], "an empty path"),
     (["sweep", "--out", " "], "an empty path"),

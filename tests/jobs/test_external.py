@@ -245,6 +245,35 @@ def test_dask_cluster_evaluates_as_the_local_pool(tmp_path):
 
 
 
+def test_a_scheduler_that_cannot_be_reached_leaves_every_folder_as_it_was(
+        tmp_path, capsys, monkeypatch):
+    pytest.importorskip("distributed")
+    monkeypatch.chdir(tmp_path)
+    small = ["--evaluations", "8", "--batch", "4", "--strategy", "random", "--quiet",
+             "--no-figures"]
+    assert main(["run", "--evaluator", f"{HOST}:plain", "--out", "r", "--workers", "1",
+                 *small]) == 0
+    before = {p.name: p.read_bytes() for p in (tmp_path / "r").iterdir() if p.is_file()}
+    capsys.readouterr()
+    for argv in (["run", "--evaluator", f"{HOST}:plain", "--scheduler", "bad", "--out", "r",
+                  "--force", *small],
+                 ["run", "--evaluator", f"{HOST}:plain", "--scheduler", "bad", "--out", "new",
+                  *small],
+                 ["compare", "--evaluator", f"{HOST}:plain", "--strategies", "random",
+                  "--seeds", "1", "--evaluations", "8", "--batch", "4", "--scheduler", "bad",
+                  "--out", "c", "--quiet"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert "scheduler 'bad': cannot connect" in err and "\n" not in err
+    after = {p.name: p.read_bytes() for p in (tmp_path / "r").iterdir() if p.is_file()}
+    assert after == before
+    assert not (tmp_path / "new").exists() and not (tmp_path / "c").exists()
+    with pytest.raises(ValueError, match="scheduler must be an address"):
+        evaluators.run(runs.RunConfig(evaluator=f"{HOST}:plain"), tmp_path / "x",
+                       scheduler=" ")
+    assert not (tmp_path / "x").exists()
+
+
 def test_the_last_batch_holds_only_the_budgets_rest(tmp_path):
     f = jf.Falsifier("paper", strategy="random", batch=8, evaluations=12, out=tmp_path / "r")
     sizes = []
