@@ -579,9 +579,11 @@ def batch_rollout(flat: dict, offsets: jax.Array, key: jax.Array, sut: sut_lib.S
     ``lanes`` (static; outcomes only, ``record`` False): run the batch on that many lanes
     refilled as episodes end (:func:`lane_count`, :func:`_refilled`) instead of one lane per
     scenario; :func:`evaluate` does on one device, and its outcomes are the same bit for bit
-    (checked on every scenario of the paper space and of ``paper-extended``). Other programs
-    (sweeps, campaigns) run one lane per scenario: compiled inside them, XLA fuses the refilled
-    loop differently and distances can differ in the last bits.
+    (checked on every scenario of the paper space and of ``paper-extended``). Sweeps and
+    campaigns run one lane per scenario: compiled inside them, XLA fuses the refilled loop
+    differently and distances can differ in the last bits. The failure-rate estimate's program
+    runs refilled lanes (1.2-1.7x faster there; about 2 % of its robustness values differ from
+    one lane per scenario's, by at most 4e-5 m, and no violation did in 1M draws).
     """
     over = {k[len(SUT_PREFIX):]: v for k, v in flat.items() if is_sut_parameter(k)}
     flat = {k: v for k, v in flat.items() if not is_sut_parameter(k)}

@@ -25,8 +25,8 @@ Both stop once the interval's half-width is at most ``target_rel_error`` of the 
 (with at least ``MIN_VIOLATIONS`` violating draws) or after ``samples`` draws beyond the
 proposal's fitting. The draws of the cross-entropy levels count in the estimate, each
 weighted by p/q of the proposal it came from (:class:`Tally`; the first level's are uniform,
-Monte Carlo's). Each batch is one compiled call (draw, simulate, requirement, weights); the
-host keeps the sums in float64.
+Monte Carlo's). Each batch is one compiled call (draw, simulate on lanes refilled as
+episodes end, requirement, weights); the host keeps the sums in float64.
 :func:`exact_rate` evaluates every scenario of a space small enough to sweep (the oracle).
 """
 
@@ -207,7 +207,8 @@ def _compile(sp: Space, sut, req, batch: int):
         log_q_x = jax.nn.logsumexp(per + log_w[:, None], axis=0)
         log_mix = jnp.logaddexp(log_u + log_p, jnp.log1p(-jnp.exp(log_u)) + log_q_x)
         out, _ = sim.batch_rollout(layout.scenario(idx, table), jnp.zeros(batch, jnp.int32),
-                                   jax.random.key(0), sut, params)
+                                   jax.random.key(0), sut, params,
+                                   lanes=sim.lane_count(batch))  # refilled as episodes end
         rob = req_lib.robustness(req, out, rparams)
         return idx, rob, log_p - log_mix
 
