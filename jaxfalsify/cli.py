@@ -28,11 +28,29 @@ class UsageError(Exception):
     pass
 
 
+class _StoreOnce(argparse.Action):
+    """An option that takes one value: given twice (``--seed 1 --seed 2``) it is refused
+    instead of the last one silently winning."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        seen = namespace.__dict__.setdefault("_given_once", set())
+        if self.dest in seen:
+            parser.error(f"{option_string} given twice")
+        seen.add(self.dest)
+        setattr(namespace, self.dest, values)
+
+
 class _Parser(argparse.ArgumentParser):
     def __init__(self, *args, **kwargs):
         # no prefixes of long flags: ``compare --seed 3`` must not mean ``--seeds 3``
         kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
+
+    def add_argument(self, *args, **kwargs):
+        if args and args[0].startswith("-") and kwargs.get("action") in (None, "store") \
+                and kwargs.get("nargs") is None:
+            kwargs["action"] = _StoreOnce
+        return super().add_argument(*args, **kwargs)
 
     def error(self, message):  # one line, exit 2
         raise UsageError(message)
@@ -50,6 +68,7 @@ def parse(argv=None) -> argparse.Namespace:
         extra = [a for a in extra if a not in values]
     if extra:
         raise UsageError(f"unrecognized arguments: {' '.join(extra)}")
+    vars(args).pop("_given_once", None)
     for name, value in vars(args).items():
         values = value if isinstance(value, list) else [value]
         for v in (str(x) for x in values if isinstance(x, (str, Path))):

@@ -310,6 +310,10 @@ CASES = [
     (["run", "--config", ""], "an empty path"),
     (["compare", "--budgets", "100,"], "--budgets '100,': comma-separated integers"),
     (["compare", "--budgets", ""], "--budgets '': an empty value"),
+    # an option of one value given twice: refused, not the last one silently kept
+    (["run", "--seed", "1", "--seed", "2"], "--seed given twice"),
+    (["estimate", "--method", "exact", "--method", "mc"], "--method given twice"),
+    (["estimate", "--method", "exact", "--samples", "5"], "--samples does not apply to"),
     # numbers the float32 programs cannot hold
     (["run", "--strategy", "cmaes", "--strategy-param", "std_init=1e39"],
      "std_init=1e+39 is beyond float32's range"),
