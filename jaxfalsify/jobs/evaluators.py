@@ -102,7 +102,8 @@ def run(config: RunConfig, out: Path | str | None = None, *, workers: int | None
                               "scheduler": None if scheduler is None else str(scheduler)}
     try:
         t = time.perf_counter()
-        pool = cluster or make_pool(config.evaluator, workers, timeout, retries, chunk)
+        pool = cluster if cluster is not None else make_pool(config.evaluator, workers,
+                                                                 timeout, retries, chunk)
         f.clock.add("workers_start", connecting + time.perf_counter() - t)
         with pool:
             drive(f, pool, progress, stop)
@@ -229,7 +230,8 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
         status = Status(out, "compare")
         status.running()
         with clock("workers_start"):
-            pool = cluster or make_pool(evaluator, workers, timeout, retries, None)
+            pool = cluster if cluster is not None else make_pool(evaluator, workers,
+                                                                 timeout, retries, None)
         cluster = None  # the pool's own block closes it from here
         with pool:
             for name, rc in configs.items():
