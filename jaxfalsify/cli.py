@@ -45,12 +45,8 @@ class _Parser(argparse.ArgumentParser):
         # no prefixes of long flags: ``compare --seed 3`` must not mean ``--seeds 3``
         kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
-
-    def add_argument(self, *args, **kwargs):
-        if args and args[0].startswith("-") and kwargs.get("action") in (None, "store") \
-                and kwargs.get("nargs") is None:
-            kwargs["action"] = _StoreOnce
-        return super().add_argument(*args, **kwargs)
+        for name in (None, "store"):  # every option of one value, in groups too
+            self.register("action", name, _StoreOnce)
 
     def error(self, message):  # one line, exit 2
         raise UsageError(message)
