@@ -318,8 +318,10 @@ class Tally:
 
     def __init__(self, method: str, confidence: float):
         self.method, self.confidence = method, confidence
-        self.s1 = self.s2 = 0.0
+        self.s1 = self.s2 = self.w_max = 0.0
         self.n = self.bad = 0
+        self.above_uniform = 0  # violating draws with p/q > 1: the proposal's mass there is
+        # below uniform sampling's (drawn through the defensive share), a region it misses
         self.estimate = self.low = self.high = float("nan")
         self.rel = math.inf
 
@@ -327,6 +329,8 @@ class Tally:
         w = np.exp(np.asarray(log_weight, np.float64)) * violated
         self.s1 += float(w.sum())
         self.s2 += float((w * w).sum())
+        self.w_max = max(self.w_max, float(w.max(initial=0.0)))
+        self.above_uniform += int(np.sum(violated & (np.asarray(log_weight) > 1e-6)))
         self.n += len(violated)
         self.bad += int(violated.sum())
         if self.method == "mc":
@@ -433,6 +437,9 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
         progress.update(t.n, estimate=f"{t.estimate:.3g}", rel=f"{t.rel:.3f}")
     progress.close()
     est, low, high, rel, n, k_bad = t.estimate, t.low, t.high, t.rel, t.n, t.bad
+    diagnostics = {} if c.method == "mc" else {
+        "violations_above_uniform": t.above_uniform,
+        "largest_weight_share": t.w_max / t.s1 if t.s1 > 0 else 0.0}
     return {"estimator": {"mc": "monte-carlo", "is": "importance-sampling (cross-entropy "
                           "proposal, defensive mixture)"}[c.method],
             "method": c.method, "requirement": c.requirement,
@@ -443,7 +450,7 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
             "confidence": c.confidence, "relative_half_width": rel,
             "target_rel_error": c.target_rel_error,
             "reached_target": bool(k_bad >= MIN_VIOLATIONS and rel <= c.target_rel_error),
-            "seconds": time.perf_counter() - t0}
+            **diagnostics, "seconds": time.perf_counter() - t0}
 
 
 def execute(config: EstimateConfig, out: Path | str, *, force: bool = False,
@@ -499,4 +506,11 @@ def summary_lines(s: dict) -> list[str]:
     if not s["reached_target"]:
         lines.append(f"the target relative half-width {s['target_rel_error']:g} was not "
                      "reached within the draws allowed (raise --samples)")
+    if s.get("violations_above_uniform"):
+        n = s["violations_above_uniform"]
+        lines.append(f"{n} violating draw{'s' if n > 1 else ''} came from where the proposal "
+                     "has less mass than uniform sampling (the largest weight is "
+                     f"{s['largest_weight_share']:.0%} of the estimate): the proposal misses "
+                     "part of the failure set, so the interval may be too narrow; compare "
+                     "with --method mc")
     return lines

@@ -118,6 +118,27 @@ def test_the_mixture_fit_matches_em_computed_one_scenario_at_a_time():
             assert np.all(np.isneginf(q.log_prob[c, j, m:]))
 
 
+def test_violations_the_proposal_misses_are_counted_and_reported():
+    t = est.Tally("is", 0.95)
+    violated = np.array([True, True, False, True, True])
+    weight = np.array([1.0, 0.01, 50.0, 9.5, 0.02])  # p/q; 1: a uniform draw
+    t.add(violated, np.log(weight).astype(np.float32))
+    assert t.above_uniform == 1  # the violation of weight 9.5 only
+    total = 1.0 + 0.01 + 9.5 + 0.02
+    np.testing.assert_allclose(t.s1, total, rtol=1e-6)
+    np.testing.assert_allclose(t.w_max / t.s1, 9.5 / total, rtol=1e-6)
+    s = {"interval": [1e-6, 2e-6], "method": "is", "requirement": "collision",
+         "estimate": 1.5e-6, "confidence": 0.95, "relative_half_width": 0.3,
+         "estimator": "importance-sampling", "samples": 5, "violations": 4,
+         "proposal_samples": 0, "seconds": 1.0, "reached_target": True,
+         "violations_above_uniform": 1, "largest_weight_share": 9.5 / total}
+    line = est.summary_lines(s)[-1]
+    assert line.startswith("1 violating draw came from where the proposal has less mass")
+    assert f"{9.5 / total:.0%} of the estimate" in line
+    assert not any("proposal misses" in x for x in
+                   est.summary_lines({**s, "violations_above_uniform": 0}))
+
+
 @pytest.mark.parametrize("method, draws", [("mc", 1500), ("is", 600)])
 def test_intervals_cover_the_exact_rate(paper, exact, method, draws):
     """40 seeds of each estimator at a 95 % level: the interval holds the exact rate in at
