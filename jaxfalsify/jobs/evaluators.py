@@ -84,12 +84,9 @@ def run(config: RunConfig, out: Path | str | None = None, *, workers: int | None
                          "user's own ask/tell loop: jaxfalsify.Falsifier)")
     check_settings(workers, timeout, retries, chunk, scheduler)
     t = time.perf_counter()
-    if scheduler is None:
-        load(config.evaluator)  # here, in one line, before a folder or a worker exists
-        cluster = None
-    else:  # connected before the folder is touched: a bad address leaves it as it was
-        config.build()
-        cluster = make_pool(config.evaluator, workers, timeout, retries, chunk, scheduler)
+    if scheduler is not None:
+        config.build()  # every setting checked before connecting
+    cluster = _load_or_connect(config.evaluator, workers, timeout, retries, chunk, scheduler)
     connecting = time.perf_counter() - t
     progress = progress or Progress()
     try:
@@ -114,6 +111,16 @@ def run(config: RunConfig, out: Path | str | None = None, *, workers: int | None
         f.close()
         raise
     return f.finish(figures=figures)
+
+
+def _load_or_connect(spec: str, workers, timeout, retries, chunk, scheduler):
+    """Before a folder or a worker exists: the evaluator loaded here (one line if it cannot
+    be), or with ``scheduler`` the cluster's pool connected (a bad address leaves every folder
+    as it was). The connected :class:`DaskPool`, or None for a local pool made later."""
+    if scheduler is None:
+        load(spec)
+        return None
+    return make_pool(spec, workers, timeout, retries, chunk, scheduler)
 
 
 POOL_SETTINGS = ("workers", "timeout", "retries", "scheduler")
@@ -195,11 +202,7 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
         rc.build()  # every setting checked before anything is written
     clock = Clock(0.0)
     with clock("workers_start"):
-        if scheduler is None:
-            load(evaluator)
-            cluster = None
-        else:  # connected before the folder is touched: a bad address leaves it as it was
-            cluster = make_pool(evaluator, workers, timeout, retries, None, scheduler)
+        cluster = _load_or_connect(evaluator, workers, timeout, retries, None, scheduler)
     progress = progress or Progress()
     out = Path(out) if out is not None else Path("runs") / f"compare-{runs.timestamp()}"
     try:

@@ -79,14 +79,8 @@ def _split(cls, options: dict, where: str) -> tuple[dict, dict]:
             raise ValueError(f"{where}: '{k}' is not a strategy option (" + (
                 "scenarios per update: --batch, or make's batch argument)" if k == "batch"
                 else "it comes from the space)"))
-        if k in known_p:
-            x = pytree.real_number(v)
-            if x is None or not math.isfinite(x):
-                raise ValueError(f"{where}: {k}={v!r} is not a finite number")
-            if abs(x) > pytree.FLOAT32_MAX:
-                raise ValueError(f"{where}: {k}={v!r} is beyond float32's range (the search "
-                                 "computes in float32)")
-            params[k] = x
+        if k in known_p:  # a traced number: as a float option
+            params[k] = _typed(v, 0.0, f"{where}: {k}={v!r}")
         elif k in known_s and k in cls.FUNCTION_OPTIONS:  # a name or a function
             try:
                 cls.FUNCTION_OPTIONS[k](v)
