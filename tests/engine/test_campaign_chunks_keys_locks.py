@@ -73,6 +73,7 @@ def _run_in(tmp_path, name, cache_dir, **env):
     return p.stdout.strip().splitlines()[-1]
 
 
+@pytest.mark.slow
 def test_a_warm_cache_does_not_change_results_under_other_jax_settings(tmp_path):
     """JAX_THREEFRY_PARTITIONABLE=0 draws other random numbers: with a cache warmed under the
     default setting, a run gives what it gives with no cache at all (never the cached
@@ -169,6 +170,7 @@ def test_a_partial_last_chunk_changes_no_result_and_resumes(tmp_path, strategy):
             assert (tmp_path / name / f).read_bytes() == (tmp_path / "every" / f).read_bytes()
 
 
+@pytest.mark.slow
 def test_jax_compilation_cache_dir_is_respected_and_the_off_switch_writes_nothing(tmp_path):
     """JAX's own JAX_COMPILATION_CACHE_DIR takes the executables (the per-user folder keeps
     only jaxfalsify's exported programs); without it they go under the per-user folder's

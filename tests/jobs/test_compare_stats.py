@@ -192,6 +192,7 @@ def _tiny_compare(tmp_path, name, jobs, stop=None):
     return execute(cfg, tmp_path / name, stop=stop)
 
 
+@pytest.mark.slow
 def test_strategies_side_by_side_give_the_same_results(tmp_path):
     """``jobs`` strategies searched at once in threads: every figure of compare.json equals the
     one-at-a-time run's (only wall times differ); the resolved jobs are recorded."""
@@ -217,6 +218,7 @@ def test_strategies_side_by_side_give_the_same_results(tmp_path):
     assert json.loads((tmp_path / "one" / "compare.json").read_text())["rows"][0]["per_seed"]
 
 
+@pytest.mark.slow
 def test_side_by_side_stop_interrupts_every_strategy_and_writes_nothing(tmp_path):
     """A stop request while strategies run side by side ends all of them at their next chunk:
     Interrupted is raised (naming how many strategies had finished) and no result is

@@ -35,8 +35,8 @@ def jax_outcomes(space, asked):
     return out
 
 
-@pytest.mark.parametrize("strategy,evaluations", [("reinforce/screened", 64),
-                                                  ("cem", 300)])
+@pytest.mark.parametrize("strategy,evaluations", [
+    pytest.param("reinforce/screened", 64, marks=pytest.mark.slow), ("cem", 300)])
 def test_ask_tell_round_trip_equals_run(tmp_path, strategy, evaluations):
     b, res = builtin(strategy, evaluations, 3)
     f = jf.Falsifier("paper", strategy=strategy, evaluations=evaluations, seed=3,
@@ -66,8 +66,8 @@ def test_ask_tell_round_trip_equals_run(tmp_path, strategy, evaluations):
 
 
 def test_reference_through_worker_pool_equals_builtin_run(tmp_path):
-    _, res = builtin("reinforce/screened", 96, 5)
-    rc = runs.RunConfig(strategy="reinforce/screened", evaluations=96, seed=5,
+    _, res = builtin("cem", 96, 5)
+    rc = runs.RunConfig(strategy="cem", evaluations=96, seed=5,
                         evaluator=f"{REFERENCE}:evaluate")
     o = evaluators.run(rc, tmp_path / "ref", workers=2, figures=False)
     np.testing.assert_array_equal(o.result.indices, res.indices)

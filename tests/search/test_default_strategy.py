@@ -82,11 +82,16 @@ def _moved(learners, init_seed, move_seed):
     so the LSTM and heads all matter."""
     s, p = search.make("reinforce/default", SHAPE, 64, hidden=8, components=3,
                        learners=learners)
-    state = s.init(jax.random.key(init_seed), p)
-    leaves, tree = jax.tree.flatten(state.params)
-    keys = jax.random.split(jax.random.key(move_seed), len(leaves))
-    moved = [x + 0.3 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)]
-    return s, p, dataclasses.replace(state, params=jax.tree.unflatten(tree, moved))
+
+    @jax.jit  # one compiled program (op by op, the initialisation compiles hundreds)
+    def init():
+        state = s.init(jax.random.key(init_seed), p)
+        leaves, tree = jax.tree.flatten(state.params)
+        keys = jax.random.split(jax.random.key(move_seed), len(leaves))
+        moved = [x + 0.3 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)]
+        return dataclasses.replace(state, params=jax.tree.unflatten(tree, moved))
+
+    return s, p, init()
 
 
 @pytest.fixture(scope="module")
@@ -100,13 +105,13 @@ def _every(shape):
 
 def test_controller_and_log_probs_match_numpy_step_by_step(strat):
     s, p, state = strat
-    mix, mu, log_sigma = (np.asarray(x, np.float64) for x in s.distribution(state))
+    mix, mu, log_sigma = (np.asarray(x, np.float64) for x in jax.jit(s.distribution)(state))
     e_mix, e_mu, e_ls = _np_controller(state.params, SHAPE, 8, 3)
     np.testing.assert_allclose(mix, e_mix, atol=1e-5)
     np.testing.assert_allclose(mu, e_mu, atol=1e-5)
     np.testing.assert_allclose(log_sigma, e_ls, atol=1e-5)
     acts = _every(SHAPE)[::7]
-    got = np.asarray(s.log_prob(state.params, jnp.asarray(acts), p), np.float64)
+    got = np.asarray(jax.jit(s.log_prob)(state.params, jnp.asarray(acts), p), np.float64)
     want = [_np_log_prob(e_mix, e_mu, e_ls, a, SHAPE, float(p.eps)) for a in acts]
     np.testing.assert_allclose(got, want, atol=2e-5)
 
@@ -114,7 +119,7 @@ def test_controller_and_log_probs_match_numpy_step_by_step(strat):
 def test_probabilities_sum_to_one_and_sampling_matches_them(strat):
     s, p, state = strat
     every = _every(SHAPE)
-    prob = np.exp(np.asarray(s.log_prob(state.params, jnp.asarray(every), p), np.float64))
+    prob = np.exp(np.asarray(jax.jit(s.log_prob)(state.params, jnp.asarray(every), p), np.float64))
     assert prob.sum() == pytest.approx(1.0, abs=1e-5)
     # 200,000 draws from ask: each scenario's frequency within 5 standard errors
     big = s.__class__(**{**s.__dict__, "batch": 200_000})
@@ -130,8 +135,8 @@ def test_probabilities_sum_to_one_and_sampling_matches_them(strat):
 def test_marginals_table_matches_enumeration(strat):
     s, p, state = strat
     every = _every(SHAPE)
-    prob = np.exp(np.asarray(s.log_prob(state.params, jnp.asarray(every), p), np.float64))
-    table = np.asarray(s.probs(state, p), np.float64)
+    prob = np.exp(np.asarray(jax.jit(s.log_prob)(state.params, jnp.asarray(every), p), np.float64))
+    table = np.asarray(jax.jit(s.probs)(state, p), np.float64)
     for q, n in enumerate(SHAPE):
         want = np.array([prob[every[:, q] == v].sum() for v in range(n)])
         np.testing.assert_allclose(table[q, :n], want, atol=1e-5)
@@ -177,10 +182,12 @@ def test_mixture_gradient_matches_automatic_differentiation(shape):
     def fast(mix, mu, log_sigma):
         return discretised.log_prob(mix, mu, log_sigma, acts, shape, eps)
 
-    np.testing.assert_allclose(fast(mix, mu, log_sigma), plain(mix, mu, log_sigma),
-                               rtol=1e-5, atol=1e-4)
-    want = jax.grad(lambda *a: jnp.sum(w * plain(*a)), argnums=(0, 1, 2))(mix, mu, log_sigma)
-    got = jax.grad(lambda *a: jnp.sum(w * fast(*a)), argnums=(0, 1, 2))(mix, mu, log_sigma)
+    np.testing.assert_allclose(jax.jit(fast)(mix, mu, log_sigma),
+                               jax.jit(plain)(mix, mu, log_sigma), rtol=1e-5, atol=1e-4)
+    want = jax.jit(jax.grad(lambda *a: jnp.sum(w * plain(*a)), argnums=(0, 1, 2)))(
+        mix, mu, log_sigma)
+    got = jax.jit(jax.grad(lambda *a: jnp.sum(w * fast(*a)), argnums=(0, 1, 2)))(
+        mix, mu, log_sigma)
     for g, x in zip(got, want):
         np.testing.assert_allclose(g, x, rtol=1e-4, atol=1e-4 * float(jnp.max(jnp.abs(x))))
 
@@ -207,15 +214,15 @@ def test_cost_does_not_grow_with_the_number_of_values():
     size (and a scenario's log-probability's work) does not depend on the values."""
     a, pa = search.make("reinforce/default", (10,) * 5, 16)
     b, pb = search.make("reinforce/default", (4000,) * 5, 16)
-    sa = jax.tree.map(jnp.shape, a.init(jax.random.key(0), pa).params)
-    sb = jax.tree.map(jnp.shape, b.init(jax.random.key(0), pb).params)
+    sa = jax.tree.map(jnp.shape, jax.eval_shape(a.init, jax.random.key(0), pa).params)
+    sb = jax.tree.map(jnp.shape, jax.eval_shape(b.init, jax.random.key(0), pb).params)
     assert sa == sb
 
 
 def test_reinforce_gradient_estimate_matches_exact_gradient_of_expected_reward(strat):
     """grad E_pi[R] = sum_a pi(a) R(a) grad log pi(a) (Eq. 3), by exact enumeration of the
     60 scenarios, against the estimator (1/B) sum_i R(a_i) grad log pi(a_i) averaged over
-    400,000 draws: each component of the gradient within 5 standard errors."""
+    100,000 draws: each component of the gradient within 5 standard errors."""
     s, p, state = strat
     every = jnp.asarray(_every(SHAPE))
     reward = jnp.asarray(np.random.default_rng(0).normal(size=len(every)), jnp.float32)
@@ -223,7 +230,7 @@ def test_reinforce_gradient_estimate_matches_exact_gradient_of_expected_reward(s
     def expected(w):
         return jnp.sum(jnp.exp(s.log_prob(w, every, p)) * reward)
 
-    exact = jax.flatten_util.ravel_pytree(jax.grad(expected)(state.params))[0]
+    exact = jax.flatten_util.ravel_pytree(jax.jit(jax.grad(expected))(state.params))[0]
     table = {tuple(map(int, a)): float(r) for a, r in zip(np.asarray(every), reward)}
     flat_r = np.zeros(SHAPE, np.float32)
     for a, r in table.items():
@@ -244,7 +251,7 @@ def test_reinforce_gradient_estimate_matches_exact_gradient_of_expected_reward(s
         return jnp.sum(g, 0), jnp.sum(g * g, 0)
 
     tot, sq, n = 0.0, 0.0, 0
-    for k in jax.random.split(jax.random.key(3), 100):
+    for k in jax.random.split(jax.random.key(3), 25):
         a, b = per_sample_grads(k)
         tot, sq, n = tot + np.asarray(a, np.float64), sq + np.asarray(b, np.float64), n + 4000
     mean = tot / n
@@ -254,6 +261,7 @@ def test_reinforce_gradient_estimate_matches_exact_gradient_of_expected_reward(s
     assert np.max(np.abs(exact)) > 10 * np.median(se)  # the check has power
 
 
+@pytest.mark.slow
 def test_learns_an_interior_optimum_at_batch_1024():
     """A synthetic objective on 5 parameters x 200 values whose optimum lies inside the box
     (oracle: the known optimum); after 30 updates of 1,024 most of the last batch lies
@@ -284,18 +292,18 @@ def test_a_collision_seen_before_counts_less():
     ``revisit``; a collision not seen before, and a scenario that was neither in the elite nor
     a collision, keep the shaped signal (oracle: base.shaped_signal)."""
     s, p = search.make("reinforce/default", (50, 50), 4, learners=1)
-    state = s.init(jax.random.key(0), p)
+    state = jax.jit(s.init)(jax.random.key(0), p)
     old, new, miss = jnp.array([10, 10]), jnp.array([40, 40]), jnp.array([25, 25])
     idx = jnp.stack([old, miss, miss, miss])
     r = jnp.array([0.25, -0.1, -0.1, -0.1], jnp.float32)
     col = jnp.array([True, False, False, False])
     rob = jnp.array([-1.0, 0.5, 0.5, 0.5], jnp.float32)
-    state = s.tell_outcome(jax.random.key(1), state, idx, r, rob, col, p)
+    state = jax.jit(s.tell_outcome)(jax.random.key(1), state, idx, r, rob, col, p)
     idx2 = jnp.stack([old, new, miss, old])
     col2 = jnp.array([True, True, False, False])
     r2 = jnp.array([0.25, 0.25, -0.1, -0.1], jnp.float32)
     rob2 = jnp.array([-1.0, -1.0, 0.5, 0.5], jnp.float32)
-    got = np.asarray(s.signal(state, idx2, r2, rob2, col2, p))
+    got = np.asarray(jax.jit(s.signal)(state, idx2, r2, rob2, col2, p))
     want = np.array(base.shaped_signal(r2, rob2, col2))
     want[0] -= float(p.novelty)  # the collision seen before
     want[3] -= float(p.revisit)  # the same scenario, now not colliding: a revisit
@@ -320,7 +328,7 @@ def test_several_learners_are_their_equal_mixture(learners3):
         per.append([_np_log_prob(e_mix, e_mu, e_ls, a, SHAPE, float(p.eps)) for a in every])
     per = np.asarray(per)
     want = np.log(np.mean(np.exp(per), axis=0))
-    got = np.asarray(s.log_prob(state.params, jnp.asarray(every), p), np.float64)
+    got = np.asarray(jax.jit(s.log_prob)(state.params, jnp.asarray(every), p), np.float64)
     np.testing.assert_allclose(got, want, atol=2e-5)
     assert np.exp(got).sum() == pytest.approx(1.0, abs=1e-5)
     assert np.max(np.abs(per[0] - per[1])) > 0.1
@@ -331,9 +339,9 @@ def test_several_learners_sample_their_mixture():
     errors of its probability under the equal mixture (oracle: the log-probabilities, which the
     test above checks against NumPy)."""
     s, p = search.make("reinforce/default", SHAPE, 200_000, hidden=8, components=3, learners=4)
-    state = s.init(jax.random.key(4), p)
+    state = jax.jit(s.init)(jax.random.key(4), p)
     every = _every(SHAPE)
-    prob = np.exp(np.asarray(s.log_prob(state.params, jnp.asarray(every), p), np.float64))
+    prob = np.exp(np.asarray(jax.jit(s.log_prob)(state.params, jnp.asarray(every), p), np.float64))
     idx, _ = jax.jit(lambda k: s.ask(k, state, p))(jax.random.key(7))
     assert idx.shape == (200_000, len(SHAPE))
     flat = np.ravel_multi_index(np.asarray(idx).T, SHAPE)
@@ -348,11 +356,12 @@ def test_learners_that_do_not_divide_the_batch_each_learn_from_their_own_share()
     10 scenarios, and each learner's elite (the best share of 0.34 of 3 = 1) is the best of its
     own share (oracle: the argmax of each share of the signal)."""
     s, p = search.make("reinforce/default", (50, 50), 10, learners=4, elite=0.34)
-    state = s.init(jax.random.key(0), p)
-    idx, _ = s.ask(jax.random.key(1), state, p)
+    state = jax.jit(s.init)(jax.random.key(0), p)
+    idx, _ = jax.jit(s.ask)(jax.random.key(1), state, p)
     assert idx.shape == (10, 2)
     signal = jnp.asarray(np.random.default_rng(5).normal(size=10), jnp.float32)
-    new, elite = s._learn(jax.random.key(2), state, idx, signal, jnp.zeros(10, bool), p)
+    new, elite = jax.jit(s._learn)(jax.random.key(2), state, idx, signal, jnp.zeros(10, bool),
+                                   p)
     want = np.zeros(10, bool)
     for lo, hi in ((0, 3), (3, 6), (6, 9), (9, 10)):
         want[lo + int(np.argmax(np.asarray(signal)[lo:hi]))] = True
@@ -368,23 +377,25 @@ def test_each_learner_searches_with_lr_search_until_its_share_draws_a_collision(
     ``lr_first``, see below.)"""
     s, p, state = _moved(2, 0, 1)
     state = dataclasses.replace(state, told=jnp.int32(s.batch))
-    idx, _ = s.ask(jax.random.key(1), state, p)
+    idx, _ = jax.jit(s.ask)(jax.random.key(1), state, p)
+    tell = jax.jit(s.tell_outcome)  # the learning rates are traced: compiled once
     g = np.random.default_rng(7)
     rewards = jnp.asarray(g.uniform(0.3, 0.6, 64), jnp.float32)
     rob = jnp.asarray(g.uniform(-1, 3, 64), jnp.float32)
     hit = jnp.asarray(np.arange(64) == 5)  # in learner 0's share (the first 32)
-    got = s.tell_outcome(jax.random.key(2), state, idx, rewards, rob, hit, p)
+    got = tell(jax.random.key(2), state, idx, rewards, rob, hit, p)
     np.testing.assert_array_equal(np.asarray(got.found), [True, False])
     for lr, learner in ((p.lr, 0), (p.lr_search, 1)):
         q = pytree.replace(p, lr=lr, lr_search=lr)
-        want = s.tell_outcome(jax.random.key(2), state, idx, rewards, rob, hit, q)
+        want = tell(jax.random.key(2), state, idx, rewards, rob, hit, q)
         for x, y in zip(jax.tree.leaves(got.params), jax.tree.leaves(want.params)):
             np.testing.assert_array_equal(np.asarray(x)[learner], np.asarray(y)[learner])
     assert p.lr != p.lr_search
-    later = s.tell_outcome(jax.random.key(3), got, idx, rewards, rob, jnp.zeros(64, bool), p)
+    later = tell(jax.random.key(3), got, idx, rewards, rob, jnp.zeros(64, bool), p)
     np.testing.assert_array_equal(np.asarray(later.found), [True, False])
 
 
+@pytest.mark.slow
 def test_the_first_update_takes_lr_first_for_the_first_learners_only():
     """At the first update, with no collision, learners below ``first_learners`` step with
     ``lr_first`` and the others with ``lr_search``; at the second, all with ``lr_search``
@@ -392,7 +403,8 @@ def test_the_first_update_takes_lr_first_for_the_first_learners_only():
     value)."""
     s, p, state = _moved(3, 0, 1)
     p = pytree.replace(p, first_learners=2.0)
-    idx, _ = s.ask(jax.random.key(1), state, p)
+    idx, _ = jax.jit(s.ask)(jax.random.key(1), state, p)
+    tell = jax.jit(s.tell_outcome)  # the learning rates are traced: compiled once
     g = np.random.default_rng(8)
     rewards = jnp.asarray(g.uniform(0.3, 0.6, 64), jnp.float32)
     rob = jnp.asarray(g.uniform(0.1, 3, 64), jnp.float32)
@@ -406,28 +418,28 @@ def test_the_first_update_takes_lr_first_for_the_first_learners_only():
 
     for start, rates in ((state, (p.lr_first, p.lr_first, p.lr_search)),
                          (later, (p.lr_search,) * 3)):
-        got = s.tell_outcome(jax.random.key(2), start, idx, rewards, rob, none, p)
+        got = tell(jax.random.key(2), start, idx, rewards, rob, none, p)
         for learner, lr in enumerate(rates):
             q = pytree.replace(p, lr=lr, lr_search=lr, lr_first=lr)
-            same(got, s.tell_outcome(jax.random.key(2), start, idx, rewards, rob, none, q),
-                 learner)
+            same(got, tell(jax.random.key(2), start, idx, rewards, rob, none, q), learner)
         q = pytree.replace(p, lr=p.lr_first, lr_search=p.lr_first, lr_first=p.lr_first)
-        want = s.tell_outcome(jax.random.key(2), start, idx, rewards, rob, none, q)
+        want = tell(jax.random.key(2), start, idx, rewards, rob, none, q)
         assert not np.array_equal(np.asarray(jax.tree.leaves(got.params)[0])[2],
                                   np.asarray(jax.tree.leaves(want.params)[0])[2])
 
 
 def test_a_learner_whose_first_share_collides_takes_lr_not_lr_first():
     s, p, state = _moved(2, 0, 1)
-    idx, _ = s.ask(jax.random.key(1), state, p)
+    idx, _ = jax.jit(s.ask)(jax.random.key(1), state, p)
+    tell = jax.jit(s.tell_outcome)
     g = np.random.default_rng(9)
     rewards = jnp.asarray(g.uniform(0.3, 0.6, 64), jnp.float32)
     rob = jnp.asarray(g.uniform(-1, 3, 64), jnp.float32)
     hit = jnp.asarray(np.arange(64) == 5)  # in learner 0's share, at the first update
-    got = s.tell_outcome(jax.random.key(2), state, idx, rewards, rob, hit, p)
+    got = tell(jax.random.key(2), state, idx, rewards, rob, hit, p)
     for lr, learner in ((p.lr, 0), (p.lr_first, 1)):
         q = pytree.replace(p, lr=lr, lr_search=lr, lr_first=lr)
-        want = s.tell_outcome(jax.random.key(2), state, idx, rewards, rob, hit, q)
+        want = tell(jax.random.key(2), state, idx, rewards, rob, hit, q)
         for x, y in zip(jax.tree.leaves(got.params), jax.tree.leaves(want.params)):
             np.testing.assert_array_equal(np.asarray(x)[learner], np.asarray(y)[learner])
 
@@ -443,7 +455,8 @@ def test_vertex_learners_start_at_the_box_vertices():
     s0, p = search.make("reinforce/default", shape, 64, vertex_learners=0, **kw)
     s2, _ = search.make("reinforce/default", shape, 64, vertex_learners=2, vertex_sigma=0.03,
                         **kw)
-    w0, w2 = s0.init(jax.random.key(3), p).params, s2.init(jax.random.key(3), p).params
+    w0 = jax.jit(s0.init)(jax.random.key(3), p).params
+    w2 = jax.jit(s2.init)(jax.random.key(3), p).params
     with_vertices = dict(jax.tree_util.tree_leaves_with_path(w2))
     for path, a in jax.tree_util.tree_leaves_with_path(w0):
         b = np.asarray(with_vertices[path])
@@ -468,5 +481,6 @@ def test_vertex_learners_start_at_the_box_vertices():
     alone, _ = search.make("reinforce/default", shape, 64, vertex_learners=0, hidden=8,
                            components=K, learners=1)
     assert one.n_vertex_learners == 0
-    np.testing.assert_array_equal(np.asarray(one.init(jax.random.key(3), p).params["bias"]),
-                                  np.asarray(alone.init(jax.random.key(3), p).params["bias"]))
+    np.testing.assert_array_equal(
+        np.asarray(jax.jit(one.init)(jax.random.key(3), p).params["bias"]),
+        np.asarray(jax.jit(alone.init)(jax.random.key(3), p).params["bias"]))

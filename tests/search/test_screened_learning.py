@@ -18,6 +18,10 @@ from jaxfalsify.search import base, cmaes, surrogate
 from jaxfalsify.search.memory import scenario_hash, top_distinct
 
 SHAPE = (4, 6, 3)
+# the GP's functions compiled once per shape (op by op each call compiled dozens of programs)
+_refine = jax.jit(surrogate.refine, static_argnames=("kind",))
+_fit = jax.jit(surrogate.fit, static_argnames=("kind",))
+_predict = jax.jit(surrogate.predict, static_argnames=("kind",))
 
 
 def _np_lstm_tanh(p, h, c, x):
@@ -258,6 +262,7 @@ def _search(strat, p, outcome, key, updates):
     return jax.lax.scan(upd, strat.init(k0, p), jax.random.split(k1, updates))[1]
 
 
+@pytest.mark.slow
 def test_default_never_repeats_a_scenario_before_a_collision():
     """reinforce/screened's novelty filter: 30 updates of 32 on a space of 10,000 scenarios
     with a smooth objective and no collision: 960 evaluations, all distinct (the learner
@@ -278,6 +283,7 @@ def test_default_never_repeats_a_scenario_before_a_collision():
     assert np.any(np.all(idx == np.asarray(target), axis=1))
 
 
+@pytest.mark.slow
 def test_default_repeats_only_its_own_collisions_and_holds_still_without_signal():
     """After its first collision reinforce/screened may repeat a scenario only if it is one of
     its own collisions (a repeated near miss teaches nothing); and a batch whose signals all
@@ -306,7 +312,7 @@ def test_default_repeats_only_its_own_collisions_and_holds_still_without_signal(
     # a learner that has a collision, past its exploration (100 updates of 32: the entropy
     # bonus faded out at entropy_until), told a batch of 32 copies of one collision: no step
     assert p.entropy_until <= 100 * strat.batch
-    st = strat.init(jax.random.key(0), p)
+    st = jax.jit(strat.init)(jax.random.key(0), p)
     st = pytree.replace(st, seen=jnp.ones_like(st.seen), told=jnp.int32(100))
     st = jax.tree.map(lambda a: a, st)
     one = jnp.tile(jnp.asarray([[3, 6, 4, 1]], jnp.int32), (32, 1))
@@ -323,7 +329,7 @@ def test_default_repeats_only_its_own_collisions_and_holds_still_without_signal(
     # the division by their std of the same noise blew up to O(1))
     norm, pn = search.make("reinforce/screened", shape, advantage="normalised", surrogate=0,
                            resample=1)
-    st = pytree.replace(norm.init(jax.random.key(0), pn), seen=jnp.ones((1,), bool),
+    st = pytree.replace(jax.jit(norm.init)(jax.random.key(0), pn), seen=jnp.ones((1,), bool),
                         told=jnp.int32(100))
     sig = jnp.full(32, 0.3, jnp.float32)
     after = jax.jit(norm.tell)(jax.random.key(3), st, one, sig, pn)
@@ -342,9 +348,10 @@ def test_entropy_until_fades_the_bonus_after_a_collision_linearly():
     sig = jnp.linspace(-1.0, 1.0, 32, dtype=jnp.float32)
 
     tell = jax.jit(strat.tell)  # compiled once: the fade, the bonus and told are traced
+    init = jax.jit(strat.init)
 
     def weights(params, told, seen=True):
-        st = strat.init(jax.random.key(0), params)
+        st = init(jax.random.key(0), params)
         st = pytree.replace(st, seen=jnp.full_like(st.seen, seen), told=jnp.int32(told))
         return jax.tree.leaves(tell(jax.random.key(1), st, idx, sig, params).weights)
 
@@ -398,7 +405,7 @@ def test_default_anchors_every_draw_once_it_has_a_collision():
     reject the repeats that anchored draws make more often.)"""
     shape = (10, 10, 10, 10)
     strat, p = search.make("reinforce/screened", shape, resample=1, surrogate=0)
-    asks = jax.jit(jax.vmap(lambda k, st: strat.ask(k, st, p), in_axes=(0, None)))
+    asks = jax.jit(lambda ks, st: jax.lax.map(lambda k: strat.ask(k, st, p), ks))
     tell = jax.jit(strat.tell_outcome)
     keys = jax.random.split(jax.random.key(3), 100)  # 100 asks from one state, compiled once
     idx, state = jax.tree.map(lambda x: x[0], asks(keys, strat.init(jax.random.key(0), p)))
@@ -425,8 +432,9 @@ def test_edge_explore_puts_that_share_of_uniform_values_on_the_bounds():
     sd <= 0.006). q is traced: one compiled function for both."""
     shape = (10, 10, 10, 10)
     strat, p0 = search.make("reinforce/screened", shape, resample=2, surrogate=0, hidden=8)
-    state = strat.init(jax.random.key(0), p0)
-    cands = jax.jit(lambda ks, p: jax.vmap(lambda k: strat.candidates(k, state, p))(ks))
+    state = jax.jit(strat.init)(jax.random.key(0), p0)
+    # one key after another (lax.map): vmapped over the keys it compiled 7x longer
+    cands = jax.jit(lambda ks, p: jax.lax.map(lambda k: strat.candidates(k, state, p), ks))
     keys = jax.random.split(jax.random.key(7), 30)
     for q in (0.0, 0.4):
         c = cands(keys, pytree.replace(p0, edge_explore=q))
@@ -447,7 +455,7 @@ def test_default_anchors_nearer_the_best_once_it_has_a_collision():
     shape = (10, 10, 10, 10)
     strat, p = search.make("reinforce/screened", shape, resample=1, surrogate=0,
                            anchor_decay_found=0.8)
-    asks = jax.jit(jax.vmap(lambda k, st: strat.ask(k, st, p), in_axes=(0, None)))
+    asks = jax.jit(lambda ks, st: jax.lax.map(lambda k: strat.ask(k, st, p), ks))
     tell = jax.jit(strat.tell_outcome)
     keys = jax.random.split(jax.random.key(5), 100)
     idx = jnp.stack([jnp.arange(strat.batch) % 10, jnp.arange(strat.batch) // 10,
@@ -496,13 +504,14 @@ def test_near_miss_ttc_by_hand():
                                   np.asarray(rob))
 
 
+@pytest.mark.slow
 def test_default_learns_from_the_near_miss_ttc_signal():
     """reinforce/screened told the TTCs with ``ttc_weight`` > 0 (its default 0.05) ends in the
     state it reaches told the robustness combined by hand (NumPy); with ``ttc_weight`` 0, or
     once the learner has seen a collision, the TTCs change nothing."""
     shape = (6, 5, 4)
     strat, p = search.make("reinforce/screened", shape, 16, ttc_weight=0.05)
-    st = strat.init(jax.random.key(0), p)
+    st = jax.jit(strat.init)(jax.random.key(0), p)
     idx, st = jax.jit(strat.ask)(jax.random.key(1), st, p)
     g = np.random.default_rng(0)
     rob = g.uniform(-1.0, 1.0, 16).astype(np.float32)
@@ -529,15 +538,17 @@ def test_default_learns_from_the_near_miss_ttc_signal():
     for x, y in zip(jax.tree.leaves(e), jax.tree.leaves(f)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     # two learners sharing the batch (learner-major: the first 8 slots are learner 0's),
-    # only the second without a collision yet: the term reaches its slots alone
+    # only the second without a collision yet: the term reaches its slots alone (the oracle
+    # told the robustness mixed by hand, with ttc_weight 0, which is as told no TTC: above)
     two, p2 = search.make("reinforce/screened", shape, 16, learners=2)
-    s2 = two.init(jax.random.key(0), p2)
+    s2 = jax.jit(two.init)(jax.random.key(0), p2)
     idx2, s2 = jax.jit(two.ask)(jax.random.key(1), s2, p2)
     s2 = dataclasses.replace(s2, seen=jnp.array([True, False]))
-    tell2 = jax.jit(two.tell_outcome)
+    tell2 = jax.jit(two.tell_outcome)  # compiled once: ttc_weight is traced
     g2 = tell2(jax.random.key(2), s2, idx2, r, rob, hit, p2, ttc=ttc)
     h2 = tell2(jax.random.key(2), s2, idx2, r,
-               np.where(np.arange(16) >= 8, mixed, rob).astype(np.float32), hit, p2)
+               np.where(np.arange(16) >= 8, mixed, rob).astype(np.float32), hit,
+               pytree.replace(p2, ttc_weight=0.0), ttc=ttc)
     for x, y in zip(jax.tree.leaves(g2), jax.tree.leaves(h2)):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-7)
 
@@ -606,7 +617,8 @@ def test_gp_surrogate_matches_textbook_regression_with_empty_slots(ell_true):
     y = np.sin(xs @ np.array([1.0, -2.0, 0.5]) / ell_true) + 0.3 * xs[:, 0]
     y[[3, 17, 31]] = -np.inf  # empty slots
     cand = np.stack([rng.integers(0, n, 25) for n in shape], -1)
-    mean, std, ell = jax.jit(surrogate.posterior)(
+    posterior = jax.jit(surrogate.posterior)  # one compiled program for the three data sets
+    mean, std, ell = posterior(
         surrogate.unit(jnp.asarray(hist), shape), jnp.asarray(y, jnp.float32),
         surrogate.unit(jnp.asarray(cand), shape))
     m_ref, s_ref, ell_ref = _np_gp(xs, y, cand / (np.array(shape) - 1.0))
@@ -614,21 +626,20 @@ def test_gp_surrogate_matches_textbook_regression_with_empty_slots(ell_true):
     np.testing.assert_allclose(np.asarray(mean), m_ref, atol=2e-3 * np.ptp(y[np.isfinite(y)]))
     np.testing.assert_allclose(np.asarray(std), s_ref, atol=2e-3 * y[np.isfinite(y)].std())
     # at the data the mean reproduces the signal (the nugget is 1e-3 of its variance)
-    m_at, _, _ = surrogate.posterior(surrogate.unit(jnp.asarray(hist), shape),
-                                     jnp.asarray(y, jnp.float32),
-                                     surrogate.unit(jnp.asarray(hist), shape))
+    m_at, _, _ = posterior(surrogate.unit(jnp.asarray(hist), shape),
+                           jnp.asarray(y, jnp.float32), surrogate.unit(jnp.asarray(hist), shape))
     ok = np.isfinite(y)
     np.testing.assert_allclose(np.asarray(m_at)[ok], y[ok], atol=0.05 * np.ptp(y[ok]))
     # ucb = mean + kappa * std; too few points: no model
-    u = surrogate.ucb(surrogate.unit(jnp.asarray(hist), shape), jnp.asarray(y, jnp.float32),
-                      surrogate.unit(jnp.asarray(cand), shape), 0.5)
+    u = jax.jit(surrogate.ucb)(surrogate.unit(jnp.asarray(hist), shape),
+                               jnp.asarray(y, jnp.float32),
+                               surrogate.unit(jnp.asarray(cand), shape), 0.5)
     np.testing.assert_allclose(np.asarray(u), np.asarray(mean) + 0.5 * np.asarray(std),
                                rtol=1e-5, atol=1e-6)
     y2 = np.full(40, -np.inf)
     y2[:2] = [1.0, 2.0]
-    m2, s2, _ = surrogate.posterior(surrogate.unit(jnp.asarray(hist), shape),
-                                    jnp.asarray(y2, jnp.float32),
-                                    surrogate.unit(jnp.asarray(cand), shape))
+    m2, s2, _ = posterior(surrogate.unit(jnp.asarray(hist), shape),
+                          jnp.asarray(y2, jnp.float32), surrogate.unit(jnp.asarray(cand), shape))
     assert np.all(np.asarray(m2) == 0) and np.all(np.asarray(s2) == 0)
 
 
@@ -731,7 +742,7 @@ def test_auto_kernel_is_the_one_of_higher_marginal_likelihood(rough):
     x = surrogate.unit(jnp.asarray(hist), shape)
     ell, choices = np.full(2, surrogate.ARD_START), []
     for p in (0, 1, 0, 1):
-        m = surrogate.refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), p,
+        m = _refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), p,
                              kind="auto")
         ell, lml, chosen = _np_ard_step(xs, t, ell, p, "auto")
         np.testing.assert_allclose(np.asarray(m.ell), ell, rtol=1e-6)
@@ -755,20 +766,20 @@ def test_gp_prior_mean_matches_constant_mean_regression(prior, kind):
     ell = np.array([0.12, 0.25, 0.5])
     rng = np.random.default_rng(3)
     z = rng.uniform(0, 1, (25, 3))
-    m = surrogate.fit(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), prior,
+    m = _fit(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), prior,
                       kind)
-    mean, var, _ = surrogate.predict(m, jnp.asarray(z, jnp.float32), kind)
+    mean, var, _ = _predict(m, jnp.asarray(z, jnp.float32), kind)
     k = _np_kernel(xs[ok], xs[ok], ell, kind) + surrogate.NOISE * np.eye(ok.sum())
     kz = _np_kernel(z, xs[ok], ell, kind)
     m_ref = prior + kz @ np.linalg.solve(k, t - prior)
     v_ref = 1.0 - np.einsum("ij,ji->i", kz, np.linalg.solve(k, kz.T))
     np.testing.assert_allclose(np.asarray(mean), m_ref, atol=2e-3 * np.ptp(t))
     np.testing.assert_allclose(np.asarray(var), v_ref, atol=1e-4)
-    far, far_var, _ = surrogate.predict(m, jnp.full((1, 3), 50.0), kind)
+    far, far_var, _ = _predict(m, jnp.full((1, 3), 50.0), kind)
     assert float(far[0]) == pytest.approx(prior, abs=1e-6) and float(far_var[0]) == 1.0
     e = np.full(3, surrogate.ARD_START)
     for p in (0, 1, 2):
-        r = surrogate.refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(e, jnp.float32), p,
+        r = _refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(e, jnp.float32), p,
                              prior, kind)
         e, lml, _ = _np_ard_step(xs[ok], t - prior, e, p, kind)
         np.testing.assert_allclose(np.asarray(r.ell), e, rtol=1e-6)
@@ -790,7 +801,7 @@ def test_ard_refine_keeps_the_scale_without_enough_data():
     x = surrogate.unit(jnp.asarray([[0, 0], [3, 4]]), (5, 5))
     for y in ([-jnp.inf, -jnp.inf], [0.1, -jnp.inf], [0.1, 0.2]):
         for ell in ([0.12, 0.12], [0.5, 4.0]):
-            m = surrogate.refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell), 0)
+            m = _refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell), 0)
             assert not bool(m.enough)
             np.testing.assert_array_equal(np.asarray(m.ell), np.float32(ell))
 
@@ -809,7 +820,7 @@ def test_batch_ucb_matches_sequential_conditioning(kind):
     allowed = rng.random(60) < 0.8
     kappa, b = 1.5, 10
     # auto: the model's flag picks the correlation (the Matern here); the reference uses it
-    m = surrogate.fit(surrogate.unit(jnp.asarray(hist), shape), jnp.asarray(y, jnp.float32),
+    m = _fit(surrogate.unit(jnp.asarray(hist), shape), jnp.asarray(y, jnp.float32),
                       jnp.asarray(ell, jnp.float32), kind=kind, m52=jnp.bool_(kind == "auto"))
     ref = "matern52" if kind == "auto" else kind
     got = np.asarray(jax.jit(surrogate.batch_ucb, static_argnames=("b", "kind"))(
@@ -997,11 +1008,11 @@ def test_cmaes_ranks_ties_at_random_and_failures_last():
     # two best, log(2.5) - log(i) normalised (0.804, 0.196) - not onto the -inf candidate
     strat, params = search.make("cmaes", (50, 50), 4, signal="reward", margin=0.0)
     key = jax.random.key(0)
-    state = strat.init(key, params)
-    _, state = strat.ask(key, state, params)
+    state = jax.jit(strat.init)(key, params)
+    _, state = jax.jit(strat.ask)(key, state, params)
     pop = np.asarray(state.pop, np.float64)
-    state = strat.tell(key, state, None, jnp.array([-2000.0, -jnp.inf, -3000.0, -2500.0]),
-                       params)
+    state = jax.jit(strat.tell)(key, state, None,
+                                jnp.array([-2000.0, -jnp.inf, -3000.0, -2500.0]), params)
     w = np.log(2.5) - np.log([1.0, 2.0])
     np.testing.assert_allclose(np.asarray(state.es.mean), (w[0] * pop[0] + w[1] * pop[3])
                                / w.sum(), atol=1e-5)
@@ -1013,9 +1024,12 @@ def test_cmaes_step_size_holds_on_a_plateau():
     Hansen's cumulative step-size adaptation leaves log(sigma) a zero-drift walk; 30
     generations from 0.3 stay well above 0.05."""
     strat, params = search.make("cmaes", (50, 50, 50), 12, margin=0.0)
-    state = strat.init(jax.random.key(1), params)
-    for k in jax.random.split(jax.random.key(2), 30):
+
+    def generation(state, k):
         ka, kt = jax.random.split(k)
         _, state = strat.ask(ka, state, params)
-        state = strat.tell(kt, state, None, jnp.zeros(12), params)
+        return strat.tell(kt, state, None, jnp.zeros(12), params), None
+
+    state = jax.jit(lambda: jax.lax.scan(generation, strat.init(jax.random.key(1), params),
+                                         jax.random.split(jax.random.key(2), 30))[0])()
     assert float(state.es.std) > 0.05

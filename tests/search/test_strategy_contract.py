@@ -225,7 +225,7 @@ def test_reinforce_moves_probability_to_rewarded_index(name, options, shaped):
     ask = jax.jit(lambda k, s: strat.ask(k, s, p))
     tell = jax.jit(lambda k, s, i, r: strat.tell(k, s, i, r, p))
     probs = jax.jit(strat.probs)
-    state = strat.init(jax.random.key(0), p)
+    state = jax.jit(strat.init)(jax.random.key(0), p)
     before = float(probs(state)[0, 3])
     for i in range(40):
         idx, state = ask(jax.random.key(i + 1), state)
@@ -388,18 +388,18 @@ def test_anneal_moves_only_parameters_that_can_move():
     without restarts every proposal from the middle of a 50-value parameter is new; a huge
     max_step keeps the moves symmetric (it overflowed int32 and pushed them to index 0)."""
     s, p = search.make("anneal", (1, 1, 50), 2000, p_restart=0.0)
-    st = s.init(jax.random.key(0), p)
+    st = jax.jit(s.init)(jax.random.key(0), p)
     st = pytree.replace(st, current=jnp.full((2000, 3), 0, jnp.int32).at[:, 2].set(25),
                         started=jnp.bool_(True))
-    prop, _ = s.ask(jax.random.key(1), st, p)
+    prop, _ = jax.jit(s.ask)(jax.random.key(1), st, p)
     prop = np.asarray(prop)
     assert (prop[:, :2] == 0).all() and (prop[:, 2] != 25).all()
     assert set(np.abs(prop[:, 2] - 25)) == {1, 2}  # max_step 2
     s, p = search.make("anneal", (100,), 4000, p_restart=0.0, max_step=1e12)
-    st = s.init(jax.random.key(0), p)
+    st = jax.jit(s.init)(jax.random.key(0), p)
     st = pytree.replace(st, current=jnp.full((4000, 1), 50, jnp.int32),
                         started=jnp.bool_(True))
-    prop = np.asarray(s.ask(jax.random.key(2), st, p)[0])[:, 0]
+    prop = np.asarray(jax.jit(s.ask)(jax.random.key(2), st, p)[0])[:, 0]
     down = (prop < 50).mean()
     assert 0.45 < down < 0.55, down  # a fair coin for the sign, 4000 draws: sd 0.008
 
@@ -432,10 +432,11 @@ def test_the_learning_signal_is_a_function():
 
     own, p = search.make("cmaes", SHAPE, 8, signal=by_ttc)
     plain, _ = search.make("cmaes", SHAPE, 8, signal="reward")
-    state = own.init(jax.random.key(0), p)
-    idx, state = own.ask(jax.random.key(1), state, p)
-    got = own.tell_outcome(jax.random.key(2), state, idx, rewards, rob, hit, p, ttc=ttc)
-    want = plain.tell(jax.random.key(2), state, idx, -ttc, p)
+    state = jax.jit(own.init)(jax.random.key(0), p)
+    idx, state = jax.jit(own.ask)(jax.random.key(1), state, p)
+    got = jax.jit(own.tell_outcome)(jax.random.key(2), state, idx, rewards, rob, hit, p,
+                                    ttc=ttc)
+    want = jax.jit(plain.tell)(jax.random.key(2), state, idx, -ttc, p)
     for x, y in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     shaped = search.resolve_signal("shaped")(rewards, rob, hit, None)

@@ -38,6 +38,7 @@ def test_an_advantage_is_a_name_or_a_function_and_a_bad_one_is_refused_in_one_li
     assert "\n" not in str(e.value) and sorted(ADVANTAGES) == ["normalised", "rank"]
 
 
+@pytest.mark.slow
 def test_a_strategy_given_the_advantage_function_asks_as_with_its_name():
     shape = (10, 7, 12)
 
