@@ -538,8 +538,9 @@ def test_default_learns_from_the_near_miss_ttc_signal():
     for x, y in zip(jax.tree.leaves(e), jax.tree.leaves(f)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     # two learners sharing the batch (learner-major: the first 8 slots are learner 0's),
-    # only the second without a collision yet: the term reaches its slots alone (the oracle
-    # told the robustness mixed by hand, with ttc_weight 0, which is as told no TTC: above)
+    # only the second without a collision yet: the term reaches its slots alone (oracle: the
+    # robustness mixed by hand, told with ttc_weight 0, which the checks above show is the
+    # same as telling no TTC)
     two, p2 = search.make("reinforce/screened", shape, 16, learners=2)
     s2 = jax.jit(two.init)(jax.random.key(0), p2)
     idx2, s2 = jax.jit(two.ask)(jax.random.key(1), s2, p2)
@@ -743,7 +744,7 @@ def test_auto_kernel_is_the_one_of_higher_marginal_likelihood(rough):
     ell, choices = np.full(2, surrogate.ARD_START), []
     for p in (0, 1, 0, 1):
         m = _refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), p,
-                             kind="auto")
+                    kind="auto")
         ell, lml, chosen = _np_ard_step(xs, t, ell, p, "auto")
         np.testing.assert_allclose(np.asarray(m.ell), ell, rtol=1e-6)
         assert float(m.lml) == pytest.approx(lml, rel=1e-3, abs=1e-2)
@@ -766,8 +767,7 @@ def test_gp_prior_mean_matches_constant_mean_regression(prior, kind):
     ell = np.array([0.12, 0.25, 0.5])
     rng = np.random.default_rng(3)
     z = rng.uniform(0, 1, (25, 3))
-    m = _fit(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), prior,
-                      kind)
+    m = _fit(x, jnp.asarray(y, jnp.float32), jnp.asarray(ell, jnp.float32), prior, kind)
     mean, var, _ = _predict(m, jnp.asarray(z, jnp.float32), kind)
     k = _np_kernel(xs[ok], xs[ok], ell, kind) + surrogate.NOISE * np.eye(ok.sum())
     kz = _np_kernel(z, xs[ok], ell, kind)
@@ -780,7 +780,7 @@ def test_gp_prior_mean_matches_constant_mean_regression(prior, kind):
     e = np.full(3, surrogate.ARD_START)
     for p in (0, 1, 2):
         r = _refine(x, jnp.asarray(y, jnp.float32), jnp.asarray(e, jnp.float32), p,
-                             prior, kind)
+                    prior, kind)
         e, lml, _ = _np_ard_step(xs[ok], t - prior, e, p, kind)
         np.testing.assert_allclose(np.asarray(r.ell), e, rtol=1e-6)
         assert float(r.lml) == pytest.approx(lml, rel=1e-3, abs=1e-2)
@@ -821,7 +821,7 @@ def test_batch_ucb_matches_sequential_conditioning(kind):
     kappa, b = 1.5, 10
     # auto: the model's flag picks the correlation (the Matern here); the reference uses it
     m = _fit(surrogate.unit(jnp.asarray(hist), shape), jnp.asarray(y, jnp.float32),
-                      jnp.asarray(ell, jnp.float32), kind=kind, m52=jnp.bool_(kind == "auto"))
+             jnp.asarray(ell, jnp.float32), kind=kind, m52=jnp.bool_(kind == "auto"))
     ref = "matern52" if kind == "auto" else kind
     got = np.asarray(jax.jit(surrogate.batch_ucb, static_argnames=("b", "kind"))(
         m, surrogate.unit(jnp.asarray(cand), shape), jnp.asarray(allowed), kappa, b=b,
