@@ -21,7 +21,7 @@ import numpy as np
 
 __all__ = [
     "SIGNALS", "EvaluatorError", "import_module", "load", "call", "trajectory_arrays",
-    "dask_task", "TRAJECTORY"
+    "dask_task", "TRAJECTORY", "first_non_flag", "shown"
 ]
 
 TRAJECTORY = ("t", "distance", "ego_x", "ego_y", "ped_x", "ped_y", "ego_speed")  # what an
@@ -112,13 +112,32 @@ def call(fn: Callable, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         res.update(trajectory_arrays(traj, n))
     for k, v in out.items():
         try:
-            a = np.asarray(v, bool if k == "collision" else np.float64).reshape(-1)
+            a = np.asarray(v, object if k == "collision" else np.float64).reshape(-1)
         except (TypeError, ValueError):
             raise ValueError(f"returned {k} that is not {n} numbers") from None
         if a.shape != (n,):
             raise ValueError(f"returned {k} of {a.size} values for {n} scenarios")
+        if k == "collision":
+            bad = first_non_flag(a)
+            if bad is not None:
+                raise ValueError(f"returned collision {shown(a[bad])} for scenario {bad} "
+                                 "(true or false, or 1 or 0)")
+            a = a.astype(float).astype(bool)
         res[k] = a
     return res
+
+
+def first_non_flag(a: np.ndarray) -> int | None:
+    """The first position of ``a (n,)`` holding neither a boolean nor the number 0 or 1 (a
+    string, NaN, 0.5: refused rather than read as true), or None."""
+    ok = [isinstance(v, (bool, np.bool_, int, float, np.integer, np.floating)) and v in (0, 1)
+          for v in a.tolist()] if a.dtype != bool else [True]
+    return None if all(ok) else ok.index(False)
+
+
+def shown(v) -> str:
+    """A value as a one-line message shows it: strings quoted, numbers plain."""
+    return repr(str(v)) if isinstance(v, str) else str(v)
 
 
 def trajectory_arrays(traj, n: int) -> dict[str, np.ndarray]:

@@ -499,6 +499,9 @@ def split_sut_values(scenario: dict, sut_params, sut) -> tuple[dict, dict]:
     """A scenario's ``sut.NAME`` values (scalars, or arrays of one value) merged into the SUT
     parameter overrides: ``(scenario without them, sut_params)``; ValueError (one line) for
     a name the SUT does not have or values that differ across the batch."""
+    if not isinstance(scenario, dict):
+        raise ValueError("scenario must be a dict of parameter values (got "
+                         f"{type(scenario).__name__})")
     keys = [k for k in scenario if isinstance(k, str) and is_sut_parameter(k)]
     if not keys:
         return scenario, sut_params
@@ -520,6 +523,10 @@ def split_sut_values(scenario: dict, sut_params, sut) -> tuple[dict, dict]:
         base = {}
     elif isinstance(sut_params, dict):
         base = dict(sut_params)
+        twice = sorted(set(over) & set(base))
+        if twice:
+            raise ValueError(f"{SUT_PREFIX}{twice[0]} given twice (in the scenario and in "
+                             "sut_params): give its value in one place")
     else:
         base = sut_lib.params_dict(sut_params)
     return {k: v for k, v in scenario.items() if k not in keys}, {**base, **over}
@@ -742,6 +749,8 @@ def _resolve(sut, sut_params, world: World):
     s = sut_lib.resolve(sut)
     params = sut_lib.with_params(s, sut_params)
     sut_lib.check_traceable(s, params)
+    if not isinstance(world, World):
+        raise ValueError(f"world must be a jaxfalsify.World (got {type(world).__name__})")
     return s, params, world.check()
 
 

@@ -34,6 +34,40 @@ class RunFolder(NamedTuple):
     evaluations: dict  # evaluations.parquet: column name -> (N,) NumPy array
 
 
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+SUMMARY_TYPES = {  # summary.json's fields the outputs read: (test, what it must be)
+    "evaluations": (_is_int, "an integer"), "batch": (_is_int, "an integer"),
+    "space_seed": (_is_int, "an integer"), "seed": (_is_int, "an integer"),
+    "n_collisions": (_is_int, "an integer"), "n_distinct_critical": (_is_int, "an integer"),
+    "first_collision_evaluation": (lambda v: v is None or _is_int(v), "an integer or null"),
+    "best_reached_evaluation": (lambda v: v is None or _is_int(v), "an integer or null"),
+    "strategy": (lambda v: isinstance(v, str), "a string"),
+    "space": (lambda v: isinstance(v, str), "a string"),
+    "sut": (lambda v: isinstance(v, str), "a string"),
+    "best": (lambda v: isinstance(v, dict) and _is_int(v.get("evaluation"))
+             and (v.get("reward") is None or _is_number(v.get("reward"))),
+             "an object with an integer 'evaluation' and a numeric 'reward'"),
+}
+
+
+def check_summary_types(where: Path, summary: dict) -> None:
+    """One-line ValueError naming the first of ``summary``'s fields (those present) whose
+    type is not what the outputs read (a hand-edited or damaged summary.json), before anything
+    is drawn or written from it."""
+    for key, (ok, what) in SUMMARY_TYPES.items():
+        if key in summary and not ok(summary[key]):
+            shown = json.dumps(summary[key])
+            shown = shown if len(shown) <= 60 else shown[:57] + "..."
+            raise ValueError(f"{where} is damaged ('{key}' is {shown}, expected {what})")
+
+
 def load_run(run_dir: Path) -> RunFolder:
     """A finished run folder: its space, resolved config, summary and evaluations columns,
     every file checked against the others (one-line ValueError naming the damaged file)."""
@@ -57,6 +91,7 @@ def load_run(run_dir: Path) -> RunFolder:
     gone = [k for k in need if not isinstance(summary, dict) or k not in summary]
     if gone:
         raise ValueError(f"{where} is damaged (no '{gone[0]}')")
+    check_summary_types(where, summary)
     where = run_dir / "evaluations.parquet"
     try:
         table = pq.read_table(where)

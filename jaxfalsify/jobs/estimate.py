@@ -251,7 +251,8 @@ def wilson(k: int, n: int, confidence: float) -> tuple[float, float]:
     p = k / n
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
-    return max(0.0, centre - half), min(1.0, centre + half)
+    return (0.0 if k == 0 else max(0.0, centre - half),  # exact ends where rounding is not
+            1.0 if k == n else min(1.0, centre + half))
 
 
 def normal_interval(s1: float, s2: float, n: int, confidence: float):
@@ -263,6 +264,15 @@ def normal_interval(s1: float, s2: float, n: int, confidence: float):
     var = max(s2 / n - mean * mean, 0.0) * n / max(n - 1, 1)
     half = z * math.sqrt(var / n)
     return mean, max(0.0, mean - half), mean + half
+
+
+def no_violation_bound(uniform_draws: float, confidence: float) -> float:
+    """Upper end of the interval when no draw violated: each draw came from a proposal whose
+    uniform share ``s_i`` gives every violation at least ``s_i`` times its probability, so
+    ``P(no violation) <= exp(-p sum_i s_i)``; the rate at which that is ``(1 - confidence) /
+    2`` (the two-sided interval's tail, as Clopper-Pearson's ``1 - ((1 - c) / 2)^(1/n)`` for
+    uniform draws, which it approaches)."""
+    return min(1.0, -math.log((1.0 - confidence) / 2.0) / max(uniform_draws, 1e-300))
 
 
 # ----------------------------------------------------------------------------- estimation
@@ -320,13 +330,17 @@ class Tally:
         self.method, self.confidence = method, confidence
         self.s1 = self.s2 = self.w_max = 0.0
         self.n = self.bad = 0
+        self.uniform_draws = 0.0  # sum over draws of the uniform share of their proposal
         self.above_uniform = 0  # violating draws with p/q > 1: the proposal's mass there is
         # below uniform sampling's (drawn through the defensive share), a region it misses
         self.estimate = self.low = self.high = float("nan")
         self.rel = math.inf
 
-    def add(self, violated: np.ndarray, log_weight: np.ndarray) -> None:
+    def add(self, violated: np.ndarray, log_weight: np.ndarray, share: float = 1.0) -> None:
+        """One batch of draws: ``violated (n,)`` bool, ``log_weight (n,)`` log p/q, ``share``
+        the uniform share of the proposal they came from (1: uniform draws)."""
         w = np.exp(np.asarray(log_weight, np.float64)) * violated
+        self.uniform_draws += share * len(violated)
         self.s1 += float(w.sum())
         self.s2 += float((w * w).sum())
         self.w_max = max(self.w_max, float(w.max(initial=0.0)))
@@ -336,6 +350,9 @@ class Tally:
         if self.method == "mc":
             self.estimate = self.bad / self.n
             self.low, self.high = wilson(self.bad, self.n, self.confidence)
+        elif self.bad == 0:  # no violation yet: the normal interval would be [0, 0]
+            self.estimate, self.low = 0.0, 0.0
+            self.high = no_violation_bound(self.uniform_draws, self.confidence)
         else:
             self.estimate, self.low, self.high = normal_interval(self.s1, self.s2, self.n,
                                                                  self.confidence)
@@ -369,7 +386,7 @@ def cross_entropy(sp: Space, run, params, rparams, c: EstimateConfig, key,
         used += len(rob)
         n_bad = int(np.sum(rob < 0))
         if tally is not None:
-            tally.add(rob < 0, logw)
+            tally.add(rob < 0, logw, 1.0 if level == 0 else c.defensive)
             if tally.reached(c.target_rel_error):
                 progress.message(f"cross-entropy level {levels}: the estimate reached the "
                                  "target")
@@ -433,7 +450,7 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
         _, rob, logw = run(k, jnp.asarray(q.log_weight), jnp.asarray(q.log_prob),
                            jnp.float32(log_u), params, rparams)
         m = min(c.batch, total - t.n)
-        t.add(np.asarray(rob)[:m] < 0, np.asarray(logw)[:m])
+        t.add(np.asarray(rob)[:m] < 0, np.asarray(logw)[:m], math.exp(log_u))
         progress.update(t.n, estimate=f"{t.estimate:.3g}", rel=f"{t.rel:.3f}")
     progress.close()
     est, low, high, rel, n, k_bad = t.estimate, t.low, t.high, t.rel, t.n, t.bad

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxfalsify.base.progress import Clock, Progress
-from jaxfalsify.base.worker import SIGNALS, trajectory_arrays
+from jaxfalsify.base.worker import SIGNALS, first_non_flag, shown, trajectory_arrays
 from jaxfalsify.core import sim
 from jaxfalsify.engine import campaign
 from jaxfalsify.engine.lifecycle import Status
@@ -307,15 +307,14 @@ class Falsifier:
         if self._pending is None or asked is not self._pending[0]:
             raise ValueError("tell() takes the batch the last ask() returned")
         n, B = len(asked), self.batch
-        failed = np.zeros(n, bool) if failed is None else self._column("failed", failed, bool,
-                                                                       n)
+        failed = np.zeros(n, bool) if failed is None else self._flags(asked, "failed", failed)
         rob = self._column("robustness", robustness, np.float64, n)
         signals = dict(signals or {})
         unknown = sorted(set(signals) - set(SIGNALS))
         if unknown:
             raise ValueError(f"signal '{unknown[0]}' is not one of {', '.join(SIGNALS)}")
         sig = {k: self._column(k, v, np.float64, n) for k, v in signals.items()}
-        coll = rob < 0 if collision is None else self._column("collision", collision, bool, n)
+        coll = rob < 0 if collision is None else self._flags(asked, "collision", collision)
         traj = {} if trajectory is None else trajectory_arrays(trajectory, n)
         for name, col in (("robustness", rob), *sig.items()):
             bad = ~np.isfinite(col) & ~failed
@@ -376,6 +375,22 @@ class Falsifier:
             raise ValueError(f"{name} must have shape ({n},), one per asked scenario "
                              f"(got {a.shape})")
         return a
+
+    def _flags(self, asked: Asked, name: str, x) -> np.ndarray:
+        """``(n,)`` bool from booleans or the numbers 0 and 1; anything else (a string, NaN,
+        0.5) is refused in one line naming the first such evaluation, rather than read as
+        true."""
+        n = len(asked)
+        a = np.asarray(x, object if isinstance(x, (list, tuple)) else None)
+        if a.shape != (n,):
+            raise ValueError(f"{name} must have shape ({n},), one per asked scenario "
+                             f"(got {a.shape})")
+        i = first_non_flag(a)
+        if i is not None:
+            raise ValueError(f"{name} of evaluation {int(asked.evaluation[i])} "
+                             f"({self._describe(asked, i)}) is {shown(a[i])}: pass true or "
+                             "false (or 1 or 0)")
+        return a.astype(float).astype(bool)
 
     def _describe(self, asked: Asked, i: int) -> str:
         return ", ".join(f"{n}={v[i]:g}" for n, v in asked.values.items())
@@ -485,3 +500,4 @@ def summary_dict(res: campaign.Result, rc: RunConfig) -> dict:
     s["n_failed"] = int(failed.sum())
     s["failed_evaluations"] = [int(e) for e in np.nonzero(failed)[0][:100] + 1]
     return s
+

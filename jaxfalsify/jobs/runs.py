@@ -503,6 +503,8 @@ def run_lines(s: dict) -> list[str]:
     best = (f"Best reward {s['best']['reward']:.4f}, first evaluated at "
             f"{s['best']['evaluation']}; the running best was within 1 % of it from evaluation "
             f"{s['best_reached_evaluation']}." if s["best_reached_evaluation"] is not None else
+            f"No result: all {s['evaluations']} evaluations failed (each failure's reason "
+            "is printed as it happens)." if s.get("n_failed", 0) >= s["evaluations"] else
             f"No finite reward: all {s['n_nonfinite']} evaluations non-finite (the SUT "
             "returned NaN or inf; see 'Numerical guards' in README).")
     return [f"{s['evaluations']} evaluations: {found}.", best,

@@ -43,7 +43,7 @@ from jaxfalsify.base.config import plain
 from jaxfalsify.core import sim
 from jaxfalsify.engine.rundir import check_simulated, indices_of, load_run, resimulate
 from jaxfalsify.io import store
-from jaxfalsify.io.files import atomic_path
+from jaxfalsify.io.files import write_atomic
 from jaxfalsify.outputs import analysis
 from jaxfalsify.scenario.space import SUT_PREFIX, is_sut_parameter
 from jaxfalsify.suts import carla_tm
@@ -106,12 +106,22 @@ def record(run_dir: Path, scenario: str = "best", save: Path | None = None,
     path = Path(save) if save else Path(run_dir) / f"replay-{scenario.replace(':', '-')}.rrd"
     check_save_path(path)
 
-    with _writing(run_dir, save, "replay"), \
-            atomic_path(path) as tmp:  # complete under its final name, or not at all
-        rec.save(tmp)
-        _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row)
-        rec.disconnect()  # closes the file sink
+    with _writing(run_dir, save, "replay"):
+        _save(rec, path, lambda: _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep,
+                                      row))
     return path
+
+
+def _save(rec, path: Path, log) -> None:
+    """Record into memory, then write the bytes to ``path`` atomically: complete under its
+    final name, or not at all, and a failed write (a full disk) is an OSError naming the
+    path. (rerun's own file sink reports a write error on its thread and leaves a truncated
+    file.)"""
+    stream = rec.binary_stream()
+    log()
+    data = stream.read(flush=True)
+    rec.disconnect()
+    write_atomic(path, data or b"")
 
 
 def _log(rec, run_dir, scenario, overlay, sp, rc, summary, ep, row):
@@ -245,10 +255,8 @@ def record_campaign(run_dir: Path, save: Path | None = None, spawn: bool = False
     path = Path(save) if save else Path(run_dir) / "campaign.rrd"
     check_save_path(path)
 
-    with _writing(run_dir, save, "replay"), atomic_path(path) as tmp:
-        rec.save(tmp)
-        _log_campaign(rec, sp, ep, window)
-        rec.disconnect()
+    with _writing(run_dir, save, "replay"):
+        _save(rec, path, lambda: _log_campaign(rec, sp, ep, window))
     return path
 
 

@@ -138,8 +138,9 @@ _TRACEABLE: set = set()  # SUTs that passed check_traceable
 def check_traceable(sut: SUT, params: Any) -> None:
     """Return once ``sut``'s ``init(key, params)`` and ``act(obs, state, params, key)`` trace
     with ``params`` (its resolved parameters) and return ``(command, state)`` with a scalar
-    command and the state's structure kept (abstract evaluation: nothing is computed or
-    compiled); else a one-line ValueError naming the SUT. Run on every user SUT (not the
+    command and the state's structure kept, vmapped over scenarios as the simulator runs it
+    (abstract evaluation: nothing is computed or compiled); else a one-line ValueError naming
+    the SUT. Run on every user SUT (not the
     built-ins) where a command or library call resolves its parameters, before any file is
     written; once per SUT and process."""
     if is_builtin(sut):
@@ -150,9 +151,9 @@ def check_traceable(sut: SUT, params: Any) -> None:
     except TypeError:  # an unhashable act or init: checked every time
         pass
 
-    def one_step(key):
+    def one_step(key, obs):
         state = sut.init(key, params)
-        out = sut.act(_example_observation(), state, params, key)
+        out = sut.act(obs, state, params, key)
         if not (isinstance(out, tuple) and len(out) == 2):
             raise TypeError(f"act returned {type(out).__name__}, expected (command, state)")
         cmd, new_state = out
@@ -169,8 +170,12 @@ def check_traceable(sut: SUT, params: Any) -> None:
                                 f"{tb}{list(sb)} (init's dtype and shape must be kept)")
         return cmd
 
+    def batched(key):  # as the simulator calls it: vmapped over the scenarios
+        obs = jax.tree.map(lambda x: jnp.stack([x, x]), _example_observation())
+        return jax.vmap(one_step)(jax.random.split(key, 2), obs)
+
     try:
-        jax.eval_shape(one_step, jax.random.key(0))
+        jax.eval_shape(batched, jax.random.key(0))
     except Exception as e:  # noqa: BLE001 - a user's code can raise anything when traced
         hint = (" (a bare act function gets params=None; give the SUT default_params)"
                 if params is None and "NoneType" in str(e) else "")

@@ -288,3 +288,7 @@ def test_bad_scenarios_raise_one_line_errors():
         jf.evaluate({"ped_speed": 1.0}, chunk_size=0)
     with pytest.raises(ValueError, match="horizon"):
         jf.evaluate({"ped_speed": 1.0}, world=dataclasses.replace(W, horizon=0))
+    with pytest.raises(ValueError, match="scenario must be a dict .*got NoneType"):
+        jf.evaluate(None)
+    with pytest.raises(ValueError, match="world must be a jaxfalsify.World .*got int"):
+        jf.simulate({"ped_speed": 1.0}, world=5)

@@ -99,3 +99,11 @@ def with_trajectory(s):
 def bad_trajectory(s):
     rob = plain(s)
     return {"robustness": rob, "trajectory": {"distance": np.zeros((len(rob) + 1, 4))}}
+
+
+def nan_collision(s):
+    """A collision flag that is neither true nor false (NaN), once per batch."""
+    rob = plain(s)
+    flag = (rob < 0).astype(float)
+    flag[0] = np.nan
+    return {"robustness": rob, "collision": flag}

@@ -556,6 +556,39 @@ def test_a_failed_write_names_its_file(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_recording_that_cannot_be_written_is_one_line_and_no_file(tmp_path, monkeypatch,
+                                                                      capsys):
+    """replay --save on a full disk: exit 1, one line naming the file, and no file under its
+    name (rerun's own file sink once left a truncated one and the command said it wrote it);
+    with room, a recording rerun reads back, holding the scenario's world and metrics."""
+    run = tmp_path / "run"
+    space = tmp_path / "tiny.toml"
+    space.write_text(TINY_SPACE)
+    assert cli(["run", "--space", space, "--strategy", "random", "--evaluations", "16",
+                "--batch", "8", "--out", run, "--quiet", "--no-figures"])[0] == 0
+
+    class Full(io.BytesIO):
+        def write(self, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    real = os.fdopen
+    monkeypatch.setattr(os, "fdopen", lambda fd, mode: (os.close(fd), Full())[1])
+    for args, name in ((["replay", str(run), "--save", str(tmp_path / "best.rrd")], "best.rrd"),
+                       (["replay", str(run), "--campaign"], "campaign.rrd")):
+        capsys.readouterr()
+        assert main(args) == 1, args
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and name in err[0] and "No space left on device" in err[0], err
+    monkeypatch.setattr(os, "fdopen", real)
+    assert not (tmp_path / "best.rrd").exists() and not (run / "campaign.rrd").exists()
+    assert not [f for f in tmp_path.iterdir() if f.name.startswith(".best.rrd")]
+    assert main(["replay", str(run), "--save", str(tmp_path / "best.rrd")]) == 0
+    from rerun.chunk import RrdReader
+
+    entities = {c.entity_path for c in RrdReader(tmp_path / "best.rrd").stream().to_chunks()}
+    assert {"/world/ego", "/world/pedestrian", "/metrics/distance"} <= entities
+
+
 def test_an_undamaged_sweep_checkpoint_resumes_identically(checkpoints):
     """The recount of a sweep's totals from its rows files accepts an honest checkpoint
     (float32 columns read back, NaN collision times of a non-colliding best row)."""

@@ -154,6 +154,30 @@ def test_intervals_cover_the_exact_rate(paper, exact, method, draws):
     assert sum(covered) >= 34, sum(covered)
 
 
+@pytest.mark.parametrize("method", ["mc", "is"])
+def test_no_violation_gives_an_interval_above_zero(method):
+    """A requirement never violated (time-to-collision >= 0 s): the estimate is 0 and the
+    interval's upper end is Clopper-Pearson's for no success in the draws' uniform mass (each
+    draw counts its proposal's uniform share: 1 for the uniform first level, ``defensive``
+    for the others; scipy's beta quantile), not 0; Monte Carlo's Wilson upper end is of the
+    same order (oracle: Clopper-Pearson's for all its draws, which Wilson's exceeds)."""
+    from scipy.stats import beta
+
+    s = est.estimate(est.EstimateConfig(
+        requirement="ttc", requirement_params={"min_ttc": 0.0}, method=method, samples=1000,
+        batch=1000, ce_samples=2000, ce_levels=3, seed=0))
+    assert s["violations"] == 0 and s["estimate"] == 0.0 and s["interval"][0] == 0.0
+    if method == "is":
+        assert s["proposal_samples"] == 3 * 2000
+        mass = 2000 + 0.1 * (2 * 2000 + 1000)  # the uniform level, then defensive mixtures
+        want = float(beta.ppf(0.975, 1, mass))
+        assert s["interval"][1] == pytest.approx(want, rel=1e-3)
+    else:
+        cp = float(beta.ppf(0.975, 1, s["samples"]))
+        assert cp <= s["interval"][1] <= 1.1 * cp
+    assert "[0, 0]" not in " ".join(est.summary_lines(s))
+
+
 def test_importance_sampling_narrows_the_interval_at_equal_draws(paper, exact):
     """At the same number of final draws the importance-sampling interval is narrower than
     Monte Carlo's on the paper space's collisions (3.7 %; 2x narrower measured)."""

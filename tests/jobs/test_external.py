@@ -123,6 +123,13 @@ def test_tell_refuses_bad_results_in_one_line(tmp_path):
         f.tell(a, rob[:5])
     with pytest.raises(ValueError, match="signal 'speed' is not one of"):
         f.tell(a, rob, signals={"speed": rob})
+    # a collision flag that is not true/false (or 1/0) is refused, not read as a collision
+    for flag, shown in ((np.full(8, np.nan), "is nan"), (["no"] * 8, "is 'no'"),
+                        (np.full(8, 0.5), "is 0.5"), (np.array(["yes"] * 8), "is 'yes'")):
+        with pytest.raises(ValueError, match=rf"collision of evaluation 1 \(ego_offset=.*"
+                                             rf"{shown}: pass true or false") as e:
+            f.tell(a, rob, collision=flag)
+        assert "\n" not in str(e.value)
     with pytest.raises(ValueError, match="asks 8 scenarios"):
         f.ask(5)
     f.tell(a, bad, failed=np.isnan(bad))  # marked failed: accepted, recorded as failed
@@ -448,6 +455,15 @@ def test_a_bad_trajectory_fails_its_scenarios_with_the_reason(tmp_path):
     with pytest.raises(ValueError, match=r"trajectory 'speed'"):
         f.tell(a, a.values["ped_speed"] - 1.5, trajectory={"speed": np.zeros((4, 3))})
     f.close()
+
+
+def test_a_collision_flag_that_is_not_true_or_false_fails_its_batch_with_the_reason():
+    """An evaluator's collision of NaN (or a string, or 0.5) is not read as a collision: the
+    batch fails with the value named (oracle: the flags 0/1 the evaluator returns elsewhere)."""
+    with evaluators.Pool(f"{HOST}:nan_collision", workers=1, retries=0) as pool:
+        res = pool.evaluate(pool_batch(3))
+    assert res.failed.all()
+    assert all("returned collision nan for scenario 0" in r for r in res.errors.values())
 
 
 def test_trajectories_of_other_lengths_and_names_share_one_length():

@@ -2,6 +2,7 @@
 images of the right size, the report's links resolve, replay recordings and OpenSCENARIO
 exports read back with the simulated values (export helpers from test_openscenario_export)."""
 
+import json
 import re
 
 import numpy as np
@@ -627,6 +628,9 @@ def test_a_run_where_everything_collided_shows_no_typical_scenario(tmp_path, mon
 @pytest.mark.parametrize("damage, message", [
     ("summary_empty", "summary.json is damaged (no 'first_collision_evaluation')"),
     ("summary_not_json", "summary.json is damaged (Expecting value"),
+    ("summary_best_null", "summary.json is damaged ('best' is null, expected an object"),
+    ("summary_count_text", "damaged ('first_collision_evaluation' is \"x\", expected an "
+     "integer or null)"),
     ("no_reward", "evaluations.parquet is damaged (no column 'reward')"),
     ("no_rows", "evaluations.parquet holds no evaluation"),
     ("index_out_of_range", "column 'ped_speed_idx' outside 0..24"),
@@ -648,6 +652,11 @@ def test_a_damaged_run_folder_gets_one_line_and_nothing_redrawn(run_with_figures
         (run / "summary.json").write_text("{}")
     elif damage == "summary_not_json":
         (run / "summary.json").write_text('{"best":')
+    elif damage.startswith("summary_"):  # a field of the wrong type, the rest intact
+        s = json.loads((run / "summary.json").read_text())
+        s.update({"best": None} if damage == "summary_best_null" else
+                 {"first_collision_evaluation": "x"})
+        (run / "summary.json").write_text(json.dumps(s))
     elif damage == "no_reward":
         pq.write_table(t.drop(["reward"]), eps)
     elif damage == "no_rows":

@@ -36,7 +36,8 @@ def test_resolved_by_file_path_and_by_module(monkeypatch):
 
 
 def test_a_sut_that_cannot_step_is_refused_before_it_runs(tmp_path):
-    """A user's SUT is traced for one step (abstractly) with its resolved parameters: the
+    """A user's SUT is traced for one step (abstractly, vmapped over scenarios) with its
+    resolved parameters: the
     contract's violations give a one-line ValueError naming the SUT; a bare act function
     that keeps it loads, and a SUT without defaults works with the parameters given."""
     import jax.numpy as jnp
@@ -49,11 +50,17 @@ def test_a_sut_that_cannot_step_is_refused_before_it_runs(tmp_path):
         "def coast(obs, state, params, key):\n    return jnp.float32(0.0), state\n\n"
         "def grows(obs, state, params, key):\n    return 0.0, (state, state)\n\n"
         "def needs_params(obs, state, params, key):\n    return -params.brake, state\n\n"
-        "def no_tuple(obs, state, params, key):\n    return 0.0\n")
+        "def no_tuple(obs, state, params, key):\n    return 0.0\n\n"
+        "def unbatched(obs, state, params, key):\n    import jax, numpy as np\n"
+        "    cmd = jax.pure_callback(lambda x: np.float32(0.0),\n"
+        "                            jax.ShapeDtypeStruct((), jnp.float32), obs.ego_x)\n"
+        "    return cmd, state\n")
     assert sut_lib.resolve(f"{mod}:coast").default_params is None
     for name, needle in [("grows", "new state differs in structure"),
                          ("needs_params", "a bare act function gets params=None"),
-                         ("no_tuple", "expected \\(command, state\\)")]:
+                         ("no_tuple", "expected \\(command, state\\)"),
+                         # steps alone, not vmapped over scenarios as the simulator runs it
+                         ("unbatched", "vmap is only supported for the pure_callback")]:
         with pytest.raises(ValueError, match=f"SUT '.*:{name}' fails on a step: .*{needle}"):
             sut_lib.make(f"{mod}:{name}")
     # a SUT object from Python is checked where its parameters are resolved, with them
