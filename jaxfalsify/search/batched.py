@@ -1,6 +1,9 @@
 """``reinforce/default``: a Flax LSTM controller trained by REINFORCE (paper Section II-A,
 Eq. 2-3) with optax, on thousands of concrete scenarios per update.
 
+One concern: the batched learner (its controller, its draws, its update and its memory of
+the failures seen); the mixture's probabilities are :mod:`jaxfalsify.search.discretised`'s.
+
 **The controller** (:class:`MixtureController`, ``flax.linen``) is the paper's LSTM controller
 made cheap at any resolution. As the NAS controller the paper builds on, the LSTM steps over
 the parameters, one step each, and each step's head describes that parameter; the step reads
@@ -24,14 +27,20 @@ constant baseline is. ``steps`` Adam steps (optax) follow it on the same batch, 
 rate ``lr_search`` (0.1) until the learner has drawn a collision and ``lr`` (0.03) from then on:
 large steps towards the failures while there are none, small ones to converge on the best
 failures once there are (Adam's steps have about the learning rate's size whatever the
-gradient's scale, so the learning rate is how far the policy moves per update). The first
-update, from the uninformed first batch to its elite, is a larger jump (``lr_first``, 0.3) for
-learners 0 to ``first_learners`` - 1 (3: all but the last of the default four; a single
-learner takes it too) whose share drew no collision: most learners move at once to where the
-first batch's near misses are, one keeps the smaller step in case they are a plateau.
-``first_learners`` is a traced number like every hyperparameter: a learner takes ``lr_first``
-when its index is below it. An entropy bonus
-``entropy x mean log sigma`` keeps the components from collapsing early.
+gradient's scale, so the learning rate is how far the policy moves per update). Optionally the
+first update is a larger jump (``lr_first``) for learners 0 to ``first_learners`` - 1 whose
+share drew no collision (off by default: ``first_learners`` 0). ``first_learners`` is a traced
+number like every hyperparameter: a learner takes ``lr_first`` when its index is below it. An
+entropy bonus ``entropy x mean log sigma`` keeps the components from collapsing early.
+
+**The first batch at the boundary**: at the first update the learners (a share ``boundary`` of
+them, all by default) draw their shares from the boundary distribution
+(:func:`jaxfalsify.search.discretised.sample_boundary`: each parameter independently uniform,
+near its lowest value or near its highest, a third each) instead of their policies, and learn
+from it as from their own draws: boundary-value testing for every parameter at once. A failure
+region on a face or an edge of the box (some parameters at an end of their ranges, the others
+anywhere) gets many times the mass uniform draws give it, where the policies' initial
+components (means in 0.05-0.95 of each range) give it less than uniform draws do.
 
 **Several learners** (``learners``, 4): independent controllers, each drawing an equal share
 of the batch and updated on its own share's elite, so one learner held on a plateau of near
@@ -144,7 +153,7 @@ class BatchedParams:
     lr: float = 0.03  # Adam learning rate once the learner has found a collision ...
     lr_search: float = 0.1  # ... and until then ...
     lr_first: float = 0.3  # ... except at the first update, for the first learners:
-    first_learners: float = 3.0  # learners whose index is below it (the rest: lr_search)
+    first_learners: float = 0.0  # learners whose index is below it (the rest: lr_search)
     eps: float = 0.01  # the uniform floor's weight in the policy
     entropy: float = 0.01  # bonus on the components' mean log-width
     novelty: float = 0.5  # signal taken off a collision seen before (elite or collision) ...
@@ -153,11 +162,15 @@ class BatchedParams:
     # told (half the default budget; then the policy converges on the best failures)
     ttc_weight: float = 0.0  # near misses told apart by their min TTC [m per s] (0: off)
     ttc_below: float = -0.5  # ... below this robustness [m]
+    boundary: float = 1.0  # share of the learners (the first ones) whose first share of the
+    # batch is drawn from the boundary distribution (discretised.sample_boundary), not the policy
+    boundary_width: float = 0.02  # ... its mean distance from a range's end (rank units)
 
     RANGES = {"lr": "[0, inf)", "lr_search": "[0, inf)", "lr_first": "[0, inf)",
               "first_learners": "[0, inf)", "eps": "(0, 1)", "entropy": "[0, inf)",
               "novelty": "[0, inf)", "revisit": "[0, inf)",
-              "novelty_until": "[0, inf)", "ttc_weight": "[0, inf)", "ttc_below": "(-inf, inf)"}
+              "novelty_until": "[0, inf)", "ttc_weight": "[0, inf)", "ttc_below": "(-inf, inf)",
+              "boundary": "[0, 1]", "boundary_width": "(0, inf)"}
 
 
 @pytree.dataclass
@@ -268,7 +281,14 @@ class BatchedReinforce(Strategy):
         u = jax.lax.optimization_barrier(
             uniform(key, (self.learners * self.share, self.n_params + 2)))
         idx = self._each(draw)(self.distribution(state), self._shares(u))
-        return idx.reshape(-1, self.n_params)[:self.batch], state
+        idx = idx.reshape(-1, self.n_params)
+        # the first update: the first learners (a share `boundary` of them) draw from the
+        # boundary distribution instead (their policies learn from it as from their own draws)
+        learner = jnp.arange(idx.shape[0]) // self.share
+        first = (state.told == 0) & (learner < params.boundary * self.learners)
+        bound = discretised.sample_boundary(u[:, 2:], self.shape, params.boundary_width)
+        idx = jnp.where(first[:, None], bound, idx)
+        return idx[:self.batch], state
 
     def log_prob(self, weights, indices, params) -> jax.Array:
         """``(B,)`` log pi of each scenario ``indices (B, P)`` under the policy ``weights``

@@ -37,7 +37,7 @@ import numpy as np
 from jaxfalsify.search.base import categorical_from_uniform
 
 __all__ = ["half_steps", "log_mass", "log_normaliser", "prepare", "log_prob", "sample",
-           "probs_table"]
+           "probs_table", "sample_boundary", "boundary_probs"]
 
 
 def half_steps(shape: tuple[int, ...]) -> np.ndarray:
@@ -235,3 +235,34 @@ def _component_mass(mu, log_sigma, action, shape, p):
     lm = log_mass((r - h - mu[:, p]) / s, (r + h - mu[:, p]) / s) - \
         log_mass((-h - mu[:, p]) / s, (1.0 + h - mu[:, p]) / s)
     return jnp.exp(lm) if n[p] > 1 else jnp.ones_like(lm)
+
+
+def sample_boundary(u: jax.Array, shape: tuple[int, ...], width) -> jax.Array:
+    """``(B, P)`` int32 scenarios from uniforms ``u (B, P)`` in [0, 1) under the boundary
+    distribution: each parameter independently uniform over its values (``u < 1/3``), near its
+    lowest value (``1/3 <= u < 2/3``) or near its highest (``u >= 2/3``); "near" an exponential
+    of mean ``width`` (rank units) away from the end, rounded to the nearest value and capped at
+    the other end. Boundary-value testing for every parameter at once: each draw puts some
+    parameters at an end of their range and the others anywhere, so a failure region on a face
+    or an edge of the box (some parameters at an end, the rest free) gets about ``(2 / 3)^F``
+    of its parameters' mass per free parameter instead of ``1 / n`` per end parameter
+    (:func:`boundary_probs` gives each value's probability)."""
+    n = jnp.asarray(shape, jnp.float32)
+    span = jnp.maximum(n - 1.0, 1.0)
+    x = 3.0 * u  # [0, 3): which third, and where in it
+    flat = jnp.minimum(jnp.floor(x * n), n - 1.0)
+    frac = x - jnp.floor(x)
+    steps = jnp.minimum(jnp.round(-width * jnp.log1p(-frac) * span), n - 1.0)
+    v = jnp.where(x < 1.0, flat, jnp.where(x < 2.0, steps, n - 1.0 - steps))
+    return v.astype(jnp.int32)
+
+
+def boundary_probs(n: int, width: float) -> np.ndarray:
+    """``(n,)`` float64 probabilities of :func:`sample_boundary` over one parameter's ``n``
+    values (for tests and estimates)."""
+    if n == 1:
+        return np.ones(1)
+    span = n - 1.0
+    edges = np.exp(-(np.arange(n) + 0.5) / (width * span))  # P(steps > v)
+    low = np.concatenate([[1.0], edges[:-1]]) - np.concatenate([edges[:-1], [0.0]])
+    return (1.0 / n + low + low[::-1]) / 3.0

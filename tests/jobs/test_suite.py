@@ -51,7 +51,7 @@ def test_sut_parameters_are_dimensions_of_a_space(sut_space):
                     sut="sensor-aeb")
     # given both in the scenario and in sut_params: refused, not one silently winning
     with pytest.raises(ValueError, match=r"sut.ttc_full given twice \(in the scenario and in "
-                                         "sut_params\)"):
+                                         r"sut_params\)"):
         jf.evaluate({**base, "sut.ttc_full": 2.0}, sut="sensor-aeb",
                     sut_params={"ttc_full": 2.4})
 

@@ -123,7 +123,8 @@ def test_probabilities_sum_to_one_and_sampling_matches_them(strat):
     assert prob.sum() == pytest.approx(1.0, abs=1e-5)
     # 200,000 draws from ask: each scenario's frequency within 5 standard errors
     big = s.__class__(**{**s.__dict__, "batch": 200_000})
-    idx, _ = jax.jit(lambda k: big.ask(k, state, p))(jax.random.key(7))
+    own = pytree.replace(p, boundary=0.0)  # the policy's own draws at the first update too
+    idx, _ = jax.jit(lambda k: big.ask(k, state, own))(jax.random.key(7))
     flat = np.ravel_multi_index(np.asarray(idx).T, SHAPE)
     freq = np.bincount(flat, minlength=len(every)) / len(flat)
     order = np.ravel_multi_index(every.T, SHAPE)
@@ -238,9 +239,11 @@ def test_reinforce_gradient_estimate_matches_exact_gradient_of_expected_reward(s
     rgrid = jnp.asarray(flat_r)
     big = s.__class__(**{**s.__dict__, "batch": 4000})
 
+    own = pytree.replace(p, boundary=0.0)  # the policy's own draws at the first update too
+
     @jax.jit
     def per_sample_grads(key):
-        idx, _ = big.ask(key, state, p)
+        idx, _ = big.ask(key, state, own)
         r = rgrid[tuple(idx.T)]
 
         def one(a, ri):
@@ -342,7 +345,8 @@ def test_several_learners_sample_their_mixture():
     state = jax.jit(s.init)(jax.random.key(4), p)
     every = _every(SHAPE)
     prob = np.exp(np.asarray(jax.jit(s.log_prob)(state.params, jnp.asarray(every), p), np.float64))
-    idx, _ = jax.jit(lambda k: s.ask(k, state, p))(jax.random.key(7))
+    own = pytree.replace(p, boundary=0.0)  # the policy's own draws at the first update too
+    idx, _ = jax.jit(lambda k: s.ask(k, state, own))(jax.random.key(7))
     assert idx.shape == (200_000, len(SHAPE))
     flat = np.ravel_multi_index(np.asarray(idx).T, SHAPE)
     freq = np.bincount(flat, minlength=len(every)) / len(flat)
@@ -430,6 +434,7 @@ def test_the_first_update_takes_lr_first_for_the_first_learners_only():
 
 def test_a_learner_whose_first_share_collides_takes_lr_not_lr_first():
     s, p, state = _moved(2, 0, 1)
+    p = pytree.replace(p, first_learners=2.0)  # both learners would take lr_first
     idx, _ = jax.jit(s.ask)(jax.random.key(1), state, p)
     tell = jax.jit(s.tell_outcome)
     g = np.random.default_rng(9)
@@ -484,3 +489,67 @@ def test_vertex_learners_start_at_the_box_vertices():
     np.testing.assert_array_equal(
         np.asarray(jax.jit(one.init)(jax.random.key(3), p).params["bias"]),
         np.asarray(jax.jit(alone.init)(jax.random.key(3), p).params["bias"]))
+
+
+def _np_boundary_probs(n, width):
+    """The boundary distribution over one parameter's ``n`` values, from its definition: a
+    third uniform; a third ``round(r (n - 1))`` values from the low end, a third from the high
+    end, ``r`` exponential of mean ``width`` (CDF ``1 - exp(-x / width)``), capped at the other
+    end."""
+    if n == 1:
+        return np.ones(1)
+    cdf = lambda x: 1.0 - math.exp(-max(x, 0.0) / width)  # noqa: E731
+    low = [cdf((v + 0.5) / (n - 1)) - cdf((v - 0.5) / (n - 1)) for v in range(n - 1)]
+    low.append(1.0 - cdf((n - 1.5) / (n - 1)))
+    low = np.asarray(low)
+    return (np.full(n, 1.0 / n) + low + low[::-1]) / 3.0
+
+
+@pytest.mark.parametrize("width", [0.02, 0.2])
+def test_boundary_draws_follow_their_definition(width):
+    """200,000 draws of the boundary distribution: each parameter's value frequencies within 5
+    standard errors of the probabilities derived from its definition (float64 NumPy), which
+    :func:`discretised.boundary_probs` gives too; the parameters are independent (a pair's
+    joint frequency of both low ends against the product)."""
+    shape = (1, 2, 7, 50)
+    u = jax.random.uniform(jax.random.key(5), (200_000, len(shape)))
+    idx = np.asarray(jax.jit(lambda x: discretised.sample_boundary(x, shape, width))(u))
+    for p, n in enumerate(shape):
+        want = _np_boundary_probs(n, width)
+        np.testing.assert_allclose(discretised.boundary_probs(n, width), want, atol=1e-12)
+        assert want.sum() == pytest.approx(1.0)
+        freq = np.bincount(idx[:, p], minlength=n) / len(idx)
+        se = np.sqrt(want * (1 - want) / len(idx))
+        assert np.all(np.abs(freq - want) <= 5 * se + 1e-6), (p, freq, want)
+    both = np.mean((idx[:, 2] == 0) & (idx[:, 3] == 0))
+    prod = _np_boundary_probs(7, width)[0] * _np_boundary_probs(50, width)[0]
+    assert abs(both - prod) <= 5 * math.sqrt(prod * (1 - prod) / len(idx))
+
+
+def test_the_first_update_of_the_boundary_learners_draws_from_the_boundary():
+    """With ``boundary`` 0.5 (2 of 4 learners), the first update's draws of learners 0 and 1 follow
+    the boundary distribution (per parameter, within 5 standard errors of the definition's
+    probabilities) and those of learners 2 and 3 are the policy's (the same draws as without
+    boundary learners, same key); from the second update on every draw is the policy's."""
+    shape = (9, 40)
+    s, p = search.make("reinforce/default", shape, 80_000, learners=4, hidden=8, components=3,
+                       vertex_learners=0)
+    q = pytree.replace(p, boundary=0.5, boundary_width=0.05)
+    p = pytree.replace(p, boundary=0.0)
+    state = jax.jit(s.init)(jax.random.key(2), p)
+    ask = jax.jit(s.ask)
+    plain, _ = ask(jax.random.key(9), state, p)
+    first, _ = ask(jax.random.key(9), state, q)
+    plain, first = np.asarray(plain), np.asarray(first)
+    half = 2 * s.share
+    np.testing.assert_array_equal(first[half:], plain[half:])
+    for j, n in enumerate(shape):
+        want = _np_boundary_probs(n, 0.05)
+        freq = np.bincount(first[:half, j], minlength=n) / half
+        se = np.sqrt(want * (1 - want) / half)
+        assert np.all(np.abs(freq - want) <= 5 * se + 1e-6), (j, freq, want)
+    # the policy's draws of those learners are spread (SIGMA_INIT): far from the boundary's
+    assert np.mean(plain[:half, 1] == 0) < 0.5 * want[0]
+    later = dataclasses.replace(state, told=jnp.int32(s.batch))
+    np.testing.assert_array_equal(np.asarray(ask(jax.random.key(9), later, q)[0]),
+                                  np.asarray(ask(jax.random.key(9), later, p)[0]))
