@@ -796,8 +796,9 @@ def main(argv=None, startup: float = 0.0) -> int:
     args = None
     try:
         args = parse(argv)
-        from jaxfalsify.io.cache import check_xla_flags
+        from jaxfalsify.io.cache import check_no_cache_setting, check_xla_flags
 
+        check_no_cache_setting()
         check_xla_flags()  # XLA would end the process on a flag it does not know
         if args.no_cache:
             os.environ["JAXFALSIFY_NO_CACHE"] = "1"

@@ -27,15 +27,28 @@ from jaxfalsify.io.files import write_atomic
 
 __all__ = [
     "enabled", "folder", "enable_compilation_cache", "program_settings", "check_settings",
-    "check_xla_flags", "key_of", "PACKAGE", "package_files", "code_hash", "user_code_hash",
+    "check_xla_flags", "check_no_cache_setting", "key_of", "PACKAGE", "package_files",
+    "code_hash", "user_code_hash",
     "source_hash", "stale", "Program", "exported_jit"
 ]
 
 MIN_COMPILE_SECONDS = 0.1  # cache every compilation longer than this
 
 
+NO_CACHE_OFF = ("", "0", "false", "no")  # JAXFALSIFY_NO_CACHE values that keep the cache
+NO_CACHE_ON = ("1", "true", "yes")  # ... and those that turn it off
+
+
 def enabled() -> bool:
-    return os.environ.get("JAXFALSIFY_NO_CACHE", "").strip().lower() in ("", "0", "false", "no")
+    return os.environ.get("JAXFALSIFY_NO_CACHE", "").strip().lower() in NO_CACHE_OFF
+
+
+def check_no_cache_setting() -> None:
+    """One-line ValueError for a ``JAXFALSIFY_NO_CACHE`` that is neither on nor off (any value
+    but the off ones turns the cache off: ``maybe`` would, silently)."""
+    v = os.environ.get("JAXFALSIFY_NO_CACHE", "")
+    if v.strip().lower() not in NO_CACHE_OFF + NO_CACHE_ON:
+        raise ValueError(f"JAXFALSIFY_NO_CACHE={v!r}: use 1 (no cache) or 0 (the cache)")
 
 
 def folder() -> Path:

@@ -757,12 +757,14 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
         with tempfile.TemporaryDirectory(dir=final, prefix=".export-") as tmp:
             files = _write_export(Path(tmp), sp, rc, ep, rows, which, ego, date)
             replace_files(files, final, is_export_file)
-    except BaseException:
+    except BaseException as e:
         for a in created:
             try:
                 a.rmdir()
             except OSError:
                 break
+        if isinstance(e, OSError) and not e.filename:  # a write inside a file (a full disk)
+            raise OSError(e.errno, e.strerror, str(final)) from None  # names no file
         raise
     return [final / f.name for f in files]
 

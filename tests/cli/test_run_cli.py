@@ -239,10 +239,11 @@ def test_a_jobs_startup_counts_the_command_line_up_to_the_job(monkeypatch):
      'Invalid value "bogus" for JAX flag jax_default_matmul_precision'),
     ({"XLA_FLAGS": "--xla_bogus_flag=1"},
      "XLA_FLAGS='--xla_bogus_flag=1': Unknown flag in XLA_FLAGS: --xla_bogus_flag=1"),
+    ({"JAXFALSIFY_NO_CACHE": "maybe"}, "JAXFALSIFY_NO_CACHE='maybe': use 1 (no cache) or 0"),
 ])
 def test_jax_settings_jax_refuses_give_one_line_and_exit_2(tmp_path, env, says):
-    """A JAX setting from the environment that JAX cannot use: one line naming it, exit 2,
-    no run folder (a real process: JAX reads its settings once per process)."""
+    """A setting from the environment that JAX (or jaxfalsify) cannot use: one line naming it,
+    exit 2, no run folder (a real process: JAX reads its settings once per process)."""
     import os
     import subprocess
     import sys

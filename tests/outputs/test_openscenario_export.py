@@ -425,8 +425,9 @@ def test_a_failed_export_leaves_the_folder_as_it_was(sut_run, tmp_path, monkeypa
     new = tmp_path / "a" / "b"
     with monkeypatch.context() as m:
         m.setattr(ex, "write_distribution", broken)
-        with pytest.raises(OSError, match="No space left"):
+        with pytest.raises(OSError, match="No space left") as e:
             ex.export(sut_run, new)
+    assert e.value.filename == str(new)  # the error names the export's folder
     assert not (tmp_path / "a").exists()
 
     out = tmp_path / "osc"
