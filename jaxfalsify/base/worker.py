@@ -130,8 +130,11 @@ def call(fn: Callable, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 def first_non_flag(a: np.ndarray) -> int | None:
     """The first position of ``a (n,)`` holding neither a boolean nor the number 0 or 1 (a
     string, NaN, 0.5: refused rather than read as true), or None."""
-    ok = [isinstance(v, (bool, np.bool_, int, float, np.integer, np.floating)) and v in (0, 1)
-          for v in a.tolist()] if a.dtype != bool else [True]
+    if a.dtype == bool:
+        return None
+    items = [v.item() if np.ndim(v) == 0 and hasattr(v, "item") else v  # JAX/NumPy scalars
+             for v in a.tolist()]
+    ok = [isinstance(v, (bool, int, float)) and v in (0, 1) for v in items]
     return None if all(ok) else ok.index(False)
 
 

@@ -763,8 +763,8 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
                 a.rmdir()
             except OSError:
                 break
-        if isinstance(e, OSError) and not e.filename:  # a write inside a file (a full disk)
-            raise OSError(e.errno, e.strerror, str(final)) from None  # names no file
+        if isinstance(e, OSError) and e.errno is not None and not e.filename:  # a write
+            raise OSError(e.errno, e.strerror, str(final)) from None  # inside a file names none
         raise
     return [final / f.name for f in files]
 

@@ -33,8 +33,8 @@ share drew no collision (off by default: ``first_learners`` 0). ``first_learners
 number like every hyperparameter: a learner takes ``lr_first`` when its index is below it. An
 entropy bonus ``entropy x mean log sigma`` keeps the components from collapsing early.
 
-**The first batch at the boundary**: at the first update the learners (a share ``boundary`` of
-them, all by default) draw their shares from the boundary distribution
+**The first batch at the boundary**: at the first update the learners whose index is below
+``boundary x learners`` (all by default) draw their shares from the boundary distribution
 (:func:`jaxfalsify.search.discretised.sample_boundary`: each parameter independently uniform,
 near its lowest value or near its highest, a third each) instead of their policies, and learn
 from it as from their own draws: boundary-value testing for every parameter at once. A failure
@@ -190,8 +190,8 @@ class BatchedReinforce(Strategy):
     batch and learning from its own share's elite (the batch is their equal mixture; the last
     share is cut short when they do not divide the batch); the last ``vertex_learners`` of
     them (never the first) start with a share ``vertices`` of their components at vertices of
-    the box, of width ``vertex_sigma`` (rank units), where boundary-value testing looks first:
-    a system that gets worse monotonically in each parameter fails at a corner."""
+    the box, of width ``vertex_sigma`` (rank units), where boundary-value testing looks: a
+    system that gets worse monotonically in each parameter fails at a corner."""
 
     hidden: int = 32
     components: int = 32
@@ -263,7 +263,7 @@ class BatchedReinforce(Strategy):
     def probs(self, state, params=None) -> jax.Array:
         """``(P, max_n)`` each parameter's marginal probabilities under the current policy
         (with several learners, their equal mixture: what ``ask`` draws from when the learners
-        divide the batch)."""
+        divide the batch, after the first update's boundary draws)."""
         eps = (params or self.default_params()).eps
         p = self._each(lambda m, u, s: discretised.probs_table(m, u, s, self.shape, eps))(
             *self.distribution(state))
@@ -293,7 +293,7 @@ class BatchedReinforce(Strategy):
     def log_prob(self, weights, indices, params) -> jax.Array:
         """``(B,)`` log pi of each scenario ``indices (B, P)`` under the policy ``weights``
         (with several learners, their equal mixture: what ``ask`` draws from when the learners
-        divide the batch)."""
+        divide the batch, after the first update's boundary draws)."""
         lp = self._each(lambda w: self._log_prob_one(w, indices, params))(weights)
         if self.learners == 1:
             return lp

@@ -157,10 +157,11 @@ def test_intervals_cover_the_exact_rate(paper, exact, method, draws):
 @pytest.mark.parametrize("method", ["mc", "is"])
 def test_no_violation_gives_an_interval_above_zero(method):
     """A requirement never violated (time-to-collision >= 0 s): the estimate is 0 and the
-    interval's upper end is Clopper-Pearson's for no success in the draws' uniform mass (each
-    draw counts its proposal's uniform share: 1 for the uniform first level, ``defensive``
-    for the others; scipy's beta quantile), not 0; Monte Carlo's Wilson upper end is of the
-    same order (oracle: Clopper-Pearson's for all its draws, which Wilson's exceeds)."""
+    interval's upper end is at least Clopper-Pearson's, and within 0.1 % of it, for no success
+    in the draws' uniform mass (each draw counts its proposal's uniform share: 1 for the
+    uniform first level, ``defensive`` for the others; scipy's beta quantile), not 0; Monte
+    Carlo's Wilson upper end is of the same order (oracle: Clopper-Pearson's for all its
+    draws, which Wilson's exceeds)."""
     from scipy.stats import beta
 
     s = est.estimate(est.EstimateConfig(
@@ -170,8 +171,8 @@ def test_no_violation_gives_an_interval_above_zero(method):
     if method == "is":
         assert s["proposal_samples"] == 3 * 2000
         mass = 2000 + 0.1 * (2 * 2000 + 1000)  # the uniform level, then defensive mixtures
-        want = float(beta.ppf(0.975, 1, mass))
-        assert s["interval"][1] == pytest.approx(want, rel=1e-3)
+        cp = float(beta.ppf(0.975, 1, mass))
+        assert cp <= s["interval"][1] <= 1.001 * cp
     else:
         cp = float(beta.ppf(0.975, 1, s["samples"]))
         assert cp <= s["interval"][1] <= 1.1 * cp

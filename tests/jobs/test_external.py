@@ -213,6 +213,7 @@ def test_cli_refuses_a_wrong_length_result_naming_it(tmp_path, capsys, monkeypat
     assert code == 0  # every scenario failed, recorded as failed
     s = json.loads((tmp_path / "r" / "summary.json").read_text())
     assert s["n_failed"] == 8 and s["failed_evaluations"] == list(range(1, 9))
+    assert "No result: all 8 evaluations failed" in " ".join(runs.run_lines(s))  # closing lines
 
 
 def test_cli_run_with_an_evaluator(tmp_path, capsys, monkeypatch):
@@ -464,6 +465,14 @@ def test_a_collision_flag_that_is_not_true_or_false_fails_its_batch_with_the_rea
         res = pool.evaluate(pool_batch(3))
     assert res.failed.all()
     assert all("returned collision nan for scenario 0" in r for r in res.errors.values())
+    # booleans and 0/1 of any kind are flags (NumPy and JAX scalars, 0-d arrays, in a list)
+    import jax.numpy as jnp
+
+    from jaxfalsify.base import worker
+
+    out = worker.call(lambda v: {"robustness": np.ones(4), "collision": [
+        np.bool_(True), jnp.array(False), np.int64(1), 0.0]}, {"x": np.zeros(4)})
+    np.testing.assert_array_equal(out["collision"], [True, False, True, False])
 
 
 def test_trajectories_of_other_lengths_and_names_share_one_length():

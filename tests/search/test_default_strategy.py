@@ -377,7 +377,7 @@ def test_each_learner_searches_with_lr_search_until_its_share_draws_a_collision(
     """Learner 0's share holds a collision, learner 1's does not: learner 0 learns with ``lr``
     (and is marked as having found one), learner 1 with ``lr_search`` (oracle: the same update
     by two copies of the strategy whose learning rates are both ``lr``, both ``lr_search``);
-    a collision seen once keeps the learner on ``lr``. (After a first update: the first uses
+    a collision seen once keeps the learner on ``lr``. (After a first update: the first may use
     ``lr_first``, see below.)"""
     s, p, state = _moved(2, 0, 1)
     state = dataclasses.replace(state, told=jnp.int32(s.batch))
