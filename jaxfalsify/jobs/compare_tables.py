@@ -36,6 +36,8 @@ def _percent(p: float | None) -> str:
     if p == 0:
         return "0"
     x = 100 * p
+    if x >= 10:  # whole percent (``.2g`` writes 100 as ``1e+02``)
+        return f"{x:.0f}%"
     return f"{x:.2g}%" if x >= 1e-4 else f"{x:.1e}%"
 
 

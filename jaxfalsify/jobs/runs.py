@@ -473,8 +473,11 @@ def closing_report(o: RunOutcome) -> str:
     """The best scenario beside a typical non-critical one (paper Table II layout) and the
     run's numbers."""
     res, s = o.result, o.summary
-    head, rows = analysis.table_ii(res.space, res.indices, res.fields)
-    return "\n".join([analysis.text_table(head, rows), "", *run_lines(s),
+    table = []
+    if s.get("n_failed", 0) < s["evaluations"]:  # no scenario to show when every one failed
+        head, rows = analysis.table_ii(res.space, res.indices, res.fields)
+        table = [analysis.text_table(head, rows), ""]
+    return "\n".join([*table, *run_lines(s),
                       f"wall time {timing_line(o.timing)} (from process start to exit)"])
 
 

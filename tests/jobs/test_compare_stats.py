@@ -86,6 +86,8 @@ def test_shares_print_in_one_format_per_column():
     never mixes 1.3% and 6.7e-03); collision shares in scientific notation; none is 0."""
     assert [compare_tables._percent(x) for x in (0.013, 6.7e-3, 2.5e-5, 0.0)] == \
         ["1.3%", "0.67%", "0.0025%", "0"]
+    # every evaluation on a corner (a one-scenario space), a quarter: whole percent
+    assert [compare_tables._percent(x) for x in (1.0, 0.25, 0.125)] == ["100%", "25%", "12%"]
     assert [compare_tables.share_text(x) for x in (8.4e-3, 0.0)] == ["8.4e-03", "0"]
 
 
