@@ -293,7 +293,7 @@ class Falsifier:
         Args:
           robustness: ``(B,)`` the requirement's robustness of each scenario (negative:
             violated); finite wherever ``failed`` is not set.
-          collision: ``(B,)`` bool, the failures the search looks for (default
+          collision: ``(B,)`` bool (or 1 and 0), the failures the search looks for (default
             ``robustness < 0``: the requirement's violations); the robustness then ranks
             the near misses (as the built-in runs rank them by the clash robustness).
           signals: any of :data:`SIGNALS`, ``(B,)`` each.
