@@ -19,7 +19,7 @@ from jaxfalsify.base.config import jsonable
 
 __all__ = [
     "sha256", "write_atomic", "write_all_atomic", "replace_files", "atomic_path", "save_npz",
-    "write_parquet", "write_json", "jsonable"
+    "write_parquet", "write_json", "jsonable", "naming_errors"
 ]
 
 
@@ -51,7 +51,7 @@ def write_atomic(path: Path, data: str | bytes) -> str:
     data = data.encode() if isinstance(data, str) else bytes(data)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with _naming(path):
+        with naming_errors(path):
             with os.fdopen(fd, "wb") as f:
                 f.write(data)
             _publish(tmp, path)
@@ -71,7 +71,7 @@ def write_all_atomic(files: dict[Path, bytes]) -> None:
         for path, data in files.items():
             tmp = _tmp_in(Path(path).parent, Path(path).name)
             staged.append((tmp, Path(path)))
-            with _naming(Path(path)):
+            with naming_errors(Path(path)):
                 tmp.write_bytes(data)
         for tmp, path in staged:
             _publish(tmp, path)
@@ -120,7 +120,7 @@ def replace_files(staged: list[Path], folder: Path, is_old) -> list[Path]:
 
 
 @contextlib.contextmanager
-def _naming(path: Path):
+def naming_errors(path: Path):
     """An OSError without a file name (a write to an open file on a full disk) gets
     ``path``'s, so its one-line error says which file could not be written."""
     try:
@@ -140,7 +140,7 @@ def atomic_path(path: Path):
     path = Path(path)
     tmp = _tmp_in(path.parent, path.name)
     try:
-        with _naming(path):
+        with naming_errors(path):
             yield tmp
             _publish(tmp, path)
     finally:

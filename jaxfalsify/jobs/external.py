@@ -500,4 +500,3 @@ def summary_dict(res: campaign.Result, rc: RunConfig) -> dict:
     s["n_failed"] = int(failed.sum())
     s["failed_evaluations"] = [int(e) for e in np.nonzero(failed)[0][:100] + 1]
     return s
-

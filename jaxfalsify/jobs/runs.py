@@ -469,12 +469,18 @@ def resume_config(out: Path | str) -> RunConfig:
     return RunConfig.from_toml(out / "config.toml")
 
 
+def _all_failed(s: dict) -> bool:
+    """Whether every evaluation of the run ``summary.json`` ``s`` describes failed (an
+    evaluator's run: no scenario has a result)."""
+    return s.get("n_failed", 0) >= s["evaluations"]
+
+
 def closing_report(o: RunOutcome) -> str:
     """The best scenario beside a typical non-critical one (paper Table II layout) and the
     run's numbers."""
     res, s = o.result, o.summary
     table = []
-    if s.get("n_failed", 0) < s["evaluations"]:  # no scenario to show when every one failed
+    if not _all_failed(s):  # no scenario to show when every one failed
         head, rows = analysis.table_ii(res.space, res.indices, res.fields)
         table = [analysis.text_table(head, rows), ""]
     return "\n".join([*table, *run_lines(s),
@@ -507,7 +513,7 @@ def run_lines(s: dict) -> list[str]:
             f"{s['best']['evaluation']}; the running best was within 1 % of it from evaluation "
             f"{s['best_reached_evaluation']}." if s["best_reached_evaluation"] is not None else
             f"No result: all {s['evaluations']} evaluations failed (each failure's reason "
-            "is printed as it happens)." if s.get("n_failed", 0) >= s["evaluations"] else
+            "is printed as it happens)." if _all_failed(s) else
             f"No finite reward: all {s['n_nonfinite']} evaluations non-finite (the SUT "
             "returned NaN or inf; see 'Numerical guards' in README).")
     return [f"{s['evaluations']} evaluations: {found}.", best,

@@ -75,7 +75,7 @@ import numpy as np
 
 from jaxfalsify.core.sim import STILL, WINDOW, WORLD, start_positions
 from jaxfalsify.engine.rundir import check_simulated, indices_of, load_run, resimulate
-from jaxfalsify.io.files import replace_files
+from jaxfalsify.io.files import naming_errors, replace_files
 from jaxfalsify.io.store import folder_kind
 from jaxfalsify.outputs import analysis
 from jaxfalsify.scenario import weather as weather_lib
@@ -754,17 +754,16 @@ def export(run_dir: Path, out: Path, which: str = "best", ego: str = "controller
         created.append(a)
     final.mkdir(parents=True, exist_ok=True)
     try:
-        with tempfile.TemporaryDirectory(dir=final, prefix=".export-") as tmp:
+        with naming_errors(final), \
+                tempfile.TemporaryDirectory(dir=final, prefix=".export-") as tmp:
             files = _write_export(Path(tmp), sp, rc, ep, rows, which, ego, date)
             replace_files(files, final, is_export_file)
-    except BaseException as e:
+    except BaseException:
         for a in created:
             try:
                 a.rmdir()
             except OSError:
                 break
-        if isinstance(e, OSError) and e.errno is not None and not e.filename:  # a write
-            raise OSError(e.errno, e.strerror, str(final)) from None  # inside a file names none
         raise
     return [final / f.name for f in files]
 

@@ -283,11 +283,14 @@ class BatchedReinforce(Strategy):
         idx = self._each(draw)(self.distribution(state), self._shares(u))
         idx = idx.reshape(-1, self.n_params)
         # the first update: the first learners (a share `boundary` of them) draw from the
-        # boundary distribution instead (their policies learn from it as from their own draws)
-        learner = jnp.arange(idx.shape[0]) // self.share
-        first = (state.told == 0) & (learner < params.boundary * self.learners)
-        bound = discretised.sample_boundary(u[:, 2:], self.shape, params.boundary_width)
-        idx = jnp.where(first[:, None], bound, idx)
+        # boundary distribution instead (their policies learn from it as from their own
+        # draws); a cond, so later updates do not compute it
+        def at_boundary(idx):
+            learner = jnp.arange(idx.shape[0]) // self.share
+            bound = discretised.sample_boundary(u[:, 2:], self.shape, params.boundary_width)
+            return jnp.where((learner < params.boundary * self.learners)[:, None], bound, idx)
+
+        idx = jax.lax.cond(state.told == 0, at_boundary, lambda idx: idx, idx)
         return idx[:self.batch], state
 
     def log_prob(self, weights, indices, params) -> jax.Array:
