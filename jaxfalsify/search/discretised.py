@@ -193,21 +193,31 @@ def log_prob(mix_logits: jax.Array, mu: jax.Array, log_sigma: jax.Array, actions
 
 def sample(mix_logits: jax.Array, mu: jax.Array, log_sigma: jax.Array, u: jax.Array,
            shape: tuple[int, ...], eps) -> jax.Array:
-    """One scenario ``(P,)`` int32 from uniforms ``u (P + 2,)`` in [0, 1): ``u[0]`` chooses
-    the uniform floor (``u[0] < eps``) or the mixture, ``u[1]`` the component, ``u[2:]`` each
-    parameter's value (uniformly under the floor, else by the component's inverse CDF)."""
+    """``(B, P)`` int32 scenarios from uniforms ``u (B, P + 2)`` in [0, 1): ``u[:, 0]``
+    chooses the uniform floor (``u < eps``) or the mixture, ``u[:, 1]`` the component,
+    ``u[:, 2:]`` each parameter's value (uniformly under the floor, else by the component's
+    inverse CDF).
+
+    Laid out parameters x scenarios, the chosen components' means and widths picked by a
+    product with the one-hot choice (exact: one term of the sum is non-zero) rather than a
+    gather: on XLA CPU the gather kept the elementwise work that follows from vectorising, and
+    a minor axis of ``P`` values vectorises poorly (batch 4096 on 2 cores: 0.25 ms instead of
+    1.0-1.3 ms for the same bits)."""
     n = np.asarray(shape)
-    span = jnp.asarray(np.maximum(n - 1, 1), jnp.float32)
-    h = jnp.asarray(half_steps(shape), jnp.float32)
-    k = categorical_from_uniform(u[1], jax.nn.softmax(mix_logits))
-    m, s = mu[k], jnp.exp(log_sigma[k])
+    span = jnp.asarray(np.maximum(n - 1, 1), jnp.float32)[:, None]
+    h = jnp.asarray(half_steps(shape), jnp.float32)[:, None]
+    k = categorical_from_uniform(u[:, 1], jax.nn.softmax(mix_logits))  # (B,)
+    one_hot = (k[None, :] == jnp.arange(mix_logits.shape[0])[:, None]).astype(jnp.float32)
+    pick = lambda x: jnp.dot(x.T, one_hot, precision=jax.lax.Precision.HIGHEST)  # noqa: E731
+    m, s = pick(mu), pick(jnp.exp(log_sigma))  # (P, B)
+    ut = u[:, 2:].T
     lo, hi = jax.nn.sigmoid((-h - m) / s), jax.nn.sigmoid((1.0 + h - m) / s)
-    q = jnp.clip(lo + u[2:] * (hi - lo), 1e-7, 1.0 - 1e-7)
+    q = jnp.clip(lo + ut * (hi - lo), 1e-7, 1.0 - 1e-7)
     x = m + s * (jnp.log(q) - jnp.log1p(-q))  # the logit; in [-h, 1 + h] up to rounding
-    v = jnp.clip(jnp.round(x * span), 0, jnp.asarray(n - 1, jnp.float32))
-    flat = jnp.minimum(jnp.floor(u[2:] * jnp.asarray(n, jnp.float32)),
-                       jnp.asarray(n - 1, jnp.float32))
-    return jnp.where(u[0] < eps, flat, v).astype(jnp.int32)
+    top = jnp.asarray(n - 1, jnp.float32)[:, None]
+    v = jnp.clip(jnp.round(x * span), 0, top)
+    flat = jnp.minimum(jnp.floor(ut * jnp.asarray(n, jnp.float32)[:, None]), top)
+    return jnp.where(u[None, :, 0] < eps, flat, v).astype(jnp.int32).T
 
 
 def probs_table(mix_logits, mu, log_sigma, shape: tuple[int, ...], eps) -> jax.Array:
@@ -249,14 +259,15 @@ def sample_boundary(u: jax.Array, shape: tuple[int, ...], width) -> jax.Array:
     on a face or an edge of the box (some parameters at an end, the rest free) gets several
     times its uniform mass per end parameter (:func:`boundary_probs` gives each value's
     probability)."""
-    n = jnp.asarray(shape, jnp.float32)
+    n = jnp.asarray(shape, jnp.float32)[:, None]
     span = jnp.maximum(n - 1.0, 1.0)
-    x = 3.0 * u  # [0, 3): which third, and where in it
+    x = 3.0 * u.T  # [0, 3): which third, and where in it; parameters x scenarios (a minor
+    # axis of P values vectorises poorly on XLA CPU)
     flat = jnp.minimum(jnp.floor(x * n), n - 1.0)
     frac = x - jnp.floor(x)
     steps = jnp.minimum(jnp.round(-width * jnp.log1p(-frac) * span), n - 1.0)
     v = jnp.where(x < 1.0, flat, jnp.where(x < 2.0, steps, n - 1.0 - steps))
-    return v.astype(jnp.int32)
+    return v.astype(jnp.int32).T
 
 
 def boundary_probs(n: int, width: float) -> np.ndarray:
