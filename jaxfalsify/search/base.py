@@ -222,9 +222,18 @@ def value_mask(shape: tuple[int, ...]) -> jax.Array:
 
 
 def sample_categorical(key, probs: jax.Array, batch: int) -> jax.Array:
-    """``(batch, P)`` int32 indices from per-parameter probabilities ``probs (P, max_n)``."""
+    """``(batch, P)`` int32 indices from per-parameter probabilities ``probs (P, max_n)``:
+    :func:`categorical_from_uniform`'s draws (the same bits), each parameter's CDF searched
+    by bisection, ``O(batch P log max_n)`` (comparing every draw with every value cost
+    ``O(batch P max_n)``: 0.3 s per update at batch 4096 on 8 parameters of up to 2000 values)."""
     u = uniform(key, (batch, probs.shape[0]))
-    return categorical_from_uniform(u, jnp.broadcast_to(probs, (batch,) + probs.shape))
+    cdf = jnp.cumsum(probs, axis=-1)  # (P, n), non-decreasing
+    x = u.T * cdf[:, -1:]  # (P, batch)
+    # the number of values whose cumulative probability is <= x, as categorical_from_uniform
+    idx = jax.vmap(lambda c, v: jnp.searchsorted(c, v, side="right", method="scan"))(cdf, x)
+    n = probs.shape[-1]
+    last = n - 1 - jnp.argmax(jnp.flip(probs > 0, axis=-1), axis=-1)  # (P,)
+    return jnp.minimum(idx, last[:, None]).astype(jnp.int32).T
 
 
 def categorical_from_uniform(u: jax.Array, probs: jax.Array) -> jax.Array:

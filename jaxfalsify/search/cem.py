@@ -67,8 +67,11 @@ class CEM(Strategy):
         elite = (rank < n_elite) & jnp.isfinite(rewards)
         n = elite.sum()
         weight = elite.astype(jnp.float32) / jnp.maximum(n, 1)  # (B,)
-        freq = jnp.einsum("b,bpn->pn", weight, jax.nn.one_hot(indices, self.width),
-                          precision=jax.lax.Precision.HIGHEST)  # not TF32 on GPUs
+        # the elite's value frequencies, (P, max_n): a scatter-add, O(B P) (a one-hot product
+        # is O(B P max_n))
+        params_of = jnp.broadcast_to(jnp.arange(self.n_params), indices.shape)
+        freq = jnp.zeros((self.n_params, self.width), jnp.float32).at[
+            params_of, indices].add(jnp.broadcast_to(weight[:, None], indices.shape))
         probs = (1 - params.smoothing) * state.probs + params.smoothing * freq
         probs = jnp.where(mask, jnp.maximum(probs, params.min_prob), 0.0)
         probs = probs / probs.sum(-1, keepdims=True)

@@ -16,7 +16,7 @@ from jaxfalsify import search
 from jaxfalsify.base import pytree
 from jaxfalsify.engine import campaign
 from jaxfalsify.outputs import analysis
-from jaxfalsify.search import controller, reinforce
+from jaxfalsify.search import base, controller, reinforce
 
 SHAPE = (6, 5, 4)
 TARGET = np.array([4, 1, 2])
@@ -381,6 +381,46 @@ def test_cem_learns_from_finite_outcomes_only():
     expected = np.full(50, 0.3 / 50)
     expected[7] += 0.7
     np.testing.assert_allclose(after, expected, rtol=1e-5)
+
+
+def test_cem_draws_are_the_inverse_cdf_of_every_value_compared():
+    """The bisection of each parameter's CDF gives the same draws as comparing every draw
+    with every value (``categorical_from_uniform`` on the broadcast table), zero-probability
+    and padded slots included, and never a value of probability 0."""
+    rng = np.random.default_rng(0)
+    shape = (300, 7, 1, 40)
+    mask = np.asarray(base.value_mask(shape))
+    probs = rng.random(mask.shape) * mask * (rng.random(mask.shape) > 0.3)
+    probs[:, 0] = 0.0
+    probs[2, 0] = 1.0
+    probs = jnp.asarray(probs / probs.sum(-1, keepdims=True), jnp.float32)
+    key = jax.random.key(3)
+    got = np.asarray(base.sample_categorical(key, probs, 5000))
+    u = base.uniform(key, (5000, len(shape)))
+    want = np.asarray(base.categorical_from_uniform(u, jnp.broadcast_to(probs, (5000,) +
+                                                                         probs.shape)))
+    np.testing.assert_array_equal(got, want)
+    assert np.all(np.asarray(probs)[np.arange(len(shape))[None, :], got] > 0)
+
+
+def test_cem_update_matches_numpy():
+    """CEM's tell against NumPy: the elite (the best elite_frac of the batch) value
+    frequencies by bincount, the smoothed step, the floor and the renormalisation."""
+    shape = (6, 1, 9)
+    s, p = search.make("cem", shape, 40, elite_frac=0.25, smoothing=0.6, min_prob=0.01)
+    st = s.init(jax.random.key(0), p)
+    rng = np.random.default_rng(1)
+    idx = np.stack([rng.integers(0, n, 40) for n in shape], axis=1).astype(np.int32)
+    rewards = rng.permutation(40).astype(np.float32)  # distinct: no ties to break
+    got = np.asarray(s.tell(jax.random.key(2), st, jnp.asarray(idx), jnp.asarray(rewards),
+                            p).probs, np.float64)
+    elite = idx[np.argsort(-rewards)[:10]]
+    mask = np.asarray(base.value_mask(shape))
+    for q, n in enumerate(shape):
+        freq = np.bincount(elite[:, q], minlength=n) / 10.0
+        want = np.maximum(0.4 / n + 0.6 * freq, 0.01)
+        np.testing.assert_allclose(got[q, :n], want / want.sum(), rtol=1e-5)
+        assert np.all(got[q, ~mask[q]] == 0)
 
 
 def test_anneal_moves_only_parameters_that_can_move():
