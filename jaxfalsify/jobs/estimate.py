@@ -246,9 +246,7 @@ def exact_rate(space: Space, sut="carla-tm", sut_params=None, requirement=req_li
 # ----------------------------------------------------------------------------- intervals
 def wilson(k: int, n: int, confidence: float) -> tuple[float, float]:
     """Wilson's score interval for a binomial proportion ``k / n``."""
-    from scipy.stats import norm
-
-    z = float(norm.ppf(0.5 + confidence / 2))
+    z = _z(confidence)
     p = k / n
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
@@ -297,8 +295,9 @@ def fit_mixture(idx: np.ndarray, w: np.ndarray, shape: np.ndarray, k: int, rng,
     w = w / w.sum()
     # each draw's values as rows of one (P * width) table: a component's value counts are
     # one bincount over every parameter, and each draw's log-probabilities gather rows of
-    # the (P * width, K) table (both contiguous; the same sums in the same order as one
-    # bincount and one column gather per parameter and component, 1.2-1.9x faster)
+    # the (P * width, K) table (both contiguous; the same sums in the same order as a
+    # bincount per parameter and component and a column gather per parameter, 1.3-1.7x
+    # faster)
     flat = idx + (np.arange(n_par) * width)[None, :]
     values = flat.ravel()
     uniform = np.where(mask, 1.0 / shape[:, None], 0.0)[None]

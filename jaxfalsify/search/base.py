@@ -40,7 +40,7 @@ __all__ = [
     "Strategy", "near_miss_ttc", "shaped_signal", "SIGNALS", "resolve_signal", "centred_ranks",
     "standardised", "ADVANTAGES", "resolve_advantage",
     "uniform", "sample_uniform", "value_mask", "sample_categorical",
-    "categorical_from_uniform", "uniform_indices", "rank_order"
+    "categorical_from_uniform", "categorical_by_bisection", "uniform_indices", "rank_order"
 ]
 
 
@@ -222,11 +222,17 @@ def value_mask(shape: tuple[int, ...]) -> jax.Array:
 
 
 def sample_categorical(key, probs: jax.Array, batch: int) -> jax.Array:
-    """``(batch, P)`` int32 indices from per-parameter probabilities ``probs (P, max_n)``:
-    :func:`categorical_from_uniform`'s draws (the same bits), each parameter's CDF searched
-    by bisection, ``O(batch P log max_n)`` (comparing every draw with every value cost
-    ``O(batch P max_n)``: 0.3 s per update at batch 4096 on 8 parameters of up to 2000 values)."""
-    u = uniform(key, (batch, probs.shape[0]))
+    """``(batch, P)`` int32 indices from per-parameter probabilities ``probs (P, max_n)``
+    (:func:`categorical_by_bisection` of one uniform draw)."""
+    return categorical_by_bisection(uniform(key, (batch, probs.shape[0])), probs)
+
+
+def categorical_by_bisection(u: jax.Array, probs: jax.Array) -> jax.Array:
+    """``u (B, P)`` in [0, 1) and per-parameter probabilities ``probs (P, max_n)`` -> indices
+    ``(B, P)`` int32: :func:`categorical_from_uniform`'s draws (the same indices for finite
+    probabilities, whose cumulative sums do not decrease), each parameter's CDF searched by
+    bisection, ``O(B P log max_n)`` (comparing every draw with every value is
+    ``O(B P max_n)``: 0.3 s per update at batch 4096 on 8 parameters of up to 2000 values)."""
     cdf = jnp.cumsum(probs, axis=-1)  # (P, n), non-decreasing
     x = u.T * cdf[:, -1:]  # (P, batch)
     # the number of values whose cumulative probability is <= x, as categorical_from_uniform

@@ -68,7 +68,8 @@ class CEM(Strategy):
         n = elite.sum()
         weight = elite.astype(jnp.float32) / jnp.maximum(n, 1)  # (B,)
         # the elite's value frequencies, (P, max_n): a scatter-add, O(B P) (a one-hot product
-        # is O(B P max_n))
+        # is O(B P max_n)); every non-zero addend is the same 1 / n, so the sums do not
+        # depend on the order of the additions
         params_of = jnp.broadcast_to(jnp.arange(self.n_params), indices.shape)
         freq = jnp.zeros((self.n_params, self.width), jnp.float32).at[
             params_of, indices].add(jnp.broadcast_to(weight[:, None], indices.shape))

@@ -133,6 +133,22 @@ def test_probabilities_sum_to_one_and_sampling_matches_them(strat):
     assert np.all(np.asarray(idx)[:, 1] == 0)
 
 
+@pytest.mark.parametrize("learners", [1, 3])
+def test_later_updates_draw_as_the_first_update_does_without_boundary(learners):
+    """Both branches of the first update's cond draw the policy's scenarios: a later update
+    (``told`` > 0) draws the same scenarios from the same key and policy as the first update
+    with ``boundary`` 0, whose draws follow the policy's probabilities (tested above); one
+    learner (no learner axis) and three that do not divide the batch."""
+    s, p, state = _moved(learners, 0, 1)
+    big = s.__class__(**{**s.__dict__, "batch": 20_000})
+    own = pytree.replace(p, boundary=0.0)
+    ask = jax.jit(big.ask)
+    first = np.asarray(ask(jax.random.key(5), state, own)[0])
+    later = dataclasses.replace(state, told=jnp.int32(big.batch))
+    np.testing.assert_array_equal(np.asarray(ask(jax.random.key(5), later, own)[0]), first)
+    assert first.shape == (20_000, len(SHAPE))
+
+
 def test_marginals_table_matches_enumeration(strat):
     s, p, state = strat
     every = _every(SHAPE)

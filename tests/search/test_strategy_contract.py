@@ -401,6 +401,12 @@ def test_cem_draws_are_the_inverse_cdf_of_every_value_compared():
                                                                          probs.shape)))
     np.testing.assert_array_equal(got, want)
     assert np.all(np.asarray(probs)[np.arange(len(shape))[None, :], got] > 0)
+    # a draw exactly on a cumulative probability: the first value whose cumulative
+    # probability exceeds it, past the zero-probability value (0.5 of [0.5, 0, 0.5] is value 2)
+    tie = jnp.asarray([[0.5, 0.0, 0.5], [0.25, 0.25, 0.5]], jnp.float32)
+    u = jnp.asarray([[0.5, 0.5], [0.0, 0.25]], jnp.float32)
+    np.testing.assert_array_equal(np.asarray(base.categorical_by_bisection(u, tie)),
+                                  [[2, 2], [0, 1]])
 
 
 def test_cem_update_matches_numpy():
