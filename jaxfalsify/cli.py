@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import signal
 import sys
 from pathlib import Path
@@ -77,14 +78,16 @@ def parse(argv=None) -> argparse.Namespace:
     return args
 
 
-def _int(name, minimum=0):
+def _int(name, minimum=0, maximum=None):
     def parse(text):
-        try:
-            v = int(text)
-        except ValueError:
+        # digits 0-9 only: Python's int() also reads '1_000' and other scripts' digits
+        if not re.fullmatch(r"\s*[+-]?[0-9]+\s*", text):
             raise argparse.ArgumentTypeError(f"{name} must be an integer (got {text!r})")
+        v = int(text)
         if v < minimum:
             raise argparse.ArgumentTypeError(f"{name} must be >= {minimum} (got {v})")
+        if maximum is not None and v > maximum:
+            raise argparse.ArgumentTypeError(f"{name} must be <= {maximum} (got {v})")
         return v
     return parse
 
@@ -291,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
                      "truth: evaluations and seconds to the first failure")
     c.add_argument("--out", type=_folder, help="folder for compare.json/.md "
                    "(default runs/compare-<timestamp>)")
-    c.add_argument("--jobs", type=_int("--jobs", 1),
+    c.add_argument("--jobs", type=_int("--jobs", 1, 256),
                    help="strategies searched side by side (default: one per CPU core, at "
                    "most 4; results are the same, only wall times differ)")
     c.add_argument("--force", action="store_true", help="overwrite an existing comparison")

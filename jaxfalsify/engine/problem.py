@@ -43,8 +43,9 @@ def check_int(key: str, v, minimum: int = 0, maximum: int | None = None) -> int:
     if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
         raise ValueError(f"{key} must be an integer (got {v!r})")
     if v < minimum or (maximum is not None and v > maximum):
-        hi = f"..{maximum}" if maximum is not None else " or more"
-        raise ValueError(f"{key} must be in {minimum}{hi} (got {v})")
+        if maximum is None:
+            raise ValueError(f"{key} must be at least {minimum} (got {v})")
+        raise ValueError(f"{key} must be in {minimum}..{maximum} (got {v})")
     return int(v)
 
 

@@ -68,6 +68,27 @@ def check_summary_types(where: Path, summary: dict) -> None:
             raise ValueError(f"{where} is damaged ('{key}' is {shown}, expected {what})")
 
 
+FLAG_COLUMNS = ("collision", "nonfinite", "violated", "failed")  # true/false columns
+
+
+def check_column_types(where: Path, ep: dict, sp: Space) -> None:
+    """One-line ValueError naming the first column of ``evaluations.parquet`` whose type is
+    not what a run writes (a hand-edited or damaged file): the evaluation and update numbers
+    and the value indices integers, the flags true/false, every other column a number."""
+    integer = ("evaluation", "update", *(f"{n}_idx" for n in sp.names))
+    for name, col in ep.items():
+        kind = col.dtype
+        if name in integer:
+            ok, what = np.issubdtype(kind, np.integer), "integers"
+        elif name in FLAG_COLUMNS:
+            ok, what = kind == np.bool_, "true/false"
+        else:
+            ok, what = np.issubdtype(kind, np.number) and kind != np.bool_, "numbers"
+        if not ok:
+            raise ValueError(f"{where} is damaged: column '{name}' holds {kind} values, "
+                             f"expected {what}")
+
+
 def load_run(run_dir: Path) -> RunFolder:
     """A finished run folder: its space, resolved config, summary and evaluations columns,
     every file checked against the others (one-line ValueError naming the damaged file)."""
@@ -107,9 +128,26 @@ def load_run(run_dir: Path) -> RunFolder:
         raise ValueError(f"{where} is damaged (no column '{gone[0]}')")
     if len(ep["evaluation"]) == 0:
         raise ValueError(f"{where} holds no evaluation")
+    check_column_types(where, ep, sp)
+    n_rows = len(ep["evaluation"])
+    if n_rows != summary["evaluations"] or not np.array_equal(
+            ep["evaluation"], np.arange(1, n_rows + 1)):
+        raise ValueError(f"{where} is damaged: its 'evaluation' column is not 1..{n_rows} in "
+                         f"order, or its {n_rows} rows are not the {summary['evaluations']} "
+                         "evaluations summary.json counts")
+    update = ep.get("update")
+    if update is not None and (update[0] < 0 or np.any(np.diff(update) < 0)):
+        raise ValueError(f"{where} is damaged: its 'update' column is not non-negative and "
+                         "non-decreasing")
+    for key, v in (("best.evaluation", summary["best"]["evaluation"]),
+                   ("first_collision_evaluation", summary["first_collision_evaluation"]),
+                   ("best_reached_evaluation", summary.get("best_reached_evaluation"))):
+        if v is not None and not 1 <= v <= n_rows:
+            raise ValueError(f"{run_dir / 'summary.json'} is damaged ('{key}' is {v}, not one "
+                             f"of the run's evaluations 1..{n_rows})")
     for n, size in zip(sp.names, sp.shape):
         i = ep[f"{n}_idx"]
-        if not np.issubdtype(i.dtype, np.integer) or i.min() < 0 or i.max() >= size:
+        if i.min() < 0 or i.max() >= size:
             raise ValueError(f"{where} is damaged: column '{n}_idx' outside 0..{size - 1}")
     check_config_matches(run_dir, sp, rc, summary, ep)
     return RunFolder(sp, rc, summary, ep)

@@ -118,9 +118,12 @@ def _save(rec, path: Path, log) -> None:
     path. (rerun's own file sink reports a write error on its thread and leaves a truncated
     file.)"""
     stream = rec.binary_stream()
-    log()
-    data = stream.read(flush=True)
-    rec.disconnect()
+    try:
+        log()
+    finally:  # drained and disconnected also when logging failed: rerun's stream, dropped
+        # undrained while the error unwinds, blocks the process forever on its last flush
+        data = stream.read(flush=True)
+        rec.disconnect()
     write_atomic(path, data or b"")
 
 

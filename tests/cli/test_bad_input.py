@@ -227,6 +227,9 @@ CASES = [
     (["compare", "--evaluations", "0"], "--evaluations must be >= 1"),
     (["compare", "--seeds", "0"], "--seeds must be >= 1"),
     (["compare", "--jobs", "0"], "--jobs must be >= 1"),
+    (["compare", "--jobs", "100000"], "--jobs must be <= 256 (got 100000)"),
+    (["run", "--seed", "1_000"], "--seed must be an integer (got '1_000')"),
+    (["run", "--seed", "\u0663"], "--seed must be an integer"),
     # a batch larger than the space where that matters
     (["run", "--space", "tiny.toml", "--strategy", "grid", "--batch", "64"],
      "exceeds the space's 32 scenarios"),

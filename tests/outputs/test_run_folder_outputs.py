@@ -634,6 +634,12 @@ def test_a_run_where_everything_collided_shows_no_typical_scenario(tmp_path, mon
     ("no_reward", "evaluations.parquet is damaged (no column 'reward')"),
     ("no_rows", "evaluations.parquet holds no evaluation"),
     ("index_out_of_range", "column 'ped_speed_idx' outside 0..24"),
+    ("collision_text", "column 'collision' holds object values, expected true/false"),
+    ("reward_text", "column 'reward' holds object values, expected numbers"),
+    ("evaluation_float", "column 'evaluation' holds float64 values, expected integers"),
+    ("rows_dropped", "its 'evaluation' column is not 1..100 in order"),
+    ("rows_repeated", "its 400 rows are not the 200 evaluations summary.json counts"),
+    ("best_outside", "summary.json is damaged ('best.evaluation' is 99999, not one of"),
 ])
 def test_a_damaged_run_folder_gets_one_line_and_nothing_redrawn(run_with_figures, tmp_path,
                                                                  capsys, damage, message):
@@ -652,6 +658,10 @@ def test_a_damaged_run_folder_gets_one_line_and_nothing_redrawn(run_with_figures
         (run / "summary.json").write_text("{}")
     elif damage == "summary_not_json":
         (run / "summary.json").write_text('{"best":')
+    elif damage == "best_outside":
+        s = json.loads((run / "summary.json").read_text())
+        s["best"]["evaluation"] = 99999
+        (run / "summary.json").write_text(json.dumps(s))
     elif damage.startswith("summary_"):  # a field of the wrong type, the rest intact
         s = json.loads((run / "summary.json").read_text())
         s.update({"best": None} if damage == "summary_best_null" else
@@ -661,6 +671,18 @@ def test_a_damaged_run_folder_gets_one_line_and_nothing_redrawn(run_with_figures
         pq.write_table(t.drop(["reward"]), eps)
     elif damage == "no_rows":
         pq.write_table(t.slice(0, 0), eps)
+    elif damage == "rows_dropped":
+        pq.write_table(t.slice(0, 100), eps)
+    elif damage == "rows_repeated":
+        pq.write_table(pa.concat_tables([t, t]), eps)
+    elif damage in ("collision_text", "reward_text", "evaluation_float"):
+        name = {"collision_text": "collision", "reward_text": "reward",
+                "evaluation_float": "evaluation"}[damage]
+        i = t.schema.get_field_index(name)
+        col = t.column(i).to_pylist()
+        new = (pa.array([float(v) + 0.5 for v in col]) if damage == "evaluation_float"
+               else pa.array([str(v) for v in col]))
+        pq.write_table(t.set_column(i, name, new), eps)
     else:
         i = t.schema.get_field_index("ped_speed_idx")
         col = t.column(i).to_pylist()
@@ -742,3 +764,30 @@ def test_a_run_folder_reads_back_as_its_own_files(run_with_figures):
     assert folder.space.shape == (10, 10, 25, 4, 10)  # the paper space's sample counts
     sp, rc, summary, ep = folder
     assert sp is folder.space and rc is folder.config and ep is folder.evaluations
+
+
+def test_a_recording_that_fails_midway_still_ends_the_process(tmp_path):
+    """An error while a recording is logged (a damaged value met halfway) is raised and the
+    process ends: rerun's in-memory stream, left undrained while the error unwound, blocked
+    the process forever on its last flush (a subprocess, so a hang cannot hold the suite)."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "never.rrd"
+    code = (
+        "import rerun as rr\n"
+        "from pathlib import Path\n"
+        "from jaxfalsify.outputs import replay\n"
+        "rec = rr.RecordingStream('t', recording_id='x')\n"
+        "def log():\n"
+        "    for i in range(1000):\n"
+        "        rec.set_time('step', sequence=i)\n"
+        "        rec.log('x', rr.Points2D([[i, i]]))\n"
+        "    raise ValueError('boom')\n"
+        "try:\n"
+        f"    replay._save(rec, Path({str(out)!r}), log)\n"
+        "except ValueError as e:\n"
+        "    print('raised', e)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert (r.returncode, r.stdout.strip()) == (0, "raised boom")
+    assert not out.exists()
