@@ -273,6 +273,11 @@ class RunConfig(Problem):
                 raise ValueError(f"{where}: [{key}] must be a table (got {doc[key]!r})")
         if "space" in doc and not isinstance(doc["space"], (str, dict)):
             raise ValueError(f"{where}: space must be a name, a path or a table")
+        if isinstance(doc.get("space"), dict):  # the file's own [space] table, named by it
+            try:
+                build_space(doc["space"], 0)
+            except ValueError as e:
+                raise ValueError(f"{where}: [space] {e}") from None
         for key, lo, hi in (("seed", 0, SEED_LIMIT - 1), ("space_seed", 0, SEED_LIMIT - 1),
                             ("evaluations", 1, 10**9), ("batch", 1, 10**6),
                             ("checkpoint_every", 1, None)):

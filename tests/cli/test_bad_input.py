@@ -33,6 +33,9 @@ def world(tmp_path_factory):
         "unknown_key.toml": 'strategy = "random"\nlearning_rate = 3\n',
         "wrong_type.toml": 'strategy = "random"\nevaluations = "many"\n',
         "float_seed.toml": "seed = 1.5\n",
+        "config_space_inverted.toml": ('[space]\nname = "x"\n[space.parameters.ped_accel]\n'
+                                'distribution = "uniform"\nlow = 0.1\nhigh = 0.0\n'
+                                'samples = 3\n'),
         "zero_batch.toml": 'strategy = "random"\nbatch = 0\n',
         "bad_option.toml": 'strategy = "cem"\n[strategy_params]\nelite_frac = 7.0\n',
         "bad_sut_param.toml": '[sut_params]\nwalker_time = -2.0\n',
@@ -195,6 +198,8 @@ CASES = [
     # wrong types
     (["run", "--config", "wrong_type.toml"], "wrong_type.toml: evaluations must be an integer"),
     (["run", "--config", "float_seed.toml"], "float_seed.toml: seed must be an integer"),
+    (["run", "--config", "config_space_inverted.toml"],
+     "config_space_inverted.toml: [space] parameters.ped_accel: empty or inverted range"),
     (["sweep", "--space", "space_wrong_type.toml"], "'fast'"),
     (["run", "--evaluations", "ten"], "--evaluations must be an integer"),
     (["sweep", "--chunk", "x"], "--chunk must be an integer"),
