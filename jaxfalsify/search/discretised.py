@@ -251,16 +251,16 @@ def _component_mass(mu, log_sigma, action, shape, p):
 
 
 def sample_boundary(u: jax.Array, shape: tuple[int, ...], width) -> jax.Array:
-    """``(B, P)`` int32 scenarios from uniforms ``u (B, P)`` (two-dimensional) in [0, 1) under the boundary
-    distribution: each parameter independently uniform over its values (``u < 1/3``), near its
-    lowest value (``1/3 <= u < 2/3``) or near its highest (``u >= 2/3``); "near" an exponential
-    of mean ``width`` (rank units) away from the end, rounded to the nearest value and capped at
-    the other end. Boundary-value testing for every parameter at once: each draw puts some
-    parameters at an end of their range and the others anywhere. An end value gets about
-    ``(1 - exp(-1 / (2 width (n - 1)))) / 3`` (up to ``1 / (6 width)`` times its uniform mass, 8x
-    at width 0.02), a value inside the range a third of its uniform mass, so a failure region
-    on a face or an edge of the box (some parameters at an end, the rest free) gets several
-    times its uniform mass per end parameter (:func:`boundary_probs` gives each value's
+    """``(B, P)`` int32 scenarios from uniforms ``u (B, P)`` (two-dimensional) in [0, 1) under the
+    boundary distribution: each parameter independently uniform over its values (``u < 1/3``),
+    near its lowest value (``1/3 <= u < 2/3``) or near its highest (``u >= 2/3``); "near" an
+    exponential of mean ``width`` (rank units) away from the end, rounded to the nearest value
+    and capped at the other end. Boundary-value testing for every parameter at once: each draw
+    puts some parameters at an end of their range and the others anywhere. An end value gets
+    about ``(1 - exp(-1 / (2 width (n - 1)))) / 3`` (up to ``1 / (6 width)`` times its uniform
+    mass, 8x at width 0.02), a value inside the range a third of its uniform mass, so a failure
+    region on a face or an edge of the box (some parameters at an end, the rest free) gets
+    several times its uniform mass per end parameter (:func:`boundary_probs` gives each value's
     probability)."""
     n = jnp.asarray(shape, jnp.float32)[:, None]
     span = jnp.maximum(n - 1.0, 1.0)
