@@ -748,6 +748,7 @@ def cmd_figures(args, stop, startup) -> int:
 
 
 def cmd_estimate(args, stop, startup) -> int:
+    from jaxfalsify.base.config import number_text
     from jaxfalsify.jobs import estimate
     from jaxfalsify.suts.registry import folder_name
 
@@ -758,7 +759,7 @@ def cmd_estimate(args, stop, startup) -> int:
         sut_params=_sut_values(args.sut_param),
         requirement_params=_sut_values(args.requirement_param, "--requirement-param"))
     if not 0 < config.confidence < 1:
-        raise UsageError(f"--confidence {config.confidence:g}: must be in (0, 1)")
+        raise UsageError(f"--confidence {number_text(config.confidence)}: must be in (0, 1)")
     if config.method == "exact":  # every scenario, no draws: these would be ignored
         given = [f for f in ("target_rel_error", "samples", "batch", "confidence", "seed")
                  if getattr(args, f) is not None]

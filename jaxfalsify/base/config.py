@@ -13,7 +13,7 @@ import numpy as np
 
 __all__ = [
     "versions", "plain", "jsonable", "dumps_toml", "read_toml", "check_keys",
-    "parse_assignments", "check_memory", "check_type"
+    "parse_assignments", "check_memory", "check_type", "number_text"
 ]
 
 
@@ -33,6 +33,20 @@ def plain(x: Any) -> Any:
     if isinstance(x, np.float32):
         return float(str(x))
     return x.item() if hasattr(x, "item") and not isinstance(x, (str, bytes)) else x
+
+
+def number_text(x: Any) -> str:
+    """A number as an error message shows it: the shortest decimal that reads back as the same
+    value (a float32 as float32), without a trailing ``.0`` (``14``, ``14.0000001``, ``0.1``,
+    ``1e+30``); never rounded, so a value just outside a range is not shown inside it."""
+    if isinstance(x, np.float32):
+        s = str(x)
+    else:
+        try:
+            s = repr(float(x))
+        except (TypeError, ValueError, OverflowError):
+            return repr(x)
+    return s[:-2] if s.endswith(".0") else s
 
 
 def jsonable(x: Any) -> Any:

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxfalsify.base import pytree
-from jaxfalsify.base.config import check_memory, jsonable, plain
+from jaxfalsify.base.config import check_memory, jsonable, number_text, plain
 from jaxfalsify.io import cache
 from jaxfalsify.scenario import metrics, reward
 from jaxfalsify.scenario.space import (
@@ -556,11 +556,11 @@ def _check_scenario(scenario: dict) -> dict:
             raise ValueError(f"scenario parameter {k}: not finite")
         if v.size and (v.min() < lo or v.max() > hi):
             bad = v[(v < lo) | (v > hi)].flat[0]
-            raise ValueError(f"scenario parameter {k}={bad:g} outside the allowed "
+            raise ValueError(f"scenario parameter {k}={number_text(bad)} outside the allowed "
                              f"[{lo:g}, {hi:g}] {spec['unit']}")
         if spec["integer"] and v.size and np.any(v != np.round(v)):
             raise ValueError(f"scenario parameter {k}: values must be integers "
-                             f"(got {v[v != np.round(v)].flat[0]:g})")
+                             f"(got {number_text(v[v != np.round(v)].flat[0])})")
     try:
         shape = np.broadcast_shapes(*(np.shape(v) for v in arrs.values())) if arrs else ()
     except ValueError:

@@ -28,7 +28,7 @@ from typing import Any, Iterator
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfalsify.base.config import check_keys, read_toml
+from jaxfalsify.base.config import check_keys, number_text, read_toml
 from jaxfalsify.base.pytree import FLOAT32_MAX
 from jaxfalsify.scenario import weather
 
@@ -229,14 +229,14 @@ def make_parameter(name: str, distribution: str, args: tuple, samples: int,
             g_lo, g_hi = decimal_grid(low, high, decimals)
             if g_lo > g_hi:
                 raise ValueError(f"{key}: no multiple of {10.0 ** -decimals:g} (decimals="
-                                 f"{decimals}) lies in [{low:g}, {high:g}]; widen the range or "
-                                 "raise decimals")
+                                 f"{decimals}) lies in [{number_text(low)}, "
+                                 f"{number_text(high)}]; widen the range or raise decimals")
         if distribution == "integers":
             if low != int(low) or high != int(high):
                 raise ValueError(f"{key}: integers needs integer low/high (got {low}, {high})")
             if max(abs(low), abs(high)) > 2**24:
                 raise ValueError(f"{key}: integers needs |low|, |high| <= {2**24:,} (exact in "
-                                 f"float32; got {low:g}, {high:g})")
+                                 f"float32; got {number_text(low)}, {number_text(high)})")
             if samples > int(high) - int(low) + 1:
                 raise ValueError(f"{key}.samples={samples} exceeds the {int(high) - int(low) + 1} "
                                  f"integers in [{int(low)}, {int(high)}]")
@@ -455,11 +455,11 @@ def build(name: str, parameters: list[Parameter], seed: int) -> Space:
         lo, hi = spec["domain"]
         bad = vals[(vals < lo) | (vals > hi) | ~(np.abs(vals) <= FLOAT32_MAX)]
         if bad.size:
-            raise ValueError(f"parameters.{p.name}: value {bad[0]:g} outside the allowed "
-                             f"[{lo:g}, {hi:g}] {spec['unit']}; narrow the distribution")
+            raise ValueError(f"parameters.{p.name}: value {number_text(bad[0])} outside the "
+                             f"allowed [{lo:g}, {hi:g}] {spec['unit']}; narrow the distribution")
         if spec["integer"] and np.any(vals != np.round(vals)):
             raise ValueError(f"parameters.{p.name}: values must be integers "
-                             f"(got {vals[vals != np.round(vals)][0]:g})")
+                             f"(got {number_text(vals[vals != np.round(vals)][0])})")
         table.append(tuple(float(v) for v in vals))
     return Space(name, int(seed), tuple(parameters), tuple(table))
 
@@ -615,9 +615,10 @@ def check_scenario_values(scenario: dict[str, float]) -> dict[str, float]:
         if not math.isfinite(v):
             raise ValueError(f"{name}={v} is not finite")
         if not lo <= v <= hi:
-            raise ValueError(f"{name}={v:g} outside the allowed [{lo:g}, {hi:g}] {spec['unit']}")
+            raise ValueError(f"{name}={number_text(v)} outside the allowed [{lo:g}, {hi:g}] "
+                             f"{spec['unit']}")
         if spec["integer"] and v != round(v):
-            raise ValueError(f"{name}={v:g} must be an integer ({spec['doc']})")
+            raise ValueError(f"{name}={number_text(v)} must be an integer ({spec['doc']})")
         full[name] = v
     unknown = set(scenario) - set(KNOWN_PARAMETERS)
     if unknown:

@@ -166,7 +166,7 @@ class BatchedParams:
     # batch is drawn from the boundary distribution (discretised.sample_boundary), not the policy
     boundary_width: float = 0.02  # ... its mean distance from a range's end (rank units)
 
-    RANGES = {"lr": "[0, inf)", "lr_search": "[0, inf)", "lr_first": "[0, inf)",
+    RANGES = {"lr": "[0, 10]", "lr_search": "[0, 10]", "lr_first": "[0, 10]",
               "first_learners": "[0, inf)", "eps": "(0, 1)", "entropy": "[0, inf)",
               "novelty": "[0, inf)", "revisit": "[0, inf)",
               "novelty_until": "[0, inf)", "ttc_weight": "[0, inf)", "ttc_below": "(-inf, inf)",

@@ -56,7 +56,7 @@ class ReinforceParams:
     eps_floor: float = 0.0  # lowest probability
     eps_off_after: float = 0.0  # episode from which eps = 0
 
-    RANGES = {"lr": "[0, inf)", "alpha": "[0, inf)", "entropy": "[0, inf)",
+    RANGES = {"lr": "[0, 10]", "alpha": "[0, inf)", "entropy": "[0, inf)",
               "eps_start": "[0, 1]", "eps_decay": "[0, 1]", "eps_every": "(0, inf)",
               "eps_floor": "[0, 1]", "eps_off_after": "[0, inf)"}
 

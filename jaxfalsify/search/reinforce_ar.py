@@ -154,7 +154,7 @@ class ARParams:
     ttc_below: float = -0.5  # m of robustness (-0.5: the road users came within 0.5 m)
 
     # a negative *_found value means "as before the first collision"
-    RANGES = {"lr": "[0, inf)", "entropy": "[0, inf)", "entropy_found": "[0, inf)",
+    RANGES = {"lr": "[0, 10]", "entropy": "[0, inf)", "entropy_found": "[0, inf)",
               "entropy_until": "[0, inf)",
               "sigma_min": "[0.0001, 1]", "global_share": "[0, 1]",
               "global_share_found": "(-inf, 1]",
