@@ -14,17 +14,20 @@ leaves XLA's own choice.
 XLA reads the thread count from the environment variable ``NPROC`` when it creates its CPU
 client (on the first computation), so :func:`configure` runs when ``jaxfalsify`` is imported.
 ``JAXFALSIFY_XLA_THREADS=N`` chooses the count, ``auto`` (the default) as above; an ``NPROC``
-already set is left as it is. Child processes inherit the setting.
+already set is left as it is. Either is refused above :data:`PER_CORE` threads per core the
+process may run on (XLA starts every thread it is asked for: 100,000 took 19 GB of memory and
+the machine with it). Child processes inherit the setting.
 """
 
 from __future__ import annotations
 
 import os
 
-__all__ = ["ENV", "cores", "configure", "wanted"]
+__all__ = ["ENV", "PER_CORE", "cores", "configure", "wanted", "most"]
 
 ENV = "JAXFALSIFY_XLA_THREADS"
 XLA_ENV = "NPROC"  # what XLA's CPU client reads for its thread pool's size
+PER_CORE = 4  # the most threads per core asked of XLA
 
 
 def cores() -> int:
@@ -35,22 +38,39 @@ def cores() -> int:
         return os.cpu_count() or 1
 
 
+def most() -> int:
+    """The most threads XLA may be asked for: :data:`PER_CORE` per core."""
+    return PER_CORE * cores()
+
+
+def _bounded(name: str, raw: str, n: int) -> int:
+    if n > most():
+        raise ValueError(f"{name}={raw!r}: at most {most()} threads ({PER_CORE} per core of the "
+                         f"{cores()} this process may run on)")
+    return n
+
+
 def wanted(environ=os.environ) -> int | None:
     """The thread count to ask XLA for (None: XLA's own choice); ValueError (one line) for a
-    ``JAXFALSIFY_XLA_THREADS`` that is neither ``auto`` nor a positive whole number."""
+    ``JAXFALSIFY_XLA_THREADS`` that is neither ``auto`` nor a positive whole number, or is above
+    :func:`most`."""
     value = environ.get(ENV, "auto").strip().lower()
     if value in ("", "auto"):
         return 1 if cores() <= 2 else None
     if not value.isdigit() or int(value) < 1:
         raise ValueError(f"{ENV}={environ[ENV]!r}: expected auto or a positive whole number of "
                          f"threads")
-    return int(value)
+    return _bounded(ENV, environ[ENV], int(value))
 
 
 def configure(environ=os.environ) -> int | None:
     """Set ``NPROC`` for XLA from :func:`wanted` unless it is set already; returns the count
-    set (None: nothing set). Takes effect only before JAX's CPU client exists."""
+    set (None: nothing set). Takes effect only before JAX's CPU client exists. An ``NPROC``
+    already set that is a whole number above :func:`most` is refused (ValueError, one line)."""
     if XLA_ENV in environ:
+        raw = environ[XLA_ENV].strip()
+        if raw.isdigit() and raw.isascii():
+            _bounded(XLA_ENV, environ[XLA_ENV], int(raw))
         return None
     n = wanted(environ)
     if n is not None:

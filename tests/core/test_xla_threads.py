@@ -68,6 +68,20 @@ def test_bad_values_are_refused_in_one_line(value):
         threads.configure({threads.ENV: value})
 
 
+def test_more_threads_than_four_per_core_are_refused(monkeypatch):
+    # XLA starts every thread asked for (100,000 took 19 GB): the bound is 4 per core
+    monkeypatch.setattr(threads, "cores", lambda: 3)
+    env = {threads.ENV: "12"}
+    assert threads.configure(env) == 12 and env["NPROC"] == "12"
+    with pytest.raises(ValueError, match=r"^JAXFALSIFY_XLA_THREADS='13': at most 12 threads "
+                                         r"\(4 per core of the 3 "):
+        threads.configure({threads.ENV: "13"})
+    with pytest.raises(ValueError, match=r"^NPROC='100000': at most 12 threads"):
+        threads.configure({"NPROC": "100000"})
+    env = {"NPROC": "12"}
+    assert threads.configure(env) is None and env == {"NPROC": "12"}
+
+
 def test_the_command_line_refuses_a_bad_value_with_exit_code_2(tmp_path):
     import os
 
@@ -79,4 +93,13 @@ def test_the_command_line_refuses_a_bad_value_with_exit_code_2(tmp_path):
     assert out.stderr.strip().splitlines() == [
         "jaxfalsify: error: JAXFALSIFY_XLA_THREADS='many': expected auto or a positive whole "
         "number of threads (set in the environment: fix or unset it)"]
+    assert not (tmp_path / "r").exists()
+    env = {**os.environ, "NPROC": "100000"}
+    out = subprocess.run([sys.executable, "-m", "jaxfalsify", "run", "--out", str(tmp_path / "r")],
+                         env=env, capture_output=True, text=True)
+    limit = threads.PER_CORE * threads.cores()
+    assert out.returncode == 2
+    assert out.stderr.strip().splitlines() == [
+        f"jaxfalsify: error: NPROC='100000': at most {limit} threads (4 per core of the "
+        f"{threads.cores()} this process may run on) (set in the environment: fix or unset it)"]
     assert not (tmp_path / "r").exists()
