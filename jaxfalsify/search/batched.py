@@ -96,7 +96,7 @@ class MixtureController(nn.Module):
 
     shape: tuple[int, ...]
     hidden: int = 32
-    components: int = 32
+    components: int = 24
 
     @nn.compact
     def __call__(self):
@@ -194,7 +194,7 @@ class BatchedReinforce(Strategy):
     system that gets worse monotonically in each parameter fails at a corner."""
 
     hidden: int = 32
-    components: int = 32
+    components: int = 24
     steps: int = 8
     elite: float = 0.1
     table: int = 1 << 16
@@ -290,10 +290,11 @@ class BatchedReinforce(Strategy):
         # per update at batch 4096 on 2 cores: laid out for the cond, their elementwise work
         # no longer vectorised)
         def at_boundary(u):
-            learner = jnp.arange(u.shape[0]) // self.share
+            at = jnp.arange(u.shape[0]) // self.share < params.boundary * self.learners
             bound = discretised.sample_boundary(u[:, 2:], self.shape, params.boundary_width)
-            return jnp.where((learner < params.boundary * self.learners)[:, None], bound,
-                             own(u))
+            # the policies' draws only when some learner keeps its own (boundary < 1)
+            return jax.lax.cond(jnp.all(at), lambda u: bound,
+                                lambda u: jnp.where(at[:, None], bound, own(u)), u)
 
         idx = jax.lax.cond(state.told == 0, at_boundary, own, u)
         return idx[:self.batch], state

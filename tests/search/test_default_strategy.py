@@ -566,6 +566,15 @@ def test_the_first_update_of_the_boundary_learners_draws_from_the_boundary():
         assert np.all(np.abs(freq - want) <= 5 * se + 1e-6), (j, freq, want)
     # the policy's draws of those learners are spread (SIGMA_INIT): far from the boundary's
     assert np.mean(plain[:half, 1] == 0) < 0.5 * want[0]
+    # with boundary 1 (every learner; the policies' draws are then not computed) the first
+    # two learners draw the same, and the last two from the boundary distribution as well
+    every = np.asarray(ask(jax.random.key(9), state, pytree.replace(q, boundary=1.0))[0])
+    np.testing.assert_array_equal(every[:half], first[:half])
+    for j, n in enumerate(shape):
+        want = _np_boundary_probs(n, 0.05)
+        freq = np.bincount(every[half:, j], minlength=n) / (len(every) - half)
+        se = np.sqrt(want * (1 - want) / (len(every) - half))
+        assert np.all(np.abs(freq - want) <= 5 * se + 1e-6), (j, freq, want)
     later = dataclasses.replace(state, told=jnp.int32(s.batch))
     np.testing.assert_array_equal(np.asarray(ask(jax.random.key(9), later, q)[0]),
                                   np.asarray(ask(jax.random.key(9), later, p)[0]))
