@@ -775,6 +775,8 @@ def cmd_estimate(args, stop, startup) -> int:
     for line in estimate.summary_lines(s):
         print(line)
     print(f"wrote {out}/summary.json")
+    if s["interrupted"]:  # the signal ended the draws: no "results are complete"
+        return stop.exit_code
     return _late_signal(stop)
 
 

@@ -378,7 +378,8 @@ class Tally:
 
 
 def cross_entropy(sp: Space, run, params, rparams, c: EstimateConfig, key,
-                  progress: Progress, tally: Tally | None = None) -> tuple[Proposal, dict]:
+                  progress: Progress, tally: Tally | None = None,
+                  stop=None) -> tuple[Proposal, dict]:
     """The multilevel cross-entropy proposal, a mixture of ``ce_components`` products of
     categoricals: ``(proposal, {"levels", "samples"})``. Each level draws ``ce_samples``
     from the defensive mixture of the current proposal (the first: uniform) and fits the
@@ -388,12 +389,15 @@ def cross_entropy(sp: Space, run, params, rparams, c: EstimateConfig, key,
     The default quantile, 0.5, narrows the proposal slowly (the level halves the mass under
     it per level): on ``aeb-9e6`` (nine isolated failing scenarios in a million) a quantile of
     0.1 let the proposal settle on one or two of its four failure clusters, and the estimate
-    (and its narrow interval) missed the others; 0.5 kept them."""
+    (and its narrow interval) missed the others; 0.5 kept them. A ``stop()`` that turns true
+    ends the levels (checked before each); the dict then says ``"stopped": True``."""
     shape = np.asarray(sp.shape)
     rng = np.random.default_rng([c.seed, 104729])
     q = uniform_proposal(sp)
     used, levels = 0, 0
     for level in range(c.ce_levels):
+        if stop is not None and stop():
+            return q, {"levels": levels, "samples": used, "stopped": True}
         levels = level + 1
         key, (idx, rob, logw) = _draw(run, key, q, 0.0 if level == 0 else math.log(
             c.defensive), params, rparams, c.ce_samples, c.batch)
@@ -427,7 +431,9 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
     ``estimator``, ``samples`` (every draw the estimate counts), ``proposal_samples`` (those
     drawn while fitting the proposal, counted too; ``samples`` allows ``config.samples`` more),
     ``violations`` (violating draws), ``estimate``, ``interval`` [low, high] at
-    ``confidence``, ``relative_half_width``, ``reached_target``, ``seconds``."""
+    ``confidence``, ``relative_half_width``, ``reached_target``, ``interrupted`` (``stop()``
+    turned true before the draws allowed or the target: the estimate and interval are those
+    of the draws so far, each weighted by the proposal it was drawn from), ``seconds``."""
     cfg.check_type(config, EstimateConfig, "config")
     progress = progress or Progress()
     sp, sut, params, req, rparams = config.build()
@@ -444,21 +450,24 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
                 "estimate": ex["rate"], "interval": [ex["rate"], ex["rate"]],
                 "confidence": 1.0, "relative_half_width": 0.0,
                 "target_rel_error": c.target_rel_error, "reached_target": True,
-                "seconds": time.perf_counter() - t0}
+                "interrupted": False, "seconds": time.perf_counter() - t0}
     run = _program(sp, sut, req, c.batch)
     key = jax.random.key(c.seed)
     ce = {"levels": 0, "samples": 0}
     t = Tally(c.method, c.confidence)
     if c.method == "is":
         key, k = jax.random.split(key)
-        q, ce = cross_entropy(sp, run, params, rparams, c, k, progress, t)
+        q, ce = cross_entropy(sp, run, params, rparams, c, k, progress, t, stop)
         log_u = math.log(c.defensive)
     else:
         q, log_u = uniform_proposal(sp), 0.0
     total = ce["samples"] + c.samples
-    progress.start(total, done=t.n, unit="draw", desc=f"{c.method} estimate")
-    while t.n < total and not t.reached(c.target_rel_error):
+    interrupted = bool(ce.get("stopped"))
+    if not interrupted:
+        progress.start(total, done=t.n, unit="draw", desc=f"{c.method} estimate")
+    while not interrupted and t.n < total and not t.reached(c.target_rel_error):
         if stop is not None and stop():
+            interrupted = True
             break
         key, k = jax.random.split(key)
         _, rob, logw = run(k, jnp.asarray(q.log_weight), jnp.asarray(q.log_prob),
@@ -481,6 +490,8 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
             "confidence": c.confidence, "relative_half_width": rel,
             "target_rel_error": c.target_rel_error,
             "reached_target": bool(k_bad >= MIN_VIOLATIONS and rel <= c.target_rel_error),
+            "interrupted": interrupted and not (k_bad >= MIN_VIOLATIONS
+                                                and rel <= c.target_rel_error),
             **diagnostics, "seconds": time.perf_counter() - t0}
 
 
@@ -488,8 +499,10 @@ def execute(config: EstimateConfig, out: Path | str, *, force: bool = False,
             progress: Progress | None = None, stop=None,
             startup_seconds: float = 0.0) -> dict:
     """:func:`estimate`, written to the folder ``out``: ``config.toml`` (resolved),
-    ``summary.json`` (the estimate) and ``timing.json``; ``status.json`` says complete last.
-    Everything is checked before the folder is touched."""
+    ``summary.json`` (the estimate) and ``timing.json``; ``status.json`` says complete last,
+    or ``interrupted`` when ``stop()`` ended the draws early (the summary then holds the
+    estimate of the draws so far and says ``"interrupted": true``). Everything is checked
+    before the folder is touched."""
     cfg.check_type(config, EstimateConfig, "config")
     clock = Clock(startup_seconds)
     built = config.build()
@@ -508,7 +521,10 @@ def execute(config: EstimateConfig, out: Path | str, *, force: bool = False,
             summary = estimate(config, progress, stop)
         write_json(out / "summary.json", summary)
         write_json(out / "timing.json", clock.summary(), indent=2)
-        status.complete()
+        if summary["interrupted"]:
+            status.interrupted(samples_done=summary["samples"])
+        else:
+            status.complete()
         return summary
     except BaseException as e:
         if sut_raised(e):
@@ -534,7 +550,10 @@ def summary_lines(s: dict) -> list[str]:
                 f"{s['proposal_levels']} level{'s' if s['proposal_levels'] > 1 else ''}"
                 if s["proposal_samples"] else "")
              + f", {s['seconds']:.1f} s"]
-    if not s["reached_target"]:
+    if s.get("interrupted"):
+        lines.append(f"interrupted after {s['samples']:,} draws: the estimate and interval are "
+                     "those of the draws so far")
+    elif not s["reached_target"]:
         lines.append(f"the target relative half-width {s['target_rel_error']:g} was not "
                      "reached within the draws allowed (raise --samples)")
     if s.get("violations_above_uniform"):

@@ -236,3 +236,71 @@ def test_the_exact_method_counts_every_scenario(tmp_path, paper, exact, capsys):
                  str(tmp_path / "y"), "--quiet"]) == 2
     assert "than can be evaluated one by one" in capsys.readouterr().err
     assert not (tmp_path / "y").exists()
+
+
+@pytest.mark.parametrize("method", ["mc", "is"])
+def test_a_stop_request_ends_the_draws_and_the_folder_says_interrupted(tmp_path, method):
+    """A stop request (Ctrl-C, SIGTERM) seen at the third check (Monte Carlo: after two
+    batches of 1000) or the second (importance sampling: after the first cross-entropy
+    level of 2000 draws, before any more): summary.json holds the estimate of those draws
+    with ``"interrupted": true``, status.json says interrupted, the closing lines say so
+    instead of asking for more draws. Oracles: the draws counted by the checks; Monte
+    Carlo's estimate is the violating share of its draws and its interval Wilson's, computed
+    here from the score formula."""
+    seen = {"checks": 0}
+
+    def stop():
+        seen["checks"] += 1
+        return seen["checks"] >= (3 if method == "mc" else 2)
+
+    c = est.EstimateConfig(requirement="collision", method=method, samples=100_000,
+                           batch=1000, target_rel_error=1e-9, seed=0, ce_samples=2000)
+    s = est.execute(c, tmp_path / "e", stop=stop)
+    assert s["interrupted"] is True and s["reached_target"] is False
+    assert s["samples"] == 2000 and s["proposal_samples"] == (0 if method == "mc" else 2000)
+    if method == "mc":
+        k, n, z = s["violations"], s["samples"], 1.959963984540054
+        p = k / n
+        mid, half = (p + z * z / (2 * n)), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+        assert s["estimate"] == k / n
+        np.testing.assert_allclose(s["interval"], [(mid - half) / (1 + z * z / n),
+                                                   (mid + half) / (1 + z * z / n)], rtol=1e-9)
+    status = json.loads((tmp_path / "e" / "status.json").read_text())
+    assert status["state"] == "interrupted" and status["samples_done"] == 2000
+    assert json.loads((tmp_path / "e" / "summary.json").read_text())["interrupted"] is True
+    lines = est.summary_lines(s)
+    assert "interrupted after 2,000 draws" in lines[-1] and "raise --samples" not in " ".join(
+        lines)
+
+
+def test_ctrl_c_ends_an_estimate_with_exit_130_and_says_so(tmp_path):
+    """The command, interrupted by SIGINT while drawing: exit 130, the interruption said in
+    the closing lines, never that the results are complete."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "e"
+    proc = subprocess.Popen([sys.executable, "-m", "jaxfalsify.cli", "estimate", "--method",
+                             "mc", "--samples", "1000000000", "--batch", "4096",
+                             "--target-rel-error", "1e-9", "--out", str(out), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.communicate()
+        try:
+            if json.loads((out / "status.json").read_text())["state"] == "running":
+                break
+        except (FileNotFoundError, json.JSONDecodeError):
+            pass
+        time.sleep(0.05)
+    time.sleep(1.0)  # some batches drawn
+    proc.send_signal(signal.SIGINT)
+    said, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "results are complete" not in err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["interrupted"] is True and 0 < s["samples"] < 1_000_000_000
+    assert f"interrupted after {s['samples']:,} draws" in said
+    assert json.loads((out / "status.json").read_text())["state"] == "interrupted"
