@@ -177,6 +177,15 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
                 raise FolderError(f"--out {out} already holds {theirs[0]} (not written by "
                                   "jaxfalsify); pass --force to overwrite it or choose "
                                   "another folder")
+    # a folder under a name the result writes as a file (or a file where it makes a folder)
+    # would fail the job's last writes, after the work: refused before, with or without --force
+    for name in [*_result_names(kind), "config.toml"]:
+        if (out / name).is_dir():
+            raise FolderError(f"{flag}: {out / name} is a folder where the {kind} writes a "
+                              "file (move it away or choose another folder)")
+    if kind == "run" and (out / "figures").exists() and not (out / "figures").is_dir():
+        raise FolderError(f"{flag}: {out / 'figures'} is a file where the run writes its "
+                          "figures folder (move it away or choose another folder)")
     parent = out if out.exists() else next((a for a in out.parents if a.exists()), Path("."))
     if not parent.is_dir():
         raise FolderError(f"{flag}: {parent} is not a folder")
