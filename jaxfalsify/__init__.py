@@ -39,8 +39,9 @@ try:  # importing JAX takes most of a second: a Ctrl-C then ends the command in 
 
     _cache.enable_compilation_cache()
 except ValueError as _e:  # a JAX setting from the environment that JAX refuses at import
-    if not _command_line() or ("JAX flag" not in str(_e) and "JAXFALSIFY_XLA_THREADS"
-                                   not in str(_e) and not str(_e).startswith("NPROC=")):
+    if not _command_line() or ("JAX flag" not in str(_e) and "for environment" not in str(_e)
+                               and "JAXFALSIFY_XLA_THREADS" not in str(_e)
+                               and not str(_e).startswith("NPROC=")):
         raise
     print(f"jaxfalsify: error: {str(_e).splitlines()[0]} (set in the environment: fix or unset "
           f"it)", file=_sys.stderr)

@@ -223,7 +223,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--batch", type=_int("--batch", 1), help="scenarios per update (default: "
                    "the strategy's; reinforce/default 4096 on a CPU, 65,536 on a GPU)")
     r.add_argument("--seed", type=_int("--seed"), help="search seed (default 0)")
-    r.add_argument("--checkpoint-every", type=_int("--checkpoint-every", 1),
+    r.add_argument("--checkpoint-every", type=_int("--checkpoint-every", 1, 10**9),
                    dest="checkpoint_every", help="updates between checkpoints (default: "
                    "about 1/20 of the run)")
     _evaluator_flags(r, "default strategy then reinforce/screened")
@@ -385,8 +385,10 @@ def _sut_values(items, flag="--sut-param") -> dict:
     out = _assignments(items, flag)
     for k, v in out.items():
         if isinstance(v, str):
-            hint = (" (a list of values is for sweep: jaxfalsify sweep --sut-param "
-                    f"{k}={v})" if "," in v else "")
+            hint = ("" if "," not in v else
+                    " (one number: only sweep's --sut-param takes a list of values)"
+                    if flag == "--requirement-param" else
+                    f" (a list of values is for sweep: jaxfalsify sweep --sut-param {k}={v})")
             raise UsageError(f"{flag + ' ' if flag else ''}{k}={v!r} is not a number{hint}")
     return out
 
@@ -396,11 +398,11 @@ def _evaluator_flags(p, default_note: str) -> None:
                    help="evaluate the scenarios with this host function instead of the JAX "
                    "simulator (a system outside JAX: module:attr or file.py:attr taking a dict "
                    f"of parameter arrays, returning robustness); {default_note}")
-    p.add_argument("--workers", type=_int("--workers", 1),
+    p.add_argument("--workers", type=_int("--workers", 1, 256),
                    help="evaluator processes (default: the CPU cores)")
     p.add_argument("--timeout", type=_float_positive("--timeout"),
                    help="seconds an evaluator may take per scenario (default: no limit)")
-    p.add_argument("--retries", type=_int("--retries", 0),
+    p.add_argument("--retries", type=_int("--retries", 0, 100),
                    help="further tries of a scenario whose evaluation failed (default 1)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="run the evaluator on a Dask cluster (tcp://host:8786) instead of local "

@@ -310,6 +310,10 @@ class DaskPool:
         return False
 
 
+MAX_WORKERS = 256  # evaluator processes on one machine (each its own interpreter and pipes)
+MAX_RETRIES = 100  # further tries of a failing scenario
+
+
 def make_pool(spec: str, workers=None, timeout=None, retries: int = 1, chunk=None,
               scheduler=None):
     """A :class:`Pool` of local workers, or a :class:`DaskPool` on ``scheduler``."""
@@ -323,9 +327,12 @@ def check_settings(workers, timeout, retries, chunk, scheduler=None) -> None:
     if isinstance(scheduler, str) and not scheduler.strip():
         raise ValueError(f"scheduler must be an address such as tcp://host:8786 (got "
                          f"{scheduler!r})")
-    for name, v, lo in (("workers", workers, 1), ("retries", retries, 0), ("chunk", chunk, 1)):
+    for name, v, lo, hi in (("workers", workers, 1, MAX_WORKERS),
+                            ("retries", retries, 0, MAX_RETRIES), ("chunk", chunk, 1, 1 << 24)):
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < lo):
             raise ValueError(f"{name} must be an integer >= {lo} (got {v!r})")
+        if v is not None and v > hi:  # a process (and its pipes) per worker: memory, files
+            raise ValueError(f"{name} must be at most {hi} (got {v})")
     if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0
                                     and np.isfinite(timeout)):
         raise ValueError(f"timeout must be a positive number of seconds (got {timeout!r})")

@@ -19,6 +19,7 @@ from jaxfalsify.base import config as cfg
 from jaxfalsify.base.pytree import check_ranges
 from jaxfalsify.core import requirements
 from jaxfalsify.engine import campaign
+from jaxfalsify.io import cache
 from jaxfalsify.scenario.space import (
     SUT_PREFIX,
     Space,
@@ -31,7 +32,7 @@ from jaxfalsify.suts import registry as sut_lib
 __all__ = [
     "PAPER_BUDGET", "SEED_LIMIT", "check_int", "build_space", "space_sut_names",
     "fixed_sut_params", "check_space_sut", "check_mapping", "Built", "Problem", "RunConfig",
-    "CONFIG_KEYS", "build_requirement", "SETTINGS", "configure"
+    "CONFIG_KEYS", "build_requirement", "SETTINGS", "configure", "jax_settings"
 ]
 
 PAPER_BUDGET = 4000
@@ -185,7 +186,7 @@ class RunConfig(Problem):
         if self.batch is not None:
             check_int("batch", self.batch, 1, 10**6)
         if self.checkpoint_every is not None:
-            check_int("checkpoint_every", self.checkpoint_every, 1)
+            check_int("checkpoint_every", self.checkpoint_every, 1, 10**9)  # (updates)
 
     def _build_external(self) -> Built:
         """An external evaluator's run: the space, the strategy and the plan (no SUT, no
@@ -250,20 +251,39 @@ class RunConfig(Problem):
                "requirement": self.requirement,
                "requirement_params": dict(self.requirement_params),
                **({"evaluator": self.evaluator} if self.evaluator else {}),
-               "space": self.space if isinstance(self.space, Mapping) else self.space}
+               "space": self.space if isinstance(self.space, Mapping) else self.space,
+               "jax": jax_settings()}
         return cfg.dumps_toml(doc)
 
     @classmethod
-    def from_toml(cls, path: Path) -> "RunConfig":
-        """Read a run's ``config.toml``; unknown keys and wrong types give one-line errors."""
+    def from_toml(cls, path: Path, check_jax: bool = False) -> "RunConfig":
+        """Read a run's ``config.toml``; unknown keys and wrong types give one-line errors.
+        ``check_jax``: refuse (one line) a ``[jax]`` table whose settings are not this
+        process's (the run's draws depend on them: :func:`jax_settings`)."""
         doc = cfg.read_toml(path, "--config")
         kind = doc.pop("kind", "run")
         if kind != "run":
             raise ValueError(f"{path}: kind = {str(kind)[:20]!r}, not a run's config")
+        recorded = doc.pop("jax", {})
+        if not isinstance(recorded, dict) or not all(isinstance(v, str)
+                                                      for v in recorded.values()):
+            raise ValueError(f"{path}: [jax] must be a table of the JAX settings as text")
+        if check_jax:
+            now = jax_settings()
+            for k, v in recorded.items():
+                if k in now and now[k] != v:
+                    raise ValueError(
+                        f"{path}: the run had {k} = {v}, this process has {now[k]} (its draws "
+                        f"depend on it: set {k.upper()}={v} to repeat the run, or delete the "
+                        "line from [jax] to run with this process's setting)")
         return cls.from_dict(doc, where=str(path))
 
     @classmethod
     def from_dict(cls, doc: Mapping, where: str = "config") -> "RunConfig":
+        """A run's configuration from ``config.toml``'s contents (its ``kind`` taken off); a
+        ``[jax]`` table, the JAX settings the run recorded, is accepted and not a setting
+        (:meth:`from_toml` checks it against this process's)."""
+        doc = {k: v for k, v in doc.items() if k != "jax"}
         cfg.check_keys(doc, CONFIG_KEYS, where)
         for key in ("sut", "strategy", "requirement", "evaluator"):
             if key in doc and not isinstance(doc[key], str):
@@ -303,6 +323,13 @@ class RunConfig(Problem):
 
 
 CONFIG_KEYS = {f.name for f in dataclasses.fields(RunConfig)}
+
+
+def jax_settings() -> dict[str, str]:
+    """The JAX settings a run's results depend on besides its configuration (the random
+    draws' generator and its partitioning, matrix products' precision, dtype promotion), as
+    text: what ``config.toml``'s ``[jax]`` table records (64-bit mode is always off)."""
+    return {k: v for k, v in cache.program_settings().items() if k != "jax_enable_x64"}
 
 
 def build_requirement(spec, params) -> tuple[Any, Any]:
@@ -357,7 +384,8 @@ def configure(config: RunConfig | Path | str | None = None, /, *,
     if config is None:
         rc = RunConfig()
     else:
-        rc = config if isinstance(config, RunConfig) else RunConfig.from_toml(Path(config))
+        rc = config if isinstance(config, RunConfig) else RunConfig.from_toml(Path(config),
+                                                                               check_jax=True)
         rc = _overridden(rc, settings)
     rc = dataclasses.replace(rc, **settings)
     if sut_params:

@@ -149,8 +149,35 @@ def load_run(run_dir: Path) -> RunFolder:
         i = ep[f"{n}_idx"]
         if i.min() < 0 or i.max() >= size:
             raise ValueError(f"{where} is damaged: column '{n}_idx' outside 0..{size - 1}")
+    check_counts(run_dir, summary, ep)
     check_config_matches(run_dir, sp, rc, summary, ep)
     return RunFolder(sp, rc, summary, ep)
+
+
+def check_counts(run_dir: Path, summary: dict, ep: dict) -> None:
+    """ValueError (one line) where ``summary.json``'s counts, first evaluations and best
+    reward are not those of ``evaluations.parquet`` (a hand-edited summary): the collisions
+    and violations counted over finite rollouts, the first of each, and the reward recorded
+    at the best evaluation (the same float32)."""
+    ok = ~np.asarray(ep["nonfinite"], bool)
+    want = {}
+    for name, col in (("collisions", "collision"), ("violations", "violated")):
+        if col in ep:
+            hit = np.asarray(ep[col], bool) & ok
+            want[f"n_{name}"] = int(hit.sum())
+            first = np.flatnonzero(hit)
+            want[f"first_{name[:-1]}_evaluation"] = int(first[0]) + 1 if first.size else None
+    want["n_nonfinite"] = int((~ok).sum())
+    got_best = summary["best"].get("reward")
+    if got_best is not None:
+        at = np.float32(ep["reward"][summary["best"]["evaluation"] - 1])
+        want["best.reward"] = float(str(at)) if np.isfinite(at) else None
+    for key, v in want.items():
+        have = got_best if key == "best.reward" else summary.get(key, v)
+        if have != v:
+            raise ValueError(f"{run_dir / 'summary.json'} does not match evaluations.parquet "
+                             f"('{key}' is {json.dumps(have)}; the evaluations give "
+                             f"{json.dumps(v)})")
 
 
 def check_config_matches(run_dir: Path, sp, rc, summary: dict, ep: dict) -> None:

@@ -398,6 +398,12 @@ def check_out_plain(out: Path, patterns: tuple[str, ...], force: bool) -> None:
         raise FolderError(f"--out {out} exists and is not a folder")
     if folder_kind(out) is not None:
         raise FolderError(f"--out {out} holds a {folder_kind(out)}; choose another folder")
+    for a in [out, *out.parents]:  # a job's checkpoint folder is its own: --force removes it
+        if (a.name == "checkpoint" or a.name.startswith("checkpoint-part-")) and \
+                a.parent != a and folder_kind(a.parent) is not None:
+            raise FolderError(f"--out {out} is inside the checkpoint folder of the "
+                              f"{folder_kind(a.parent)} in {a.parent}, which that job removes; "
+                              "choose another folder")
     there = sorted(f.name for f in out.iterdir() if any(
         fnmatch.fnmatch(f.name, p) for p in patterns)) if out.is_dir() else []
     if there and not force:
@@ -410,6 +416,7 @@ def check_out_plain(out: Path, patterns: tuple[str, ...], force: bool) -> None:
             pass
     except OSError as e:
         raise FolderError(f"--out {out}: cannot write in {parent} ({e.strerror})") from None
+
 
 class Interrupted(Exception):
     """A run or sweep stopped on request (Ctrl-C, SIGTERM, ``stop()``); everything done is

@@ -35,6 +35,7 @@ curve (or the overlay).
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -60,10 +61,12 @@ def resolve_scenario(spec: str, ep: dict, space) -> int:
     if spec == "best":
         return analysis.best(ep)
     kind, _, num = spec.partition(":")
-    try:
-        n = int(num)
-    except ValueError:
-        raise ValueError(f"--scenario {spec!r}: expected best, critical:K or eval:N") from None
+    # ASCII digits without leading zeros: the recording is named after the spec, and eval:01
+    # or another script's digits would name the same scenario's file differently
+    if not re.fullmatch(r"[1-9][0-9]*", num):
+        raise ValueError(f"--scenario {spec!r}: expected best, critical:K or eval:N (K, N "
+                         "positive whole numbers in ASCII digits, no leading zeros)")
+    n = int(num)
     if kind == "eval":
         if not 1 <= n <= len(ep["evaluation"]):
             raise ValueError(f"--scenario {spec}: the run has evaluations "

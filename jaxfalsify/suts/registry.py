@@ -35,6 +35,7 @@ from typing import Any, Callable, Mapping
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxfalsify.base import pytree
 from jaxfalsify.base.worker import import_module
@@ -82,16 +83,14 @@ def load_attr(spec: str, what: str = "SUT"):
     if not mod_name or not attr:
         known = f"a registry name ({', '.join(REGISTRY)}) or " if what == "SUT" else ""
         raise ValueError(f"{what} '{spec}': expected {known}an import path module:attr")
+    if mod_name.endswith(".py") and not Path(mod_name).resolve().is_file():
+        raise ValueError(f"{what} '{spec}': " + (
+            f"{mod_name} is a folder, not a Python file" if Path(mod_name).is_dir()
+            else f"no such file {mod_name}"))
     try:
-        if mod_name.endswith(".py") and not Path(mod_name).resolve().is_file():
-            raise ValueError(f"{what} '{spec}': " + (
-                f"{mod_name} is a folder, not a Python file" if Path(mod_name).is_dir()
-                else f"no such file {mod_name}"))
         module = import_module(mod_name, "jaxfalsify_user_sut_")
-    except ValueError:
-        raise
     except (Exception, SystemExit) as e:  # noqa: BLE001 - a user module can raise anything
-        # on import (sys.exit too)
+        # on import (sys.exit and a ValueError of its own too)
         raise ValueError(f"{what} '{spec}': cannot import {mod_name} ({error_line(e)})") from None
     try:
         return getattr(module, attr)
@@ -207,6 +206,7 @@ def resolve(spec: str | SUT | Callable) -> SUT:
                 raise ValueError(f"SUT '{spec}' could not be built (called with no "
                                  f"arguments): {error_line(e)}") from None
         if isinstance(obj, SUT):
+            _check_defaults(obj, spec)
             return dataclasses.replace(obj, name=spec) if obj.name != spec else obj
         builtin = next((s for s in REGISTRY.values() if s.act is obj or s.init is obj), None)
         if builtin is not None:  # a built-in's own function needs its state and parameters
@@ -223,6 +223,24 @@ def resolve(spec: str | SUT | Callable) -> SUT:
                      f"(got {type(spec).__name__})")
 
 
+def _check_defaults(sut: SUT, spec: str) -> None:
+    """One-line ValueError naming the SUT and the parameter whose default is not a real
+    number: a SUT's parameters are scalars (traced, recorded in config.toml, set by
+    ``--sut-param NAME=VALUE``)."""
+    p = sut.default_params
+    if p is None:
+        return
+    items = ({f: getattr(p, f) for f in pytree.field_names(p)} if dataclasses.is_dataclass(p)
+             else dict(p) if isinstance(p, Mapping) else None)
+    if items is None:
+        raise ValueError(f"SUT '{spec}': default_params must be a dataclass or a mapping of "
+                         f"numbers (got {type(p).__name__})")
+    for name, v in items.items():
+        if pytree.real_number(v) is None:
+            raise ValueError(f"SUT '{spec}': parameter '{name}' has the default {v!r:.40}, not "
+                             f"a number (a SUT's parameters are scalars)")
+
+
 def cache_key(sut: SUT) -> str | None:
     """What identifies a SUT's code across processes, for the per-user program cache: the
     built-ins by name, a module-level SUT by its functions' qualified names and the source of
@@ -237,6 +255,9 @@ def cache_key(sut: SUT) -> str | None:
         return f"builtin:{sut.name}"
     code = cache.user_code_hash(*fns)
     return None if code is None else f"{sut.name}:{code}"
+
+
+FLOAT32_TINY = float(np.finfo(np.float32).tiny)  # smallest normal float32 (1.2e-38)
 
 
 def param_names(sut: SUT) -> tuple[str, ...]:
@@ -282,6 +303,10 @@ def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
         if abs(number) > pytree.FLOAT32_MAX:
             raise ValueError(f"{where}: {name}={value!r:.40} is beyond float32's range (the "
                              "simulator computes in float32)")
+        if 0 < abs(number) < FLOAT32_TINY:  # would be 0 or lose its digits in float32
+            raise ValueError(f"{where}: {name}={value!r:.40} is below float32's smallest "
+                             f"normal number {FLOAT32_TINY:.3g} (the simulator computes in "
+                             "float32)")
         params[name] = number
     p = sut.default_params
     if dataclasses.is_dataclass(p):

@@ -103,6 +103,14 @@ def world(tmp_path_factory):
         "class NeedsArgs:\n    def __init__(self, gain):\n        pass\n\n\n"
         "def factory_keyerror():\n    return {}['cfg']\n")
     (w / "exits.py").write_text("import sys\n\nsys.exit(3)\n")
+    (w / "raises_valueerror.py").write_text("raise ValueError('kaboom')\n")
+    (w / "odd_defaults.py").write_text(  # parameters that are not scalars
+        "import dataclasses\nfrom jaxfalsify.suts.registry import SUT\n\n\n"
+        "@dataclasses.dataclass(frozen=True)\nclass P:\n    gain: float = 1.0\n"
+        "    w: tuple = (1.0, 2.0)\n\n\n"
+        "def act(obs, state, p, key):\n    return 0.0, state\n\n\n"
+        "ARR = SUT('arr', act, default_params=P())\n"
+        "WORD = SUT('word', act, default_params={'gain': 1.0, 'mode': 'fast'})\n")
     (w / "clash.py").write_text(  # a SUT parameter named like a sweep.parquet column
         "from jaxfalsify.base import pytree\nfrom jaxfalsify.suts.registry import SUT\n\n\n"
         "@pytree.dataclass\nclass P:\n    steps: float = 1.0\n\n\n"
@@ -460,6 +468,28 @@ CASES = [
      "arguments): KeyError: 'cfg'"),
     (["simulate", "--sut", "datetime:datetime"], "could not be built"),
     (["run", "--sut", "exits.py:AEB"], "cannot import exits.py (SystemExit: 3)"),
+    (["simulate", "--sut", "raises_valueerror.py:X"],
+     "SUT 'raises_valueerror.py:X': cannot import raises_valueerror.py (ValueError: kaboom)"),
+    (["estimate", "--requirement", "raises_valueerror.py:X"],
+     "requirement 'raises_valueerror.py:X': cannot import raises_valueerror.py"),
+    # a SUT's parameters are scalars: another default is named
+    (["simulate", "--sut", "odd_defaults.py:ARR"],
+     "SUT 'odd_defaults.py:ARR': parameter 'w' has the default (1.0, 2.0), not a number"),
+    (["run", "--sut", "odd_defaults.py:WORD"],
+     "SUT 'odd_defaults.py:WORD': parameter 'mode' has the default 'fast', not a number"),
+    (["sweep", "--sut", "odd_defaults.py:ARR"], "parameter 'w' has the default"),
+    # evaluator processes and retries are bounded (a process and its pipes per worker)
+    (["run", "--evaluator", "odd_defaults.py:act", "--workers", "100000"],
+     "--workers must be <= 256 (got 100000)"),
+    (["run", "--evaluator", "odd_defaults.py:act", "--retries", "1000"],
+     "--retries must be <= 100 (got 1000)"),
+    (["sweep", "--space", "tiny.toml", "--requirement", "clash", "--requirement-param",
+      "epsilon=1,2"], "epsilon='1,2' is not a number (one number: only sweep's --sut-param "
+     "takes a list of values)"),
+    (["simulate", "--sut-param", "speed_limit=1e-50"],
+     "speed_limit=1e-50 is below float32's smallest normal number 1.18e-38"),
+    (["run", "--checkpoint-every", "99999999999999999999999"],
+     "--checkpoint-every must be <= 1000000000"),
     # empty lists and paths
     (["compare", "--strategies", ""], "--strategies '': an empty value"),
     (["compare", "--strategies", " , "], "no strategy named"),

@@ -88,6 +88,35 @@ def test_config_round_trip_repeats_the_run(random_run, tmp_path):
     assert not pq.read_table(third / "evaluations.parquet").equals(a)
 
 
+def test_config_records_the_jax_settings_and_refuses_to_repeat_under_others(random_run,
+                                                                             tmp_path, capsys):
+    """config.toml's [jax] table holds this process's settings the draws depend on (oracle:
+    jax.config itself); a --config whose recorded generator is another is refused in one line
+    naming it, nothing written; with the line deleted it runs."""
+    import tomllib
+
+    import jax
+
+    doc = tomllib.loads((random_run / "config.toml").read_text())
+    assert doc["jax"]["jax_default_prng_impl"] == str(jax.config.jax_default_prng_impl)
+    assert doc["jax"]["jax_threefry_partitionable"] == str(
+        jax.config.jax_threefry_partitionable)
+    text = (random_run / "config.toml").read_text()
+    now = f'jax_default_prng_impl = "{jax.config.jax_default_prng_impl}"'
+    other = tmp_path / "other.toml"
+    other.write_text(text.replace(now, 'jax_default_prng_impl = "rbg"'))
+    capsys.readouterr()
+    assert main(["run", "--config", str(other), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the run had jax_default_prng_impl = rbg, this process has " \
+        f"{jax.config.jax_default_prng_impl}" in err[0] and "JAX_DEFAULT_PRNG_IMPL=rbg" in err[0]
+    assert not (tmp_path / "o").exists()
+    other.write_text(text.replace(now + "\n", ""))
+    assert main(["run", "--config", str(other), "--out", str(tmp_path / "o"), "--quiet"]) == 0
+    assert (tmp_path / "o" / "summary.json").read_bytes() == \
+        (random_run / "summary.json").read_bytes()
+
+
 def test_reinforce_paper_entry_run_and_report(tmp_path, capsys):
     out = tmp_path / "rl"
     assert main(["run", "--strategy", "reinforce/paper", "--evaluations", "50", "--out",
@@ -237,6 +266,7 @@ def test_a_jobs_startup_counts_the_command_line_up_to_the_job(monkeypatch):
     ({"JAX_PLATFORMS": "tpu"}, "JAX_PLATFORMS='tpu': Unable to initialize backend 'tpu'"),
     ({"JAX_DEFAULT_MATMUL_PRECISION": "bogus"},
      'Invalid value "bogus" for JAX flag jax_default_matmul_precision'),
+    ({"JAX_ENABLE_X64": "maybe"}, "invalid truth value 'maybe' for environment 'JAX_ENABLE_X64'"),
     ({"XLA_FLAGS": "--xla_bogus_flag=1"},
      "XLA_FLAGS='--xla_bogus_flag=1': Unknown flag in XLA_FLAGS: --xla_bogus_flag=1"),
     ({"JAXFALSIFY_NO_CACHE": "maybe"}, "JAXFALSIFY_NO_CACHE='maybe': use 1 (no cache) or 0"),

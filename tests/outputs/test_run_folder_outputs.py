@@ -258,6 +258,14 @@ def test_replay_bad_scenario_spec(run_with_figures, capsys):
     assert "expected best, critical:K or eval:N" in capsys.readouterr().err
     assert main(["replay", str(run_with_figures), "--scenario", "eval:99999"]) == 2
     assert main(["replay", str(run_with_figures), "--save", "x.txt"]) == 2
+    capsys.readouterr()
+    # ASCII digits, no leading zeros: eval:01 and eval:\u0661 (Arabic-Indic one) would name
+    # eval:1's recording differently
+    for spec in ("eval:01", "eval:\u0661", "critical:0", "eval:+1", "eval: 1"):
+        before = sorted(p.name for p in run_with_figures.iterdir())
+        assert main(["replay", str(run_with_figures), "--scenario", spec]) == 2
+        assert "no leading zeros" in capsys.readouterr().err
+        assert sorted(p.name for p in run_with_figures.iterdir()) == before
 
 
 def test_export_validates_against_the_xsd_and_matches_the_trajectory(run_with_figures,
@@ -467,6 +475,15 @@ def test_export_refuses_existing_output(run_with_figures, tmp_path, capsys):
     assert main(["export", str(run_with_figures), "--out", str(own)]) == 2
     assert "already holds best.xosc" in capsys.readouterr().err
     assert (own / "best.xosc").read_text() == "mine" and len(list(own.iterdir())) == 1
+    # a job's checkpoint folder (or below it) is the job's: its --force would remove it
+    job = tmp_path / "job"
+    job.mkdir()
+    (job / "config.toml").write_text('kind = "run"\n')
+    for inside in (job / "checkpoint", job / "checkpoint" / "osc",
+                   job / "checkpoint-part-0-of-2"):
+        assert main(["export", str(run_with_figures), "--out", str(inside)]) == 2
+        assert "inside the checkpoint folder of the run" in capsys.readouterr().err
+    assert sorted(p.name for p in job.iterdir()) == ["config.toml"]
 
 
 def test_replay_refuses_to_overwrite_a_saved_file_and_says_when_no_viewer(
@@ -640,6 +657,11 @@ def test_a_run_where_everything_collided_shows_no_typical_scenario(tmp_path, mon
     ("rows_dropped", "its 'evaluation' column is not 1..100 in order"),
     ("rows_repeated", "its 400 rows are not the 200 evaluations summary.json counts"),
     ("best_outside", "summary.json is damaged ('best.evaluation' is 99999, not one of"),
+    # hand-edited counts and best reward, against the evaluations (report.md showed them)
+    ("count_edited", "summary.json does not match evaluations.parquet ('n_collisions' is -5; "
+     "the evaluations give "),
+    ("best_reward_edited", "summary.json does not match evaluations.parquet ('best.reward' "
+     "is 99.0;"),
 ])
 def test_a_damaged_run_folder_gets_one_line_and_nothing_redrawn(run_with_figures, tmp_path,
                                                                  capsys, damage, message):
@@ -658,9 +680,14 @@ def test_a_damaged_run_folder_gets_one_line_and_nothing_redrawn(run_with_figures
         (run / "summary.json").write_text("{}")
     elif damage == "summary_not_json":
         (run / "summary.json").write_text('{"best":')
-    elif damage == "best_outside":
+    elif damage in ("best_outside", "count_edited", "best_reward_edited"):
         s = json.loads((run / "summary.json").read_text())
-        s["best"]["evaluation"] = 99999
+        if damage == "best_outside":
+            s["best"]["evaluation"] = 99999
+        elif damage == "count_edited":
+            s["n_collisions"] = -5
+        else:
+            s["best"]["reward"] = 99.0
         (run / "summary.json").write_text(json.dumps(s))
     elif damage.startswith("summary_"):  # a field of the wrong type, the rest intact
         s = json.loads((run / "summary.json").read_text())
