@@ -14,20 +14,21 @@ leaves XLA's own choice.
 XLA reads the thread count from the environment variable ``NPROC`` when it creates its CPU
 client (on the first computation), so :func:`configure` runs when ``jaxfalsify`` is imported.
 ``JAXFALSIFY_XLA_THREADS=N`` chooses the count, ``auto`` (the default) as above; an ``NPROC``
-already set is left as it is. Either is refused above :data:`PER_CORE` threads per core the
-process may run on (XLA starts every thread it is asked for: 100,000 took 19 GB of memory and
-the machine with it). Child processes inherit the setting.
+already set is left as it is. Either is refused above the larger of :data:`FLOOR` threads and
+:data:`PER_CORE` per core the process may run on (XLA starts every thread it is asked for:
+100,000 took 19 GB of memory and the machine with it). Child processes inherit the setting.
 """
 
 from __future__ import annotations
 
 import os
 
-__all__ = ["ENV", "PER_CORE", "cores", "configure", "wanted", "most"]
+__all__ = ["ENV", "PER_CORE", "FLOOR", "cores", "configure", "wanted", "most"]
 
 ENV = "JAXFALSIFY_XLA_THREADS"
 XLA_ENV = "NPROC"  # what XLA's CPU client reads for its thread pool's size
-PER_CORE = 4  # the most threads per core asked of XLA
+PER_CORE = 4  # the most threads per core asked of XLA ...
+FLOOR = 256  # ... or this many, if more
 
 
 def cores() -> int:
@@ -39,14 +40,15 @@ def cores() -> int:
 
 
 def most() -> int:
-    """The most threads XLA may be asked for: :data:`PER_CORE` per core."""
-    return PER_CORE * cores()
+    """The most threads XLA may be asked for: :data:`PER_CORE` per core, and never fewer than
+    :data:`FLOOR` (a few MB of memory)."""
+    return max(PER_CORE * cores(), FLOOR)
 
 
 def _bounded(name: str, raw: str, n: int) -> int:
     if n > most():
-        raise ValueError(f"{name}={raw!r}: at most {most()} threads ({PER_CORE} per core of the "
-                         f"{cores()} this process may run on)")
+        raise ValueError(f"{name}={raw!r}: at most {most()} threads (the larger of {FLOOR} and "
+                         f"{PER_CORE} per core of the {cores()} this process may run on)")
     return n
 
 

@@ -80,7 +80,7 @@ class Pool:
                  retries: int = 1, chunk: int | None = None):
         check_settings(workers, timeout, retries, chunk)
         self.spec, self.timeout, self.retries, self.chunk = spec, timeout, retries, chunk
-        self.n = workers or _cores()
+        self.n = workers or min(_cores(), MAX_WORKERS)
         self.procs: list[Any] = [None] * self.n
         self.conns: list[Any] = [None] * self.n
         self.restarts = 0

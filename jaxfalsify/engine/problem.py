@@ -271,11 +271,15 @@ class RunConfig(Problem):
         if check_jax:
             now = jax_settings()
             for k, v in recorded.items():
-                if k in now and now[k] != v:
+                if k not in now:
+                    raise ValueError(f"{path}: [jax] {k}: not a setting a run records (one of "
+                                     f"{', '.join(now)})")
+                if now[k] != v:
+                    how = f"unset {k.upper()}" if v == "None" else f"set {k.upper()}={v}"
                     raise ValueError(
                         f"{path}: the run had {k} = {v}, this process has {now[k]} (its draws "
-                        f"depend on it: set {k.upper()}={v} to repeat the run, or delete the "
-                        "line from [jax] to run with this process's setting)")
+                        f"depend on it: {how} to repeat the run, or delete the line from [jax] "
+                        "to run with this process's setting)")
         return cls.from_dict(doc, where=str(path))
 
     @classmethod

@@ -62,6 +62,10 @@ FINISHED = {"run": "summary.json", "sweep": "summary.json", "compare": "compare.
             "suite": "suite.json", "estimate": "summary.json"}
 
 
+OPTIONAL = ("best.rrd", "campaign.rrd", "trajectories.npz")  # written on request only (--rerun,
+# replay, an evaluator's trajectories)
+
+
 def _result_names(kind: str) -> list[str]:
     """Every file a finished ``kind`` writes, relative to its folder."""
     names = list(RESULT_FILES[kind]) + ["status.json"]
@@ -167,10 +171,13 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
         if complete(out, kind) and not force:
             raise FolderError(f"--out {out} already holds {FINISHED[kind]}; pass --force to "
                               "overwrite")
-        if kind not in ("compare", "suite") and unfinished(out) and not force:
+        if kind in RESUMABLE and unfinished(out) and not force:
             raise FolderError(f"--out {out} holds an unfinished {kind}; pass --resume "
                               f"{shell_path(out)} to "
                               "continue it or --force to start over")
+        if kind == "estimate" and unfinished(out) and not force:
+            raise FolderError(f"--out {out} holds an estimate that did not complete (see its "
+                              "status.json); pass --force to start it over")
         if have is None and not force:  # a user's files under the names a result takes
             theirs = [n for n in _result_names(kind) if (out / n).exists()]
             if theirs:
@@ -179,13 +186,10 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
                                   "another folder")
     # a folder under a name the result writes as a file (or a file where it makes a folder)
     # would fail the job's last writes, after the work: refused before, with or without --force
-    for name in [*_result_names(kind), "config.toml"]:
-        if (out / name).is_dir():
+    for name in _result_names(kind):
+        if name not in OPTIONAL and (out / name).is_dir():
             raise FolderError(f"{flag}: {out / name} is a folder where the {kind} writes a "
                               "file (move it away or choose another folder)")
-    if kind == "run" and (out / "figures").exists() and not (out / "figures").is_dir():
-        raise FolderError(f"{flag}: {out / 'figures'} is a file where the run writes its "
-                          "figures folder (move it away or choose another folder)")
     parent = out if out.exists() else next((a for a in out.parents if a.exists()), Path("."))
     if not parent.is_dir():
         raise FolderError(f"{flag}: {parent} is not a folder")
@@ -368,10 +372,14 @@ def shell_path(path: Path | str) -> str:
     return shlex.quote(text)
 
 
+RESUMABLE = ("run", "sweep")  # the jobs a --resume continues
+
+
 def write_status(out: Path, kind: str, state: str, **extra) -> None:
-    """``status.json``: ``running``, ``interrupted`` or ``complete``, and how to resume."""
+    """``status.json``: ``running``, ``interrupted`` or ``complete``, and how to resume (a
+    run or a sweep; another job is started over with ``--force``)."""
     doc = {"state": state, **extra}
-    if state != "complete":
+    if state != "complete" and kind in RESUMABLE:
         doc.setdefault("resume", f"jaxfalsify {kind} --resume {shell_path(out)}")
     write_json(Path(out) / "status.json", doc, indent=2)
 
@@ -399,11 +407,16 @@ def check_out_plain(out: Path, patterns: tuple[str, ...], force: bool) -> None:
     if folder_kind(out) is not None:
         raise FolderError(f"--out {out} holds a {folder_kind(out)}; choose another folder")
     for a in [out, *out.parents]:  # a job's checkpoint folder is its own: --force removes it
-        if (a.name == "checkpoint" or a.name.startswith("checkpoint-part-")) and \
-                a.parent != a and folder_kind(a.parent) is not None:
-            raise FolderError(f"--out {out} is inside the checkpoint folder of the "
-                              f"{folder_kind(a.parent)} in {a.parent}, which that job removes; "
-                              "choose another folder")
+        if not (a.name == "checkpoint" or a.name.startswith("checkpoint-part-")) or \
+                a.parent == a:
+            continue
+        try:
+            job = folder_kind(a.parent)
+        except FolderError:  # another tool's config.toml (or an unreadable one): not a job
+            job = None
+        if job is not None:
+            raise FolderError(f"--out {out} is inside the checkpoint folder of the {job} in "
+                              f"{a.parent}, which that job removes; choose another folder")
     there = sorted(f.name for f in out.iterdir() if any(
         fnmatch.fnmatch(f.name, p) for p in patterns)) if out.is_dir() else []
     if there and not force:

@@ -539,6 +539,8 @@ def execute(config: EstimateConfig, out: Path | str, *, force: bool = False,
 def summary_lines(s: dict) -> list[str]:
     """What ``jaxfalsify estimate`` prints."""
     lo, hi = s["interval"]
+    if s.get("interrupted") and s["samples"] == 0:
+        return ["interrupted before any draw: no estimate"]
     if s["method"] == "exact":
         return [f"{s['requirement']} violated by {s['violations']:,} of the "
                 f"{s['samples']:,} scenarios: {s['estimate']:.4g} (exact), {s['seconds']:.1f} s"]

@@ -285,10 +285,11 @@ class BatchedReinforce(Strategy):
 
         # the first update: the first learners (a share `boundary` of them) draw from the
         # boundary distribution instead (their policies learn from it as from their own
-        # draws). A cond, so later updates do not compute the boundary draws; both branches
-        # compute the policy's draws (computed outside and passed in, they cost 0.7 ms more
-        # per update at batch 4096 on 2 cores: laid out for the cond, their elementwise work
-        # no longer vectorised)
+        # draws). A cond, so later updates do not compute the boundary draws; the policy's
+        # draws are computed inside the branches that use them (computed outside and passed
+        # in, they cost 0.7 ms more per update at batch 4096 on 2 cores: laid out for the
+        # cond, their elementwise work no longer vectorised). (Under a vmap the conds would
+        # become selects, every branch computed; the campaign maps seeds with lax.map.)
         def at_boundary(u):
             at = jnp.arange(u.shape[0]) // self.share < params.boundary * self.learners
             bound = discretised.sample_boundary(u[:, 2:], self.shape, params.boundary_width)

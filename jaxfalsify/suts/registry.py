@@ -224,19 +224,16 @@ def resolve(spec: str | SUT | Callable) -> SUT:
 
 
 def _check_defaults(sut: SUT, spec: str) -> None:
-    """One-line ValueError naming the SUT and the parameter whose default is not a real
-    number: a SUT's parameters are scalars (traced, recorded in config.toml, set by
-    ``--sut-param NAME=VALUE``)."""
+    """One-line ValueError naming the SUT and the parameter whose default is neither a real
+    number nor a boolean, in a dataclass or mapping of parameters: a SUT's named parameters
+    are scalars (traced, recorded in config.toml, set by ``--sut-param NAME=VALUE``)."""
     p = sut.default_params
     if p is None:
         return
     items = ({f: getattr(p, f) for f in pytree.field_names(p)} if dataclasses.is_dataclass(p)
-             else dict(p) if isinstance(p, Mapping) else None)
-    if items is None:
-        raise ValueError(f"SUT '{spec}': default_params must be a dataclass or a mapping of "
-                         f"numbers (got {type(p).__name__})")
+             else dict(p) if isinstance(p, Mapping) else {})  # (another pytree: as it is)
     for name, v in items.items():
-        if pytree.real_number(v) is None:
+        if pytree.real_number(v) is None and not isinstance(v, (bool, np.bool_)):
             raise ValueError(f"SUT '{spec}': parameter '{name}' has the default {v!r:.40}, not "
                              f"a number (a SUT's parameters are scalars)")
 

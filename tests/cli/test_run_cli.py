@@ -111,6 +111,17 @@ def test_config_records_the_jax_settings_and_refuses_to_repeat_under_others(rand
     assert len(err) == 1 and "the run had jax_default_prng_impl = rbg, this process has " \
         f"{jax.config.jax_default_prng_impl}" in err[0] and "JAX_DEFAULT_PRNG_IMPL=rbg" in err[0]
     assert not (tmp_path / "o").exists()
+    # a recorded "None" (a setting left unset) is to be unset, not set to None; an unknown
+    # setting is named
+    precision = f'jax_default_matmul_precision = "{jax.config.jax_default_matmul_precision}"'
+    assert precision in text and str(jax.config.jax_default_matmul_precision) == "None"
+    from jaxfalsify.engine.problem import RunConfig
+    with jax.default_matmul_precision("highest"):
+        with pytest.raises(ValueError, match="unset JAX_DEFAULT_MATMUL_PRECISION to repeat"):
+            RunConfig.from_toml(random_run / "config.toml", check_jax=True)
+    other.write_text(text.replace(now, 'jax_bogus = "1"'))
+    with pytest.raises(ValueError, match=r"\[jax\] jax_bogus: not a setting a run records"):
+        RunConfig.from_toml(other, check_jax=True)
     other.write_text(text.replace(now + "\n", ""))
     assert main(["run", "--config", str(other), "--out", str(tmp_path / "o"), "--quiet"]) == 0
     assert (tmp_path / "o" / "summary.json").read_bytes() == \

@@ -68,18 +68,21 @@ def test_bad_values_are_refused_in_one_line(value):
         threads.configure({threads.ENV: value})
 
 
-def test_more_threads_than_four_per_core_are_refused(monkeypatch):
-    # XLA starts every thread asked for (100,000 took 19 GB): the bound is 4 per core
-    monkeypatch.setattr(threads, "cores", lambda: 3)
-    env = {threads.ENV: "12"}
-    assert threads.configure(env) == 12 and env["NPROC"] == "12"
-    with pytest.raises(ValueError, match=r"^JAXFALSIFY_XLA_THREADS='13': at most 12 threads "
-                                         r"\(4 per core of the 3 "):
-        threads.configure({threads.ENV: "13"})
-    with pytest.raises(ValueError, match=r"^NPROC='100000': at most 12 threads"):
-        threads.configure({"NPROC": "100000"})
-    env = {"NPROC": "12"}
-    assert threads.configure(env) is None and env == {"NPROC": "12"}
+def test_more_threads_than_four_per_core_and_256_are_refused(monkeypatch):
+    # XLA starts every thread asked for (100,000 took 19 GB): the bound is 4 per core, and at
+    # least 256 (a few MB)
+    for n_cores, limit in ((3, 256), (100, 400)):
+        monkeypatch.setattr(threads, "cores", lambda n=n_cores: n)
+        env = {threads.ENV: str(limit)}
+        assert threads.configure(env) == limit and env["NPROC"] == str(limit)
+        with pytest.raises(ValueError, match=rf"^JAXFALSIFY_XLA_THREADS='{limit + 1}': at most "
+                                             rf"{limit} threads \(the larger of 256 and 4 per "
+                                             rf"core of the {n_cores} "):
+            threads.configure({threads.ENV: str(limit + 1)})
+        with pytest.raises(ValueError, match=rf"^NPROC='100000': at most {limit} threads"):
+            threads.configure({"NPROC": "100000"})
+        env = {"NPROC": str(limit)}
+        assert threads.configure(env) is None and env == {"NPROC": str(limit)}
 
 
 def test_the_command_line_refuses_a_bad_value_with_exit_code_2(tmp_path):
@@ -97,9 +100,10 @@ def test_the_command_line_refuses_a_bad_value_with_exit_code_2(tmp_path):
     env = {**os.environ, "NPROC": "100000"}
     out = subprocess.run([sys.executable, "-m", "jaxfalsify", "run", "--out", str(tmp_path / "r")],
                          env=env, capture_output=True, text=True)
-    limit = threads.PER_CORE * threads.cores()
+    limit = max(4 * threads.cores(), 256)
     assert out.returncode == 2
     assert out.stderr.strip().splitlines() == [
-        f"jaxfalsify: error: NPROC='100000': at most {limit} threads (4 per core of the "
-        f"{threads.cores()} this process may run on) (set in the environment: fix or unset it)"]
+        f"jaxfalsify: error: NPROC='100000': at most {limit} threads (the larger of 256 and 4 "
+        f"per core of the {threads.cores()} this process may run on) (set in the environment: "
+        "fix or unset it)"]
     assert not (tmp_path / "r").exists()

@@ -14,6 +14,7 @@ import pytest
 import jaxfalsify as jf
 from jaxfalsify.cli import main
 from jaxfalsify.core import requirements as req_lib
+from jaxfalsify.io import store
 from jaxfalsify.jobs import estimate as est
 from jaxfalsify.suts import registry as sut_lib
 
@@ -271,6 +272,14 @@ def test_a_stop_request_ends_the_draws_and_the_folder_says_interrupted(tmp_path,
     lines = est.summary_lines(s)
     assert "interrupted after 2,000 draws" in lines[-1] and "raise --samples" not in " ".join(
         lines)
+    # an estimate cannot be resumed: no --resume is offered; the folder is started over with
+    # --force, and until then kept
+    assert "resume" not in status
+    with pytest.raises(store.FolderError, match="holds an estimate that did not complete "
+                                                r"\(see its status.json\); pass --force"):
+        est.execute(c, tmp_path / "e")
+    kept = json.loads((tmp_path / "e" / "summary.json").read_text())
+    assert kept["samples"] == 2000 and kept["estimate"] == s["estimate"]
 
 
 def test_ctrl_c_ends_an_estimate_with_exit_130_and_says_so(tmp_path):

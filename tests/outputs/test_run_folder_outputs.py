@@ -484,6 +484,12 @@ def test_export_refuses_existing_output(run_with_figures, tmp_path, capsys):
         assert main(["export", str(run_with_figures), "--out", str(inside)]) == 2
         assert "inside the checkpoint folder of the run" in capsys.readouterr().err
     assert sorted(p.name for p in job.iterdir()) == ["config.toml"]
+    # another tool's config.toml above a folder named checkpoint: not a job, exported into
+    proj = tmp_path / "proj"
+    (proj / "checkpoint").mkdir(parents=True)
+    (proj / "config.toml").write_text('name = "another tool"\n')
+    assert main(["export", str(run_with_figures), "--out", str(proj / "checkpoint" / "x")]) == 0
+    assert (proj / "checkpoint" / "x" / "best.xosc").is_file()
 
 
 def test_replay_refuses_to_overwrite_a_saved_file_and_says_when_no_viewer(

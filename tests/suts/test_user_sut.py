@@ -35,6 +35,25 @@ def test_resolved_by_file_path_and_by_module(monkeypatch):
         sut_lib.resolve(f"{EXAMPLE}:BRAKE")
 
 
+def test_parameters_of_any_scalar_kind_resolve(tmp_path):
+    """Named parameters may be numbers or booleans (a tuple or text is refused, in
+    tests/cli/test_bad_input.py), and a parameter pytree that is neither a dataclass nor a
+    mapping is taken as it is: each of these resolves, its defaults intact."""
+    mod = tmp_path / "kinds.py"
+    mod.write_text(
+        "import dataclasses\nfrom typing import NamedTuple\n"
+        "from jaxfalsify.suts.registry import SUT\n\n\n"
+        "@dataclasses.dataclass(frozen=True)\nclass P:\n    gain: float = 2.0\n"
+        "    on: bool = True\n\n\nclass T(NamedTuple):\n    gain: float = 3.0\n\n\n"
+        "def act(obs, state, p, key):\n    return 0.0, state\n\n\n"
+        "FLAGS = SUT('flags', act, default_params=P())\n"
+        "TUPLE = SUT('tuple', act, default_params=T())\n"
+        "MAPPED = SUT('mapped', act, default_params={'gain': 1.5, 'on': False})\n")
+    assert sut_lib.resolve(f"{mod}:FLAGS").default_params.on is True
+    assert sut_lib.resolve(f"{mod}:TUPLE").default_params.gain == 3.0
+    assert sut_lib.resolve(f"{mod}:MAPPED").default_params == {"gain": 1.5, "on": False}
+
+
 def test_a_sut_that_cannot_step_is_refused_before_it_runs(tmp_path):
     """A user's SUT is traced for one step (abstractly, vmapped over scenarios) with its
     resolved parameters: the
