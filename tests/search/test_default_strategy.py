@@ -283,8 +283,11 @@ def test_reinforce_gradient_estimate_matches_exact_gradient_of_expected_reward(s
 @pytest.mark.slow
 def test_learns_an_interior_optimum_at_batch_1024():
     """A synthetic objective on 5 parameters x 200 values whose optimum lies inside the box
-    (oracle: the known optimum); after 30 updates of 1,024 most of the last batch lies
-    within 3 value steps of it in every parameter (uniform sampling: (7/200)^5 ~ 5e-8)."""
+    (oracle: the known optimum); after 30 updates of 1,024 each of the two learners that start
+    spread over the space draws most (> 80 %) of its share of the last batch within 3 value
+    steps of it in every parameter (uniform sampling: (7/200)^5 ~ 5e-8). (The two that start
+    at the box's vertices, for failures at its corners, may still be there: the batch is the
+    learners' shares in order, 256 each.)"""
     shape = (200,) * 5
     target = jnp.array([37, 150, 99, 12, 180])
     s, p = search.make("reinforce/default", shape, 1024)
@@ -302,7 +305,9 @@ def test_learns_an_interior_optimum_at_batch_1024():
 
     idx = np.asarray(jax.jit(loop)(jax.random.key(0)))
     near = np.all(np.abs(idx[-1] - np.asarray(target)) <= 3, axis=-1)
-    assert near.mean() > 0.5, (near.mean(), idx[-1][:5])
+    per_learner = near.reshape(s.learners, s.share).mean(axis=1)
+    assert s.n_vertex_learners == 2 and np.all(per_learner[:2] > 0.8), (per_learner,
+                                                                        idx[-1][:5])
 
 
 def test_a_collision_seen_before_counts_less():
