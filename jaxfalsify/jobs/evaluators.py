@@ -107,8 +107,8 @@ def run(config: RunConfig, out: Path | str | None = None, *, workers: int | None
     except KeyboardInterrupt:
         f.close()
         raise store.Interrupted("run", f.out, f.told, f.budget, "evaluations") from None
-    except BaseException:
-        f.close()
+    except BaseException as e:
+        f.close(error=e)  # resumable, and says what ended it
         raise
     return f.finish(figures=figures)
 

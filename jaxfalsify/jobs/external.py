@@ -41,7 +41,7 @@ from jaxfalsify.base.progress import Clock, Progress
 from jaxfalsify.base.worker import SIGNALS, first_non_flag, shown, trajectory_arrays
 from jaxfalsify.core import sim
 from jaxfalsify.engine import campaign
-from jaxfalsify.engine.lifecycle import Status
+from jaxfalsify.engine.lifecycle import Status, error_text
 from jaxfalsify.engine.problem import RunConfig
 from jaxfalsify.io import cache, checkpoints, store
 from jaxfalsify.io.files import save_npz, write_atomic, write_json, write_parquet
@@ -461,15 +461,21 @@ class Falsifier:
             self._lock.release()
         return runs.RunOutcome(self.out, self.config, res, summary, timing)
 
-    def close(self) -> None:
+    def close(self, error: BaseException | None = None) -> None:
         """Release the folder without finishing: it stays resumable (``status.json`` says
-        interrupted). Nothing told is lost."""
+        interrupted, or failed with ``error``'s text when an error ended the loop). Nothing
+        told is lost."""
         if self._finished:
             return
         self.progress.close()
         self._finished = True
         try:
-            self._status("interrupted", evaluations_done=self.told, evaluations=self.budget)
+            if error is None:
+                self._status("interrupted", evaluations_done=self.told,
+                             evaluations=self.budget)
+            else:
+                self._status("failed", evaluations_done=self.told, evaluations=self.budget,
+                             error=error_text(error))
         finally:
             self._lock.release()
 

@@ -490,3 +490,34 @@ def test_trajectories_of_other_lengths_and_names_share_one_length():
     assert np.isnan(res.outputs["trajectory/t"][0]).all()
     assert np.isnan(res.outputs["trajectory/t"][1, 5:]).all() and res.failed.tolist() == [
         False, False, True]
+
+
+def test_an_error_that_ends_the_pool_leaves_a_failed_resumable_run(tmp_path, monkeypatch):
+    """An error that ends the evaluation loop (here the pool's drive raising, as a worker
+    that cannot be started does under a file limit): status.json says failed, with the error
+    and the command that resumes the run, not interrupted; the resume completes the run to
+    the same records as an uninterrupted one (oracle: that run)."""
+    rc = runs.RunConfig(strategy="random", evaluations=96, batch=32, seed=3,
+                        evaluator=f"{HOST}:plain")
+    whole = evaluators.run(rc, tmp_path / "whole", workers=1, figures=False)
+    calls = {"n": 0}
+    real = evaluators.drive
+
+    def broken(f, pool, progress, stop=None):
+        def stop_after_two():
+            calls["n"] += 1
+            if calls["n"] > 2:
+                raise OSError(24, "Too many open files")
+            return False
+        real(f, pool, progress, stop_after_two)
+
+    monkeypatch.setattr(evaluators, "drive", broken)
+    with pytest.raises(OSError, match="Too many open files"):
+        evaluators.run(rc, tmp_path / "cut", workers=1, figures=False)
+    status = json.loads((tmp_path / "cut" / "status.json").read_text())
+    assert status["state"] == "failed" and "Too many open files" in status["error"]
+    assert status["resume"] == f"jaxfalsify run --resume {tmp_path / 'cut'}"
+    assert status["evaluations_done"] == 64
+    monkeypatch.setattr(evaluators, "drive", real)
+    again = evaluators.run(rc, tmp_path / "cut", workers=1, resume=True, figures=False)
+    np.testing.assert_array_equal(again.result.indices, whole.result.indices)
