@@ -11,7 +11,7 @@ from pathlib import Path
 from jaxfalsify.io import store
 from jaxfalsify.suts.registry import callback_error
 
-__all__ = ["ERROR_CHARS", "Status", "sut_raised"]
+__all__ = ["ERROR_CHARS", "Status", "error_text", "sut_raised"]
 
 ERROR_CHARS = 300  # the longest error text status.json keeps
 STATES = ("running", "interrupted", "failed", "complete")
