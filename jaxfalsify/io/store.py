@@ -171,13 +171,12 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
         if complete(out, kind) and not force:
             raise FolderError(f"--out {out} already holds {FINISHED[kind]}; pass --force to "
                               "overwrite")
-        if kind in RESUMABLE and unfinished(out) and not force:
-            raise FolderError(f"--out {out} holds an unfinished {kind}; pass --resume "
-                              f"{shell_path(out)} to "
-                              "continue it or --force to start over")
-        if kind == "estimate" and unfinished(out) and not force:
-            raise FolderError(f"--out {out} holds an estimate that did not complete (see its "
-                              "status.json); pass --force to start it over")
+        if kind not in ("compare", "suite") and unfinished(out) and not force:
+            raise FolderError(
+                f"--out {out} holds an unfinished {kind}; pass --resume {shell_path(out)} to "
+                "continue it or --force to start over" if kind in RESUMABLE else
+                f"--out {out} holds an {kind} that did not complete (see its status.json); "
+                "pass --force to start it over")
         if have is None and not force:  # a user's files under the names a result takes
             theirs = [n for n in _result_names(kind) if (out / n).exists()]
             if theirs:

@@ -477,6 +477,7 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
         progress.update(t.n, estimate=f"{t.estimate:.3g}", rel=f"{t.rel:.3f}")
     progress.close()
     est, low, high, rel, n, k_bad = t.estimate, t.low, t.high, t.rel, t.n, t.bad
+    reached = t.reached(c.target_rel_error)
     diagnostics = {} if c.method == "mc" else {
         "violations_above_uniform": t.above_uniform,
         "largest_weight_share": t.w_max / t.s1 if t.s1 > 0 else 0.0}
@@ -489,9 +490,7 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
             "violations": k_bad, "estimate": est, "interval": [low, high],
             "confidence": c.confidence, "relative_half_width": rel,
             "target_rel_error": c.target_rel_error,
-            "reached_target": bool(k_bad >= MIN_VIOLATIONS and rel <= c.target_rel_error),
-            "interrupted": interrupted and not (k_bad >= MIN_VIOLATIONS
-                                                and rel <= c.target_rel_error),
+            "reached_target": reached, "interrupted": interrupted and not reached,
             **diagnostics, "seconds": time.perf_counter() - t0}
 
 
