@@ -387,12 +387,16 @@ class BatchedReinforce(Strategy):
         return dataclasses.replace(state, params=weights, opt=opt, told=state.told + self.batch,
                                    found=found), elite.reshape(-1)[:self.batch]
 
-    def _learn_one(self, key, weights, opt, indices, signal, params, lr):
-        """``(weights, opt, elite (B,) bool)`` of one learner: ``steps`` Adam steps on
-        ``-sum_j w_j log pi(a_j)`` over the ``top`` best scenarios of its batch (near ties
-        broken at random), ``w_j`` CMA-ES's log-rank weights summing to 1: REINFORCE (Eq. 2)
-        with non-negative rank utilities and baseline 0 (unbiased for any constant baseline);
-        the scenarios below the top have utility 0 and drop out of the sum."""
+    def pick_elite(self, key, indices, signal):
+        """One learner's elite: ``(scenarios (S, P), weights (S,), at (top,), best (top,))``,
+        the ``top`` best scenarios of its share ``indices (share, P)`` by ``signal (share,)``
+        (near ties broken at random by ``key``; ``at`` their positions in the share, ``best``
+        their signals, -inf where fewer were finite) and CMA-ES's log-rank weights summing to
+        1 (0 for a non-finite signal). ``S`` is ``top`` rounded up to a multiple of 8, the
+        extra scenarios weighing 0: they add exact zeros to the loss and its gradient, and on
+        XLA CPU the log-probabilities' loops over the elite (innermost) cost more with a
+        remainder past the 8-wide vectors than padded (four learners' 102 scenarios at batch
+        4096: 1.87 ms per update, padded to 104: 1.65 ms)."""
         ok = jnp.isfinite(signal)
         noise = jax.random.uniform(key, signal.shape, maxval=1e-6)  # ties at random
         best, at = jax.lax.top_k(jnp.where(ok, signal + noise * jnp.abs(signal), -jnp.inf),
@@ -401,17 +405,26 @@ class BatchedReinforce(Strategy):
         w = jnp.log(self.top + 0.5) - jnp.log(ranks + 1.0)
         w = jnp.where(jnp.isfinite(best), w, 0.0)
         w = w / jnp.maximum(jnp.sum(w), 1e-30)
-        elite = indices[at]
+        pad = -self.top % 8
+        return indices[jnp.pad(at, (0, pad))], jnp.pad(w, (0, pad)), at, best
 
-        def loss(weights):
-            dist = self.module.apply({"params": weights})
-            lp = self._log_prob_one(weights, elite, params, dist)
-            log_sigma = dist[2]
-            return -jnp.sum(w * lp) - params.entropy * jnp.mean(log_sigma)
+    def loss(self, weights, elite, w, params):
+        """One learner's loss: ``-sum_j w_j log pi(a_j) - entropy x mean log sigma`` over its
+        elite (:meth:`pick_elite`): REINFORCE (Eq. 2) with non-negative rank utilities and
+        baseline 0 (unbiased for any constant baseline); the scenarios below the top have
+        utility 0 and drop out of the sum."""
+        dist = self.module.apply({"params": weights})
+        lp = self._log_prob_one(weights, elite, params, dist)
+        return -jnp.sum(w * lp) - params.entropy * jnp.mean(dist[2])
+
+    def _learn_one(self, key, weights, opt, indices, signal, params, lr):
+        """``(weights, opt, elite (B,) bool)`` of one learner: ``steps`` Adam steps on
+        :meth:`loss` over the ``top`` best scenarios of its batch (:meth:`pick_elite`)."""
+        elite, w, at, best = self.pick_elite(key, indices, signal)
 
         def adam_step(carry, _):
             weights, opt = carry
-            grads = jax.grad(loss)(weights)
+            grads = jax.grad(self.loss)(weights, elite, w, params)
             updates, opt = optax.scale_by_adam().update(grads, opt, weights)
             updates = jax.tree.map(lambda u: -lr * u, updates)
             return (optax.apply_updates(weights, updates), opt), None

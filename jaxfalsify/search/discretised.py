@@ -130,14 +130,17 @@ def _ranks(actions: jax.Array, shape: tuple[int, ...]) -> jax.Array:
 
 
 @jax.custom_vjp
-def _mixture(log_w, mu, inv, half, one_e, const, r):
+def _mixture(log_w, mu, inv, const, r, h):
     """``(B,)`` ``logsumexp_k (log_w_k + sum_p log m_kp)``: :func:`log_probs_by_component`'s
-    mixture, with its gradient written out (below)."""
-    return _mixture_fwd(log_w, mu, inv, half, one_e, const, r)[0]
+    mixture from ``mu, inv (K, P')``, the constant terms ``const (K, P')`` (the bin width's
+    ``log(e^w - 1)`` less the normaliser), the ranks ``r (P', B)`` and the half steps ``h
+    (P',)`` in rank units, with its gradient written out (below)."""
+    return _mixture_fwd(log_w, mu, inv, const, r, h)[0]
 
 
-def _mixture_fwd(log_w, mu, inv, half, one_e, const, r):
-    u, t, e, d = _bins((mu, inv, half, one_e, const), r)  # (K, P', B); d in [1, 150)
+def _mixture_fwd(log_w, mu, inv, const, r, h):
+    half = h * inv
+    u, t, e, d = _bins((mu, inv, half, 1.0 + jnp.exp(2.0 * half), const), r)  # (K, P', B)
     # sum_p (t_p - log d_p), the logarithms taken of products of up to 16 factors (each
     # < 150: no overflow); written out over the parameters, one elementwise pass over (K, B)
     comp = log_w[:, None] + jnp.sum(const, axis=1)[:, None]
@@ -148,26 +151,30 @@ def _mixture_fwd(log_w, mu, inv, half, one_e, const, r):
             prod = prod if j == i else prod * d[:, j]
         comp = comp - jnp.log(prod)
     out = jax.nn.logsumexp(comp, axis=0)
-    return out, (inv, one_e, const, r, u, e, d, comp, out)
+    return out, (inv, half, h, r, u, e, d, comp, out)
 
 
 def _mixture_bwd(res, g):
     """The gradient in two passes over ``(K, P', B)``: each component's share of each
-    scenario, then every ``(K, P')`` input's partial summed over the scenarios at once. With
-    ``lm = t + const - log D``, ``t = -|u| inv - half``, ``D = 1 + e (A + e (A - 1))``,
-    ``e = e^t``: ``dlm/dt = 1 - e (A + 2 e (A - 1)) / D``, ``dlm/dA = -e (1 + e) / D``.
+    scenario, then the partials with respect to ``mu`` and ``inv`` summed over the scenarios
+    at once. With ``lm = t + const - log D``, ``t = -|u| inv - h inv``,
+    ``D = 1 + e (A + e (A - 1))``, ``e = e^t``, ``A = 1 + e^{2 h inv}``:
+    ``dlm/dt = 1 - e (A + 2 e (A - 1)) / D``, ``dlm/dA = -e (1 + e) / D``, and ``inv`` reaches
+    ``lm`` through ``t`` and ``A`` (``dA/dinv = 2 h (A - 1)``), so its partial is one sum.
     (XLA's derivative of the same expression ran ~100 kernels per gradient on a CPU.)"""
-    inv, one_e, const, r, u, e, d, comp, out = res
+    inv, half, h, r, u, e, d, comp, out = res
     share = g[None, :] * jnp.exp(comp - out[None, :])  # (K, B): dL/dcomp
-    a = one_e[..., None]
+    a = (1.0 + jnp.exp(2.0 * half))[..., None]
     s = share[:, None, :]
     se = s * e / d
     dt = s - se * (a + 2.0 * e * (a - 1.0))  # share x dlm/dt
-    parts = jnp.stack([dt * jnp.sign(u), -dt * jnp.abs(u), -dt, -se * (1.0 + e)])
-    d_mu, d_inv, d_half, d_a = jnp.sum(parts, axis=-1)
-    d_const = jnp.broadcast_to(jnp.sum(share, axis=1)[:, None], const.shape)
-    return (jnp.sum(share, axis=1), d_mu * inv, d_inv, d_half, d_a, d_const,
-            jnp.zeros_like(r))
+    hh = h[:, None]
+    parts = jnp.stack([dt * jnp.sign(u),
+                       -dt * (jnp.abs(u) + hh) - se * (1.0 + e) * (2.0 * hh) * (a - 1.0)])
+    d_mu, d_inv = jnp.sum(parts, axis=-1)
+    d_const = jnp.broadcast_to(jnp.sum(share, axis=1)[:, None], inv.shape)
+    return (jnp.sum(share, axis=1), d_mu * inv, d_inv, d_const, jnp.zeros_like(r),
+            jnp.zeros_like(h))
 
 
 _mixture.defvjp(_mixture_fwd, _mixture_bwd)
@@ -186,7 +193,10 @@ def log_prob(mix_logits: jax.Array, mu: jax.Array, log_sigma: jax.Array, actions
     if np.all(np.asarray(shape) == 1):
         mixture = jnp.zeros(actions.shape[:1], jnp.float32)
     else:
-        mixture = _mixture(log_w, *prepare(mu, log_sigma, shape), _ranks(actions, shape))
+        live = np.flatnonzero(np.asarray(shape) > 1)
+        mu_l, inv, _, _, const = prepare(mu, log_sigma, shape)
+        h = jnp.asarray(half_steps(tuple(np.asarray(shape)[live])), jnp.float32)
+        mixture = _mixture(log_w, mu_l, inv, const, _ranks(actions, shape), h)
     log_uniform = -float(np.sum(np.log(np.asarray(shape, np.float64))))
     return jnp.logaddexp(jnp.log1p(-eps) + mixture, jnp.log(eps) + log_uniform)
 

@@ -209,6 +209,45 @@ def test_mixture_gradient_matches_automatic_differentiation(shape):
         np.testing.assert_allclose(g, x, rtol=1e-4, atol=1e-4 * float(jnp.max(jnp.abs(x))))
 
 
+@pytest.mark.parametrize("batch, elite", [(60, 0.1), (200, 0.08)])
+def test_the_padded_elite_gives_the_loss_and_gradient_of_its_top_scenarios(batch, elite):
+    """A learner's elite of 6 (or 16) scenarios, padded to 8 (16) with weight 0, gives the
+    loss and the gradient of its top scenarios alone (oracle: NumPy's ranking of the signal,
+    CMA-ES's log-rank weights, and JAX's automatic differentiation of the plain expression,
+    ``log_probs_by_component`` mixed by ``logsumexp`` over the unpadded top)."""
+    shape = (7, 1, 40, 3, 1000)
+    s, p = search.make("reinforce/default", shape, batch, learners=1, elite=elite)
+    top = round(elite * batch)
+    assert s.top == top
+    g = np.random.default_rng(3)
+    idx = jnp.asarray(g.integers(0, shape, (batch, len(shape))), jnp.int32)
+    signal = jnp.asarray(g.permutation(batch) * 0.01 - 0.3, jnp.float32)  # no ties
+    weights = s.init(jax.random.key(0), p).params
+    picked, w, at, _ = jax.jit(s.pick_elite)(jax.random.key(1), idx, signal)
+    assert picked.shape[0] == -(-top // 8) * 8
+    order = np.argsort(-np.asarray(signal))[:top]
+    np.testing.assert_array_equal(np.asarray(at), order)
+    np.testing.assert_array_equal(np.asarray(picked)[:top], np.asarray(idx)[order])
+    np.testing.assert_array_equal(np.asarray(w)[top:], 0.0)
+    rank_w = np.log(top + 0.5) - np.log(np.arange(1, top + 1))
+    np.testing.assert_allclose(np.asarray(w)[:top], rank_w / rank_w.sum(), rtol=1e-5, atol=1e-7)
+
+    def plain(weights):
+        mix, mu, log_sigma = s.module.apply({"params": weights})
+        comp = jax.nn.log_softmax(mix)[:, None] + discretised.log_probs_by_component(
+            mu, log_sigma, idx[order], shape)
+        lp = jnp.logaddexp(jnp.log1p(-p.eps) + jax.nn.logsumexp(comp, axis=0),
+                           jnp.log(p.eps) - float(np.sum(np.log(shape))))
+        return -jnp.sum(jnp.asarray(rank_w / rank_w.sum(), jnp.float32) * lp) \
+            - p.entropy * jnp.mean(log_sigma)
+
+    got, want = jax.jit(s.loss)(weights, picked, w, p), jax.jit(plain)(weights)
+    assert float(got) == pytest.approx(float(want), rel=1e-5)
+    for x, y in zip(jax.tree.leaves(jax.jit(jax.grad(s.loss))(weights, picked, w, p)),
+                    jax.tree.leaves(jax.jit(jax.grad(plain))(weights))):
+        np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-4 * float(jnp.max(jnp.abs(y))))
+
+
 @pytest.mark.parametrize("v, at", [(494, 500), (507, 500), (500, 500.3)])
 def test_a_bin_far_in_a_tail_keeps_its_mass(v, at):
     """A narrow component (0.1 value steps, located at value ``at``) puts on a value 6-7
