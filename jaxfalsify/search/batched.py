@@ -371,21 +371,61 @@ class BatchedReinforce(Strategy):
         return max(1, min(self.share, round(self.elite * self.share)))
 
     def _learn(self, key, state, indices, signal, collided, params):
-        """``(state, elite (B,) bool)``: each learner's update on its own share of the batch
-        (:meth:`_learn_one`; a padded share's missing draws have signal -inf, never elite)."""
+        """``(state, elite (B,) bool)``: each learner's update (:meth:`_learn_one`) on the elite
+        of its own share of the batch (a padded share's missing draws have signal -inf, never
+        elite) while fewer than ``novelty_until`` evaluations were told; from then on every
+        learner's on the elite of the whole batch (the same ``top`` scenarios for all), each
+        starting, at the first such update, from the learner whose share scored best on
+        average: all converge on the best failures found rather than each on its own
+        share's."""
         found = state.found | jnp.any(self._shares(collided, False), axis=-1)
+        if self.learners > 1:  # learning together, a collision found by one is found by all
+            found |= (state.told >= params.novelty_until) & jnp.any(found)
         # the learning rate of each learner: lr once it has a collision; before, lr_first at
         # the first update for learners below first_learners, else lr_search
         bold = (state.told == 0) & (jnp.arange(self.learners) < params.first_learners)
         lr = jnp.where(found, params.lr, jnp.where(bold, params.lr_first, params.lr_search))
+
+        def own(_):
+            elite, w, at, best = self._each(self.pick_elite)(
+                self._keys(key), self._shares(indices), self._shares(signal, -jnp.inf))
+            mask = self._each(lambda a, b: jnp.zeros(self.share, bool).at[a].set(
+                jnp.isfinite(b)))(at, best)
+            return elite, w, mask.reshape(-1)[:self.batch]
+
+        def together(_):
+            elite, w, at, best = self.pick_elite(jax.random.fold_in(key, self.learners),
+                                                 indices, signal)
+            mask = jnp.zeros(self.batch, bool).at[at].set(jnp.isfinite(best))
+            L = self.learners
+            return (jnp.broadcast_to(elite, (L, *elite.shape)),
+                    jnp.broadcast_to(w, (L, *w.shape)), mask)
+
+        weights, opt = state.params, state.opt
         if self.learners == 1:
+            elite, w, mask = own(None)
             lr = lr[0]
-        weights, opt, elite = self._each(
-            lambda k, w, o, i, s, r: self._learn_one(k, w, o, i, s, params, r))(
-            self._keys(key), state.params, state.opt, self._shares(indices),
-            self._shares(signal, -jnp.inf), lr)
+        else:
+            elite, w, mask = jax.lax.cond(state.told >= params.novelty_until, together, own, None)
+            # at the first update together, every learner starts from the one whose share
+            # scored best on average (a learner whose components lie far from the elite gets
+            # a gradient that underflows to 0 and would never move)
+            first = (state.told >= params.novelty_until) & \
+                (state.told - self.batch < params.novelty_until)
+            shares = self._shares(signal, -jnp.inf)
+            ok = jnp.isfinite(shares)
+            score = jnp.sum(jnp.where(ok, shares, 0.0), axis=1) / jnp.maximum(
+                jnp.sum(ok, axis=1), 1)
+            score = jnp.where(jnp.any(ok, axis=1), score, -jnp.inf)
+            best = jnp.argmax(score)
+            weights, opt = jax.lax.cond(
+                first, lambda t: jax.tree.map(lambda x: jnp.broadcast_to(x[best], x.shape), t),
+                lambda t: t, (weights, opt))
+        weights, opt = self._each(
+            lambda wt, o, e, ew, r: self._learn_one(wt, o, e, ew, params, r))(
+            weights, opt, elite, w, lr)
         return dataclasses.replace(state, params=weights, opt=opt, told=state.told + self.batch,
-                                   found=found), elite.reshape(-1)[:self.batch]
+                                   found=found), mask
 
     def pick_elite(self, key, indices, signal):
         """One learner's elite: ``(scenarios (S, P), weights (S,), at (top,), best (top,))``,
@@ -417,10 +457,9 @@ class BatchedReinforce(Strategy):
         lp = self._log_prob_one(weights, elite, params, dist)
         return -jnp.sum(w * lp) - params.entropy * jnp.mean(dist[2])
 
-    def _learn_one(self, key, weights, opt, indices, signal, params, lr):
-        """``(weights, opt, elite (B,) bool)`` of one learner: ``steps`` Adam steps on
-        :meth:`loss` over the ``top`` best scenarios of its batch (:meth:`pick_elite`)."""
-        elite, w, at, best = self.pick_elite(key, indices, signal)
+    def _learn_one(self, weights, opt, elite, w, params, lr):
+        """``(weights, opt)`` of one learner: ``steps`` Adam steps on :meth:`loss` over the
+        elite ``elite (S, P)`` with weights ``w (S,)`` (:meth:`pick_elite`)."""
 
         def adam_step(carry, _):
             weights, opt = carry
@@ -430,5 +469,4 @@ class BatchedReinforce(Strategy):
             return (optax.apply_updates(weights, updates), opt), None
 
         (weights, opt), _ = jax.lax.scan(adam_step, (weights, opt), None, length=self.steps)
-        elite_mask = jnp.zeros(signal.shape, bool).at[at].set(jnp.isfinite(best))
-        return weights, opt, elite_mask
+        return weights, opt

@@ -492,6 +492,47 @@ def test_the_first_update_takes_lr_first_for_the_first_learners_only():
                                   np.asarray(jax.tree.leaves(want.params)[0])[2])
 
 
+def test_from_novelty_until_on_the_learners_learn_together_from_the_best_one():
+    """Three learners, 64 scenarios: before ``novelty_until`` each learns from its own
+    share's elite; at the first update from then on every learner starts from the learner
+    whose share scored best on average and learns from the whole batch's elite (oracle:
+    NumPy's mean per share and ranking of the batch, and one learner's Adam steps on that
+    elite from those weights); a collision in one share counts as found for all."""
+    s, p, state = _moved(3, 0, 1)
+    s = dataclasses.replace(s, batch=63)  # shares of 21
+    p = pytree.replace(p, novelty_until=float(5 * s.batch))
+    g = np.random.default_rng(11)
+    idx = jnp.asarray(g.integers(0, SHAPE, (63, len(SHAPE))), jnp.int32)
+    signal = jnp.asarray(g.permutation(63) * 0.01 - 0.3, jnp.float32)
+    signal = signal.at[21:42].add(0.5)  # learner 1's share scores best
+    hit = jnp.asarray(np.arange(63) == 50)  # a collision in learner 2's share
+    learn = jax.jit(s._learn)
+    for told, together in ((4 * s.batch, False), (5 * s.batch, True)):
+        start = dataclasses.replace(state, told=jnp.int32(told))
+        new, mask = learn(jax.random.key(2), start, idx, signal, hit, p)
+        np.testing.assert_array_equal(np.asarray(new.found), [together, together, True])
+        sig = np.asarray(signal)
+        if together:
+            want_mask = np.zeros(63, bool)
+            want_mask[np.argsort(-sig)[:s.top]] = True
+        else:
+            want_mask = np.zeros(63, bool)
+            for lo in (0, 21, 42):
+                want_mask[lo + np.argsort(-sig[lo:lo + 21])[:s.top]] = True
+        np.testing.assert_array_equal(np.asarray(mask), want_mask)
+    best = int(np.argmax(np.asarray(signal).reshape(3, 21).mean(axis=1)))
+    assert best == 1
+    order = np.argsort(-np.asarray(signal))[:s.top]
+    rank_w = np.log(s.top + 0.5) - np.log(np.arange(1, s.top + 1))
+    elite, w = idx[order], jnp.asarray(rank_w / rank_w.sum(), jnp.float32)
+    one = lambda x: jax.tree.map(lambda a: a[best], x)  # noqa: E731
+    want_w, _ = jax.jit(s._learn_one)(one(state.params), one(state.opt), elite, w, p, p.lr)
+    for learner in range(3):  # (vmapped and single float32 Adam steps round apart: 5e-5;
+        # another start or elite moves weights by 0.1-0.3)
+        for x, y in zip(jax.tree.leaves(new.params), jax.tree.leaves(want_w)):
+            np.testing.assert_allclose(np.asarray(x)[learner], y, rtol=0, atol=2e-4)
+
+
 def test_a_learner_whose_first_share_collides_takes_lr_not_lr_first():
     s, p, state = _moved(2, 0, 1)
     p = pytree.replace(p, first_learners=2.0)  # both learners would take lr_first
