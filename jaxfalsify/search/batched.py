@@ -42,8 +42,8 @@ region on a face or an edge of the box (some parameters at an end of their range
 anywhere) gets many times the mass uniform draws give it, where the policies' initial
 components (means in 0.05-0.95 of each range) give it less than uniform draws do.
 
-**Several learners** (``learners``, 4): independent controllers, each drawing an equal share
-of the batch and updated on its own share's elite, so one learner held on a plateau of near
+**Several learners** (``learners``, 4): independent controllers (until ``novelty_until``,
+below), each drawing an equal share of the batch and updated on its own share's elite, so one learner held on a plateau of near
 misses does not hold the others (the batch is their equal mixture). On a logical scenario whose
 failures are isolated in a rough corner of the space (``experiments/spaces/fast-walkers.toml``)
 one learner reached a collision in 1 of 5 seeds within 100 updates, four in 6 of 10 within 200
@@ -55,7 +55,10 @@ ranks below every new scenario, so after the first collision the elite moves on 
 not found yet instead of re-drawing the best one), a non-collision ``revisit`` (0.01, the
 signal of 0.2 m of robustness: among near misses of about the same distance a new one ranks
 first). From ``novelty_until`` evaluations on (by default half the default budget) neither
-applies and the policy converges on the best failures (the paper's reward ranks them).
+applies and the learners converge together on the best failures (the paper's reward ranks
+them): each learns from the whole batch's elite, starting from the learner whose share scored
+best on average (learning apart to the end, one of four often stayed on a worse failure mode
+and held a quarter of the batch there).
 """
 
 from __future__ import annotations
