@@ -136,8 +136,8 @@ register("reinforce/default", BatchedReinforce, batch=4096, batch_accelerator=65
          doc="the Flax LSTM controller + REINFORCE (optax Adam) on thousands of scenarios per "
          "update: a mixture of discretised logistics over the value ranks (cost independent of "
          "the number of values), rank-based advantages of the STL-robustness-shaped signal, a "
-         "uniform floor, four independent learners sharing the batch, collisions already found "
-         "count less (keeps looking for others)")
+         "uniform floor, four learners sharing the batch (independent until novelty_until, then "
+         "learning together), collisions already found count less (keeps looking for others)")
 register("reinforce/screened", AutoregressiveReinforce, batch=32, learners=1, queue=32,
          resample=8, surrogate=128, anchored=True, advantage="rank", signal="shaped", lr=0.02,
          lr_found=0.03, sigma_min=0.001, repeat_found=0.8, anchor_decay=0.9,

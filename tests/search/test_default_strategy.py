@@ -322,15 +322,18 @@ def test_reinforce_gradient_estimate_matches_exact_gradient_of_expected_reward(s
 @pytest.mark.slow
 def test_learns_an_interior_optimum_at_batch_1024():
     """A synthetic objective on 5 parameters x 200 values whose optimum lies inside the box
-    (oracle: the known optimum); after 30 updates of 1,024 each of the two learners that start
-    spread over the space draws most (> 80 %) of its share of the last batch within 3 value
-    steps of it in every parameter (uniform sampling: (7/200)^5 ~ 5e-8). (The two that start
-    at the box's vertices, for failures at its corners, may still be there: the batch is the
-    learners' shares in order, 256 each.)"""
+    (oracle: the known optimum); after 30 updates of 1,024, in each of three seeds, one of the
+    two learners that start spread over the space draws most (> 80 %) of its share of the last
+    batch within 3 value steps of it in every parameter (uniform sampling: (7/200)^5 ~ 5e-8).
+    (Each spread-out learner does in about nine seeds of ten: 22 of 24 over seeds 0-11; the two
+    that start at the box's vertices, for failures at its corners, may still be there: the
+    batch is the learners' shares in order, 256 each.)"""
     shape = (200,) * 5
     target = jnp.array([37, 150, 99, 12, 180])
     s, p = search.make("reinforce/default", shape, 1024)
+    assert s.n_vertex_learners == 2
 
+    @jax.jit  # the key is traced: one compilation for every seed
     def loop(key):
         def one(carry, _):
             state, key = carry
@@ -342,11 +345,11 @@ def test_learns_an_interior_optimum_at_batch_1024():
         k0, k1 = jax.random.split(key)
         return jax.lax.scan(one, (s.init(k0, p), k1), None, length=30)[1]
 
-    idx = np.asarray(jax.jit(loop)(jax.random.key(0)))
-    near = np.all(np.abs(idx[-1] - np.asarray(target)) <= 3, axis=-1)
-    per_learner = near.reshape(s.learners, s.share).mean(axis=1)
-    assert s.n_vertex_learners == 2 and np.all(per_learner[:2] > 0.8), (per_learner,
-                                                                        idx[-1][:5])
+    for seed in range(3):
+        idx = np.asarray(loop(jax.random.key(seed)))
+        near = np.all(np.abs(idx[-1] - np.asarray(target)) <= 3, axis=-1)
+        per_learner = near.reshape(s.learners, s.share).mean(axis=1)
+        assert np.max(per_learner[:2]) > 0.8, (seed, per_learner, idx[-1][:5])
 
 
 def test_a_collision_seen_before_counts_less():
@@ -493,40 +496,44 @@ def test_the_first_update_takes_lr_first_for_the_first_learners_only():
 
 
 def test_from_novelty_until_on_the_learners_learn_together_from_the_best_one():
-    """Three learners, 64 scenarios: before ``novelty_until`` each learns from its own
-    share's elite; at the first update from then on every learner starts from the learner
-    whose share scored best on average and learns from the whole batch's elite (oracle:
-    NumPy's mean per share and ranking of the batch, and one learner's Adam steps on that
-    elite from those weights); a collision in one share counts as found for all."""
-    s, p, state = _moved(3, 0, 1)
-    s = dataclasses.replace(s, batch=63)  # shares of 21
+    """Three learners, 64 scenarios (shares of 22, 22 and 20): before ``novelty_until`` each
+    learns from its own share's elite; at the first update from then on every learner starts
+    from the learner whose share scored best on average (weights and Adam's moments) and learns
+    from the whole batch's elite (oracle: NumPy's mean per share and ranking of the batch, and
+    one learner's Adam steps on that elite from that learner's state); a collision in one share
+    counts as found by all."""
+    s, p, state = _moved(3, 0, 1)  # batch 64
     p = pytree.replace(p, novelty_until=float(5 * s.batch))
     g = np.random.default_rng(11)
-    idx = jnp.asarray(g.integers(0, SHAPE, (63, len(SHAPE))), jnp.int32)
-    signal = jnp.asarray(g.permutation(63) * 0.01 - 0.3, jnp.float32)
-    signal = signal.at[21:42].add(0.5)  # learner 1's share scores best
-    hit = jnp.asarray(np.arange(63) == 50)  # a collision in learner 2's share
+    idx = jnp.asarray(g.integers(0, SHAPE, (64, len(SHAPE))), jnp.int32)
+    signal = jnp.asarray(g.permutation(64) * 0.01 - 0.3, jnp.float32)
+    signal = signal.at[22:44].add(0.5)  # learner 1's share scores best
+    hit = jnp.asarray(np.arange(64) == 50)  # a collision in learner 2's share
     learn = jax.jit(s._learn)
-    for told, together in ((4 * s.batch, False), (5 * s.batch, True)):
-        start = dataclasses.replace(state, told=jnp.int32(told))
-        new, mask = learn(jax.random.key(2), start, idx, signal, hit, p)
-        np.testing.assert_array_equal(np.asarray(new.found), [together, together, True])
-        sig = np.asarray(signal)
-        if together:
-            want_mask = np.zeros(63, bool)
-            want_mask[np.argsort(-sig)[:s.top]] = True
-        else:
-            want_mask = np.zeros(63, bool)
-            for lo in (0, 21, 42):
-                want_mask[lo + np.argsort(-sig[lo:lo + 21])[:s.top]] = True
-        np.testing.assert_array_equal(np.asarray(mask), want_mask)
-    best = int(np.argmax(np.asarray(signal).reshape(3, 21).mean(axis=1)))
+    sig = np.asarray(signal)
+    bounds = ((0, 22), (22, 44), (44, 64))
+    # apart: the state after it (each learner's own weights and Adam moments) starts the next
+    apart, mask = learn(jax.random.key(2), dataclasses.replace(state, told=jnp.int32(
+        4 * s.batch)), idx, signal, hit, p)
+    want_mask = np.zeros(64, bool)
+    for lo, hi in bounds:
+        want_mask[lo + np.argsort(-sig[lo:hi])[:s.top]] = True
+    np.testing.assert_array_equal(np.asarray(mask), want_mask)
+    np.testing.assert_array_equal(np.asarray(apart.found), [False, False, True])
+    start = dataclasses.replace(apart, told=jnp.int32(5 * s.batch))
+    new, mask = learn(jax.random.key(3), start, idx, signal, hit, p)
+    np.testing.assert_array_equal(np.asarray(new.found), [True, True, True])
+    order = np.argsort(-sig)[:s.top]
+    want_mask = np.zeros(64, bool)
+    want_mask[order] = True
+    np.testing.assert_array_equal(np.asarray(mask), want_mask)
+    best = int(np.argmax([sig[lo:hi].mean() for lo, hi in bounds]))
     assert best == 1
-    order = np.argsort(-np.asarray(signal))[:s.top]
     rank_w = np.log(s.top + 0.5) - np.log(np.arange(1, s.top + 1))
-    elite, w = idx[order], jnp.asarray(rank_w / rank_w.sum(), jnp.float32)
+    elite = jnp.pad(idx[order], ((0, -s.top % 8), (0, 0)))
+    w = jnp.pad(jnp.asarray(rank_w / rank_w.sum(), jnp.float32), (0, -s.top % 8))
     one = lambda x: jax.tree.map(lambda a: a[best], x)  # noqa: E731
-    want_w, _ = jax.jit(s._learn_one)(one(state.params), one(state.opt), elite, w, p, p.lr)
+    want_w, _ = jax.jit(s._learn_one)(one(apart.params), one(apart.opt), elite, w, p, p.lr)
     for learner in range(3):  # (vmapped and single float32 Adam steps round apart: 5e-5;
         # another start or elite moves weights by 0.1-0.3)
         for x, y in zip(jax.tree.leaves(new.params), jax.tree.leaves(want_w)):
