@@ -43,11 +43,12 @@ anywhere) gets many times the mass uniform draws give it, where the policies' in
 components (means in 0.05-0.95 of each range) give it less than uniform draws do.
 
 **Several learners** (``learners``, 4): independent controllers (until ``novelty_until``,
-below), each drawing an equal share of the batch and updated on its own share's elite, so one learner held on a plateau of near
-misses does not hold the others (the batch is their equal mixture). On a logical scenario whose
-failures are isolated in a rough corner of the space (``experiments/spaces/fast-walkers.toml``)
-one learner reached a collision in 1 of 5 seeds within 100 updates, four in 6 of 10 within 200
-(learning rate 0.03 throughout; with ``lr_search`` before the first collision, in 10 of 10).
+below), each drawing an equal share of the batch and updated on its own share's elite, so one
+learner held on a plateau of near misses does not hold the others (the batch is their equal
+mixture). On a logical scenario whose failures are isolated in a rough corner of the space
+(``experiments/spaces/fast-walkers.toml``) one learner reached a collision in 1 of 5 seeds
+within 100 updates, four in 6 of 10 within 200 (learning rate 0.03 throughout; with
+``lr_search`` before the first collision, in 10 of 10).
 
 The search keeps moving: a scenario that was in an earlier update's elite or collided is
 remembered (a hashed table in the state); drawn again, a collision loses ``novelty`` (0.5: it
@@ -162,7 +163,7 @@ class BatchedParams:
     novelty: float = 0.5  # signal taken off a collision seen before (elite or collision) ...
     revisit: float = 0.01  # ... off a scenario seen before that did not collide ...
     novelty_until: float = DEFAULT_EVALUATIONS / 2  # ... until this many evaluations were
-    # told (half the default budget; then the policy converges on the best failures)
+    # told (half the default budget; then the learners converge together on the best failures)
     ttc_weight: float = 0.0  # near misses told apart by their min TTC [m per s] (0: off)
     ttc_below: float = -0.5  # ... below this robustness [m]
     boundary: float = 1.0  # share of the learners (the first ones) whose first share of the
