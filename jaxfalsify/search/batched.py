@@ -383,9 +383,10 @@ class BatchedReinforce(Strategy):
         starting, at the first such update, from the learner whose share scored best on
         average: all converge on the best failures found rather than each on its own
         share's."""
+        together_now = state.told >= params.novelty_until
         found = state.found | jnp.any(self._shares(collided, False), axis=-1)
         if self.learners > 1:  # learning together, a collision found by one is found by all
-            found |= (state.told >= params.novelty_until) & jnp.any(found)
+            found |= together_now & jnp.any(found)
         # the learning rate of each learner: lr once it has a collision; before, lr_first at
         # the first update for learners below first_learners, else lr_search
         bold = (state.told == 0) & (jnp.arange(self.learners) < params.first_learners)
@@ -411,12 +412,11 @@ class BatchedReinforce(Strategy):
             elite, w, mask = own(None)
             lr = lr[0]
         else:
-            elite, w, mask = jax.lax.cond(state.told >= params.novelty_until, together, own, None)
+            elite, w, mask = jax.lax.cond(together_now, together, own, None)
             # at the first update together, every learner starts from the one whose share
             # scored best on average (a learner whose components lie far from the elite gets
             # a gradient that underflows to 0 and would never move)
-            first = (state.told >= params.novelty_until) & \
-                (state.told - self.batch < params.novelty_until)
+            first = together_now & (state.told - self.batch < params.novelty_until)
             shares = self._shares(signal, -jnp.inf)
             ok = jnp.isfinite(shares)
             score = jnp.sum(jnp.where(ok, shares, 0.0), axis=1) / jnp.maximum(
