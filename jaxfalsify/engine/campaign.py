@@ -2,14 +2,21 @@
 
 One concern: one compiled campaign and the host loop that drives it.
 
-:func:`make_campaign` builds, PureJaxRL-style, pure functions whose whole loop (ask -> simulate
-the batch -> tell, ``lax.scan`` over updates) is one jit-compiled call. Everything numeric is a
-traced argument (:class:`Args`: the space's value table, the SUT's and the strategy's
-parameters, the world, the budget), so another space seed, calibration or hyperparameter value
-reuses the compiled code; only the static configuration (space layout, SUT, strategy, batch,
-updates per chunk) compiles anew. The host (:func:`drive`) calls it once per chunk of updates
-so progress can be shown, checkpoints committed and a stop request honoured between chunks,
-and times each chunk (compilation done ahead and timed apart; :meth:`Result.search_seconds_at`).
+:func:`make_campaign` builds, PureJaxRL-style, pure functions whose whole loop (tell the
+previous batch -> ask -> simulate the batch, a ``lax.fori_loop`` over updates) is one
+jit-compiled call. Everything numeric is a traced argument (:class:`Args`: the space's value
+table, the SUT's and the strategy's parameters, the world, the budget), so another space seed,
+calibration or hyperparameter value reuses the compiled code; only the static configuration
+(space layout, SUT, strategy, batch, updates per chunk) compiles anew. The host (:func:`drive`)
+calls it once per chunk of updates (the number of updates a traced argument: the first chunk
+runs one, so the first batch's failures reach the host after one update) so progress can be
+shown, checkpoints committed and a stop request honoured between chunks, and times each chunk
+(compilation done ahead and timed apart; :meth:`Result.search_seconds_at`).
+
+A batch's outcomes are returned with the update that simulated it; the strategy learns from
+them at the start of the next update (the same asks and tells in the same order as learning at
+the end of the update, so the same results; the last batch is never told, as nothing would use
+what the strategy learnt from it).
 
 Many seeds run inside one compiled call (``lax.map`` over keys: each seed's batch is already
 hundreds of scenarios wide, and vmapping the LSTM controller over seeds has deadlocked
@@ -47,6 +54,7 @@ __all__ = [
 RECORD_FIELDS = ("reward", "reward_rss", "reward_distance", "reward_collision", "collision",
                  "min_distance", "final_distance", "high_risk_share",
                  "high_risk_share_second_half", "robustness", "nonfinite", "violated")
+BOOL_FIELDS = ("collision", "nonfinite", "violated")  # the others float32
 # violated: the run's requirement is violated (collision without one named; counted
 # evaluations only: a non-finite rollout or one past the budget is never "violated")
 
@@ -56,39 +64,44 @@ class Plan(NamedTuple):
     n_updates: int  # updates to spend the budget
     updates_per_chunk: int  # updates per compiled call (progress, checkpoints, stop checks)
     evaluations: int  # the budget, in evaluated scenarios
+    first_chunk: int = 1  # updates in the first call: the first batch's outcomes reach the
+    # host (its failures, progress, the time to a first failure) after one update
+
+    def start(self, c: int) -> int:
+        """The first update (0-based) of chunk ``c``; ``n_updates`` for ``c >= n_chunks``."""
+        if c <= 0:
+            return 0
+        return min(self.n_updates, self.first_chunk + (c - 1) * self.updates_per_chunk)
+
+    def updates_in(self, c: int) -> int:
+        """Updates chunk ``c`` runs (the last chunk may run fewer than ``updates_per_chunk``)."""
+        return self.start(c + 1) - self.start(c)
 
     @property
     def n_chunks(self) -> int:
-        """Chunks to run: the last one may hold updates past ``n_updates``, which change
-        nothing (see :func:`make_campaign`) and whose records are dropped."""
-        return -(-self.n_updates // self.updates_per_chunk)
+        """Chunks to run: a first one of ``first_chunk`` updates, then ``updates_per_chunk``
+        each, the last one the rest."""
+        rest = max(0, self.n_updates - self.first_chunk)
+        return 1 + -(-rest // self.updates_per_chunk)
 
     def done_after(self, chunks: int) -> int:
         """Evaluations committed after ``chunks`` chunks."""
-        return min(chunks * self.updates_per_chunk * self.batch, self.evaluations)
+        return min(self.start(chunks) * self.batch, self.evaluations)
 
 
 def plan(evaluations: int, batch: int, chunks_target: int = 20,
          every: int | None = None) -> Plan:
-    """Updates needed for the budget, and a chunking of them for progress and checkpoints:
-    about ``chunks_target`` chunks, or at most ``every`` updates per chunk. A divisor of the
-    updates when one is at least half that length; else chunks of equal length whose last
-    one runs past the budget (at most one update per chunk wasted; a prime number of updates
-    still gives about ``chunks_target`` chunks). Results do not depend on the chunking (the
-    same update function is scanned, and updates past the budget change nothing)."""
+    """Updates needed for the budget, and a chunking of them for progress and checkpoints: a
+    first chunk of one update, then chunks of ``every`` updates (about ``chunks_target`` chunks
+    when not given), the last one the rest. Results do not depend on the chunking (the same
+    update function runs, as many times as the budget needs)."""
     if isinstance(evaluations, bool) or not isinstance(evaluations, int) or evaluations <= 0:
         raise ValueError(f"evaluations must be a positive integer (got {evaluations!r})")
     if isinstance(batch, bool) or not isinstance(batch, int) or batch <= 0:
         raise ValueError(f"batch must be a positive integer (got {batch!r})")
     n_updates = -(-evaluations // batch)
-    want = min(every, n_updates) if every else max(1, n_updates // chunks_target)
-    per = want
-    while n_updates % per:
-        per -= 1
-    if 2 * per < want:  # no divisor near the length wanted: equal chunks, the last partial
-        n_chunks = -(-n_updates // want)
-        per = -(-n_updates // n_chunks)  # (<= want; n_chunks * per - n_updates < n_chunks)
-    return Plan(batch, n_updates, per, evaluations)
+    per = min(every, n_updates) if every else max(1, n_updates // chunks_target)
+    return Plan(batch, n_updates, per, evaluations, 1)
 
 
 class Args(NamedTuple):
@@ -142,14 +155,29 @@ def make_campaign(c: Campaign):
 
     def init(key, args: Args):
         k_init, k_eval, k_run = jax.random.split(key, 3)  # k_eval: see evaluation_key
+        P = len(c.layout.shape)
+        pending = {"key": k_run, "indices": jnp.zeros((B, P), jnp.int32),  # (never told)
+                   "reward": jnp.zeros(B, jnp.float32), "robustness": jnp.zeros(B, jnp.float32),
+                   "violated": jnp.zeros(B, bool), "ttc": jnp.zeros(B, jnp.float32)}
         return {"state": strategy.init(k_init, args.strategy_params), "key": k_run,
-                "eval_key": k_eval, "update": jnp.int32(0)}
+                "eval_key": k_eval, "update": jnp.int32(0), "pending": pending}
 
     sharding = sim.local_batch_sharding() if B % jax.local_device_count() == 0 else None
 
+    def tell(state, pending, args: Args):
+        return strategy.tell_outcome(pending["key"], state, pending["indices"],
+                                     pending["reward"], pending["robustness"],
+                                     pending["violated"], args.strategy_params,
+                                     ttc=pending["ttc"])
+
     def one_update(carry, args: Args):
         key, k_ask, k_tell = jax.random.split(carry["key"], 3)
-        idx, state = strategy.ask(k_ask, carry["state"], args.strategy_params)
+        # the strategy learns from the previous update's batch first (the first update has
+        # none): a batch's outcomes reach the host with the update that simulated it, before
+        # the strategy has learnt from them; the order of asks and tells is the same
+        state = jax.lax.cond(carry["update"] > 0, lambda s: tell(s, carry["pending"], args),
+                             lambda s: s, carry["state"])
+        idx, state = strategy.ask(k_ask, state, args.strategy_params)
         if sharding is not None:  # the proposal batch is simulated on all local devices
             idx = jax.lax.with_sharding_constraint(idx, sharding)
         evaluation = carry["update"] * B + jnp.arange(B, dtype=jnp.int32)
@@ -164,20 +192,29 @@ def make_campaign(c: Campaign):
             robustness = requirements.robustness(c.requirement, out, args.requirement_params)
             violated = (robustness < 0) & counted
         rob = jnp.where(counted & jnp.isfinite(robustness), robustness, jnp.inf)
-        state = strategy.tell_outcome(k_tell, state, idx, r, rob, violated,
-                                      args.strategy_params,
-                                      ttc=jnp.where(counted, out.min_ttc, jnp.inf))
+        pending = {"key": k_tell, "indices": idx, "reward": r.astype(jnp.float32),
+                   "robustness": rob.astype(jnp.float32), "violated": violated,
+                   "ttc": jnp.where(counted, out.min_ttc, jnp.inf).astype(jnp.float32)}
         rec = {"indices": idx, **{f: getattr(out, f) for f in RECORD_FIELDS
                                   if f != "violated"}, "violated": violated}
-        new = {**carry, "state": state, "key": key, "update": carry["update"] + 1}
-        # an update past the budget (the last chunk's tail when the chunk length does not
-        # divide the updates) leaves the carry as it was; its records are dropped (collect)
-        active = carry["update"] * B < args.evaluations
-        return jax.tree.map(lambda n, o: jnp.where(active, n, o), new, carry), rec
+        return {**carry, "state": state, "key": key, "update": carry["update"] + 1,
+                "pending": pending}, rec
 
-    def run_chunk(carry, args: Args):
-        return jax.lax.scan(lambda cr, _: one_update(cr, args), carry, None,
-                            length=c.updates_per_chunk)
+    def run_chunk(carry, args: Args, count):
+        """``count`` (traced, at most ``updates_per_chunk``) updates; the records of the
+        chunk's remaining rows are zeros (the host keeps the first ``count``)."""
+        U, P = c.updates_per_chunk, len(c.layout.shape)
+        recs = {"indices": jnp.zeros((U, B, P), jnp.int32),
+                **{f: jnp.zeros((U, B), bool if f in BOOL_FIELDS else jnp.float32)
+                   for f in RECORD_FIELDS}}
+
+        def body(i, both):
+            cr, rs = both
+            cr, rec = one_update(cr, args)
+            return cr, {k: jax.lax.dynamic_update_index_in_dim(rs[k], rec[k].astype(rs[k].dtype),
+                                                              i, 0) for k in rs}
+
+        return jax.lax.fori_loop(0, count, body, (carry, recs))
 
     return init, run_chunk
 
@@ -227,9 +264,10 @@ def _program(c: Campaign, args_tree, args_avals: tuple, n_seeds: int,
              settings: tuple = ()) -> cache.Program:  # settings: keys the in-process cache
     init, run_chunk = make_campaign(c)
 
-    def fn(carry_leaves, key_data, args_leaves, fresh):
+    def fn(carry_leaves, key_data, args_leaves, fresh, count):
         """One chunk for ``n_seeds`` seeds: ``(S, ...)`` carry leaves (PRNG keys as key data),
-        key data ``(S, 2)``, the args' leaves, and ``fresh`` (start from ``init``)."""
+        key data ``(S, 2)``, the args' leaves, ``fresh`` (start from ``init``) and ``count``
+        (int32: the updates to run, at most the chunk's length)."""
         args = jax.tree.unflatten(args_tree, args_leaves)
         template = jax.eval_shape(init, jax.random.key(0), args)
         leaves_t, ctree = jax.tree.flatten(template)
@@ -241,7 +279,7 @@ def _program(c: Campaign, args_tree, args_avals: tuple, n_seeds: int,
                 fresh, lambda: init(jax.random.wrap_key_data(kd), args),
                 lambda: jax.tree.unflatten(ctree, [jax.random.wrap_key_data(x) if k else x
                                                    for x, k in zip(leaves, keys)]))
-            carry, rec = run_chunk(carry, args)
+            carry, rec = run_chunk(carry, args, count)
             return [jax.random.key_data(x) if k else x
                     for x, k in zip(jax.tree.leaves(carry), keys)], rec
 
@@ -254,7 +292,8 @@ def _program(c: Campaign, args_tree, args_avals: tuple, n_seeds: int,
         kd = jax.eval_shape(lambda: jax.random.key_data(jax.random.key(0))).shape
         carry = [np.zeros((n_seeds,) + kd, np.uint32) if is_key(x)
                  else np.zeros((n_seeds,) + x.shape, x.dtype) for x in jax.tree.leaves(template)]
-        return (carry, np.zeros((n_seeds, 2), np.uint32), args_leaves, np.bool_(True))
+        return (carry, np.zeros((n_seeds, 2), np.uint32), args_leaves, np.bool_(True),
+                np.int32(1))
 
     key_args = ([jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args_avals],
                 jax.ShapeDtypeStruct((n_seeds,), jnp.uint32))
@@ -290,6 +329,8 @@ class Result:
     chunk_seconds: np.ndarray | None = None  # (n_chunks,) float64 seconds
     updates_per_chunk: int = 0  # updates per compiled call (the plan's)
     seeds_per_call: int = 1  # seeds that shared each compiled call
+    chunk_updates: tuple[int, ...] | None = None  # updates each chunk ran (None: all
+    # updates_per_chunk)
 
     @property
     def n(self) -> int:
@@ -306,11 +347,12 @@ class Result:
     def search_seconds_at(self, evaluation: int) -> float | None:
         """Search seconds (compilation excluded) this seed had spent at the end of the update
         holding evaluation ``evaluation`` (1-based): the chunks before that update's chunk in
-        full, plus its chunk's seconds divided evenly among the chunk's updates, for the
-        updates up to and including this one; divided by ``seeds_per_call`` (seeds sharing a
-        compiled call run one after another with the same work, so each is given an even
-        share). Resolution: one update (exact at chunk boundaries). None when the campaign
-        was not timed or a chunk up to there was restored from a checkpoint."""
+        full, plus its chunk's seconds divided evenly among the updates the chunk ran
+        (``chunk_updates``), for the updates up to and including this one; divided by
+        ``seeds_per_call`` (seeds sharing a compiled call run one after another with the same
+        work, so each is given an even share). Resolution: one update (exact at chunk
+        boundaries, so for the first update). None when the campaign was not timed or a chunk
+        up to there was restored from a checkpoint."""
         if isinstance(evaluation, bool) or not isinstance(evaluation, (int, np.integer)) \
                 or not 1 <= evaluation <= max(self.n, 1):
             raise ValueError(f"evaluation must be an integer in 1..{max(self.n, 1)} "
@@ -318,11 +360,15 @@ class Result:
         if self.chunk_seconds is None or self.updates_per_chunk <= 0:
             return None
         u = (int(evaluation) - 1) // self.batch  # 0-based update
-        c, j = divmod(u, self.updates_per_chunk)
         t = np.asarray(self.chunk_seconds, np.float64)
+        lengths = (np.full(len(t), self.updates_per_chunk) if self.chunk_updates is None
+                   else np.asarray(self.chunk_updates))
+        ends = np.cumsum(lengths)  # updates done after each chunk
+        c = int(np.searchsorted(ends, u, side="right"))  # the chunk holding update u
         if c >= len(t) or not np.all(np.isfinite(t[:c + 1])):
             return None
-        done = float(np.sum(t[:c])) + float(t[c]) * (j + 1) / self.updates_per_chunk
+        j, length = u - (int(ends[c]) - int(lengths[c])), int(lengths[c])
+        done = float(np.sum(t[:c])) + float(t[c]) * (j + 1) / length
         return done / self.seeds_per_call
 
 
@@ -339,7 +385,8 @@ def collect(records: list[dict], space: Space, p: Plan, compile_s: float = 0.0,
         fields = {f: c[f].reshape(-1)[: p.evaluations] for f in RECORD_FIELDS}
         return Result(space, p.batch, idx.astype(np.int32), fields, compile_s, search_s,
                       None if chunk_s is None else np.array(chunk_s, np.float64),
-                      p.updates_per_chunk, n_seeds)
+                      p.updates_per_chunk, n_seeds,
+                      tuple(p.updates_in(c) for c in range(p.n_chunks)))
 
     return [one({k: v[s] for k, v in cat.items()}) for s in range(n_seeds)]
 
@@ -353,12 +400,12 @@ class Stopped(Exception):
 
 
 def _compile_ahead(prog: cache.Program, carry, key_data, args_leaves, flags, fresh: bool,
-                   chunks: int) -> None:
+                   chunks: int, count) -> None:
     """Compile the chunk program for the calls :func:`drive` will make, before the first one
     (the calls reuse what ``lower(...).compile()`` built). On several local devices the carry
     comes back sharded as the program's outputs are, which later calls see as other input
     shardings: those programs are compiled here too (until the carry's shardings repeat)."""
-    compiled = prog.call.lower(carry, key_data, args_leaves, flags[fresh]).compile()
+    compiled = prog.call.lower(carry, key_data, args_leaves, flags[fresh], count).compile()
     if jax.local_device_count() == 1 or chunks < 2:  # inputs committed as the outputs are
         return
     seen = []
@@ -369,7 +416,7 @@ def _compile_ahead(prog: cache.Program, carry, key_data, args_leaves, flags, fre
         seen.append(shardings)
         carry = [jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh)
                  for x, sh in zip(carry, shardings)]
-        compiled = prog.call.lower(carry, key_data, args_leaves, flags[False]).compile()
+        compiled = prog.call.lower(carry, key_data, args_leaves, flags[False], count).compile()
 
 
 def drive(prog: cache.Program, seeds: list[int], args: Args, p: Plan, *, progress=None,
@@ -391,6 +438,9 @@ def drive(prog: cache.Program, seeds: list[int], args: Args, p: Plan, *, progres
     that chunk's compiled call until its records were on the host (a blocking transfer, so
     the chunk's device work is done), NaN for the chunks ``resumed`` holds.
     """
+    if not 1 <= p.first_chunk <= p.updates_per_chunk:  # the program holds updates_per_chunk
+        raise ValueError(f"first_chunk must be in 1..{p.updates_per_chunk} "
+                         f"(got {p.first_chunk!r})")
     t0 = time.perf_counter()
     # every input committed to the device, as the outputs fed back are: the first and later
     # calls then share one compiled executable
@@ -406,19 +456,23 @@ def drive(prog: cache.Program, seeds: list[int], args: Args, p: Plan, *, progres
         records, fresh = [], True
     carry = jax.device_put(carry, dev)
     flags = [jax.device_put(np.bool_(f), dev) for f in (False, True)]
+    counts = {n: jax.device_put(np.int32(n), dev)
+              for n in {p.updates_in(c) for c in range(len(records), p.n_chunks)}}
     if timed is not None:
         timed[:] = [float("nan")] * len(records)
     if len(records) < p.n_chunks:  # compiled here, so that no chunk's time includes it
-        _compile_ahead(prog, carry, key_data, args_leaves, flags, fresh, p.n_chunks - len(records))
+        _compile_ahead(prog, carry, key_data, args_leaves, flags, fresh,
+                       p.n_chunks - len(records), counts[p.updates_in(len(records))])
     compile_s = time.perf_counter() - t0
     t_search = time.perf_counter()
     for c in range(len(records), p.n_chunks):
         if stop is not None and stop():
             raise Stopped(len(records))
         t_chunk = time.perf_counter()
-        carry, rec = prog(carry, key_data, args_leaves, flags[fresh])
+        n = p.updates_in(c)
+        carry, rec = prog(carry, key_data, args_leaves, flags[fresh], counts[n])
         fresh = False
-        records.append(jax.tree.map(np.asarray, rec))
+        records.append(jax.tree.map(lambda x, n=n: np.asarray(x)[:, :n], rec))
         if timed is not None:
             timed.append(time.perf_counter() - t_chunk)
         if checkpoint is not None:
@@ -467,7 +521,8 @@ def carry_avals(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy,
                    args, n_seeds).in_avals[0]
 
 
-def record_shapes(space: Space, p: Plan, n_seeds: int = 1) -> dict[str, tuple[int, ...]]:
-    """Shapes of one chunk's records ``(S, U, B, ...)``."""
-    lead = (n_seeds, p.updates_per_chunk, p.batch)
+def record_shapes(space: Space, p: Plan, chunk: int,
+                  n_seeds: int = 1) -> dict[str, tuple[int, ...]]:
+    """Shapes of chunk ``chunk``'s records ``(S, U, B, ...)`` (``U``: its updates)."""
+    lead = (n_seeds, p.updates_in(chunk), p.batch)
     return {"indices": lead + (len(space.shape),), **{f: lead for f in RECORD_FIELDS}}

@@ -165,9 +165,10 @@ def restore(ckpt: checkpoints.CampaignCheckpoint, b: Built, seed: int):
                                     b.strategy_params, b.plan, requirement=b.requirement,
                                     requirement_params=b.requirement_params)
     carry, records = ckpt.load(template)
-    want = campaign.record_shapes(b.space, b.plan)
+    wants = [campaign.record_shapes(b.space, b.plan, c) for c in range(len(records))]
     if len(records) > b.plan.n_chunks or any(
-            set(r) != set(want) or any(r[k].shape != want[k] for k in want) for r in records):
+            set(r) != set(want) or any(r[k].shape != want[k] for k in want)
+            for r, want in zip(records, wants)):
         raise checkpoints.CheckpointError(f"checkpoint {ckpt.folder}: its records do not fit "
                                           "this run's plan")
     return carry, records

@@ -131,28 +131,34 @@ def test_a_resume_under_other_settings_or_devices_is_refused(tmp_path, env, name
 
 
 # ----------------------------------------------------------------------------- chunking
-@pytest.mark.parametrize("n_updates", [61, 1009, 10007, 125, 1000])
-@pytest.mark.parametrize("every", [None, 7, 100])
-def test_a_prime_number_of_updates_still_gives_few_chunks(n_updates, every):
+@pytest.mark.parametrize("n_updates", [1, 2, 61, 1009, 10007, 125, 1000])
+@pytest.mark.parametrize("every", [None, 1, 7, 100])
+def test_the_chunks_run_every_update_once_the_first_alone(n_updates, every):
+    """The plan's chunks, listed update by update, against the updates the budget needs: each
+    update in exactly one chunk, in order; the first chunk one update, the others the length
+    asked (about 20 chunks when not asked), the last the rest; evaluations committed after
+    each chunk counted by hand."""
     p = campaign.plan(n_updates * 32 - 5, 32, every=every)
     assert p.n_updates == n_updates
     want = min(every, n_updates) if every else max(1, n_updates // 20)
-    assert p.updates_per_chunk <= want  # checkpoints at least as often as asked
-    assert p.n_chunks * p.updates_per_chunk >= n_updates  # every update is run
-    assert p.n_chunks <= -(-n_updates // want) * 2  # never one update per chunk for a prime
-    assert p.n_chunks * p.updates_per_chunk - n_updates < p.n_chunks  # little wasted
-    assert p.done_after(p.n_chunks) == p.evaluations
+    ran = [u for c in range(p.n_chunks) for u in range(p.start(c), p.start(c) + p.updates_in(c))]
+    assert ran == list(range(n_updates))
+    lengths = [p.updates_in(c) for c in range(p.n_chunks)]
+    assert lengths[0] == 1 and all(n == want for n in lengths[1:-1])
+    assert 1 <= lengths[-1] <= want and p.updates_per_chunk == want
+    done = [min(sum(lengths[:c]) * 32, n_updates * 32 - 5) for c in range(p.n_chunks + 1)]
+    assert [p.done_after(c) for c in range(p.n_chunks + 1)] == done
 
 
 @pytest.mark.parametrize("strategy", [  # the default's two campaign programs: ~45 s
     "random", pytest.param("reinforce/default", marks=pytest.mark.slow)])
 def test_a_partial_last_chunk_changes_no_result_and_resumes(tmp_path, strategy):
-    """61 updates (prime) in chunks of 3, the last one running past the budget, give the
-    files of the same run checkpointed every update (61 chunks); stopped after 5 chunks and
-    resumed, the same again."""
-    kw = dict(strategy=strategy, evaluations=61 * 8 - 3, batch=8, seed=3)
+    """62 updates in chunks of 3 after the first (the last chunk shorter) give the files of
+    the same run checkpointed every update (62 chunks); stopped after 5 chunks and resumed,
+    the same again."""
+    kw = dict(strategy=strategy, evaluations=62 * 8 - 3, batch=8, seed=3)
     p = runs.RunConfig(**kw).build().plan
-    assert p.n_chunks * p.updates_per_chunk > p.n_updates > p.updates_per_chunk > 1
+    assert p.updates_in(p.n_chunks - 1) < p.updates_per_chunk > 1
     runs.execute(runs.RunConfig(**kw), tmp_path / "chunked", figures=False)
     runs.execute(runs.RunConfig(**kw, checkpoint_every=1), tmp_path / "every", figures=False)
     calls = iter(range(1000))

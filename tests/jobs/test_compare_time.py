@@ -35,13 +35,22 @@ def _result(chunk_seconds, batch, per_chunk, n, collision_at=(), seeds_per_call=
                            per_chunk, seeds_per_call)
 
 
-def _expected(chunk_seconds, batch, per_chunk, evaluation, seeds_per_call=1):
-    """The documented attribution, written out: the chunks before the update's chunk in full,
-    and that chunk's time divided evenly among its updates, up to the end of the update."""
+def _expected(chunk_seconds, batch, lengths, evaluation, seeds_per_call=1):
+    """The documented attribution, written out: each chunk's time spread evenly over the
+    updates it ran (``lengths``: updates per chunk), summed to the end of the update holding
+    ``evaluation``."""
+    per_update = np.concatenate([np.full(n, t / n) for t, n in zip(chunk_seconds, lengths)])
     update = (evaluation - 1) // batch
-    chunk, within = update // per_chunk, update % per_chunk
-    t = list(chunk_seconds)
-    return (sum(t[:chunk]) + t[chunk] * (within + 1) / per_chunk) / seeds_per_call
+    return float(np.sum(per_update[:update + 1])) / seeds_per_call
+
+
+def _lengths(first, per, n_updates):
+    """Updates per chunk: ``first``, then ``per`` each, the last the rest."""
+    out, left = [min(first, n_updates)], n_updates - min(first, n_updates)
+    while left > 0:
+        out.append(min(per, left))
+        left -= out[-1]
+    return out
 
 
 def test_search_seconds_at_by_hand():
@@ -53,6 +62,12 @@ def test_search_seconds_at_by_hand():
     # two seeds in one compiled call: an even share each
     half = _result([0.3, 0.6, 0.9], batch=4, per_chunk=3, n=36, seeds_per_call=2)
     assert half.search_seconds_at(13) == pytest.approx(0.25)
+    # a first chunk of one update and a shorter last one (9 updates: 1, 3, 3, 2): 0.3 s for
+    # update 0, 0.2 s for each of updates 1-3, 0.3 s each of 4-6, 0.45 s each of 7-8
+    r = _result([0.3, 0.6, 0.9, 0.9], batch=4, per_chunk=3, n=36)
+    r.chunk_updates = (1, 3, 3, 2)
+    got = [r.search_seconds_at(e) for e in (1, 4, 5, 16, 17, 28, 29, 36)]
+    np.testing.assert_allclose(got, [0.3, 0.3, 0.5, 0.9, 1.2, 1.8, 2.25, 2.7])
     # a chunk restored from a checkpoint (not timed here) leaves the time from there unknown
     restored = _result([np.nan, 0.6, 0.9], batch=4, per_chunk=3, n=36)
     assert restored.search_seconds_at(13) is None and restored.search_seconds_at(1) is None
@@ -106,20 +121,21 @@ def test_a_campaigns_first_failure_is_given_the_time_of_its_update(tmp_path):
     p = campaign.plan(64, 4, every=4)
     assert (r.updates_per_chunk, r.seeds_per_call) == (4, 1)
     t = r.chunk_seconds
-    assert t.shape == (p.n_chunks,) == (4,) and np.all(np.isfinite(t)) and np.all(t >= 0)
+    lengths = _lengths(1, 4, 16)  # 1, 4, 4, 4, 3
+    assert t.shape == (p.n_chunks,) == (5,) and np.all(np.isfinite(t)) and np.all(t >= 0)
     assert r.compile_seconds >= 0 and np.sum(t) <= r.search_seconds
     hits = np.nonzero(r.fields["collision"] & ~r.fields["nonfinite"])[0]
     assert hits.size, "the tiny space's 3 collisions in 32 should be met in 64 draws"
     first = int(hits[0]) + 1
     got = r.search_seconds_at(first)
-    assert got == pytest.approx(_expected(t, 4, 4, first))
+    assert got == pytest.approx(_expected(t, 4, lengths, first))
     assert 0 <= got <= np.sum(t) * (1 + 1e-12)
     assert r.search_seconds_at(64) == pytest.approx(np.sum(t))  # the budget ends a chunk
     two = campaign.run_seeds(sp, *_make("random", sp), p, [0, 1])
     assert [x.seeds_per_call for x in two] == [2, 2]
     np.testing.assert_array_equal(two[0].chunk_seconds, two[1].chunk_seconds)
     assert two[1].search_seconds_at(first) == pytest.approx(
-        _expected(two[1].chunk_seconds, 4, 4, first, seeds_per_call=2))
+        _expected(two[1].chunk_seconds, 4, lengths, first, seeds_per_call=2))
 
 
 def _make(strategy, sp, batch=4):
@@ -183,7 +199,7 @@ def test_compare_times_each_seed_and_reports_its_first_collision(compared):
             for s, r in zip(row["per_seed"], results[row["strategy"]]):
                 assert (r.batch, r.updates_per_chunk, r.seeds_per_call) == (200, 2, 1)
                 t = r.chunk_seconds
-                assert len(t) == 20 and np.all(np.isfinite(t))
+                assert len(t) == 21 and np.all(np.isfinite(t))
                 # the first collision from the records, and the formula at its update
                 hits = np.nonzero(r.fields["collision"][:budget]
                                   & ~r.fields["nonfinite"][:budget])[0]
@@ -193,9 +209,10 @@ def test_compare_times_each_seed_and_reports_its_first_collision(compared):
                     assert s["first_collision_seconds"] is None  # null, not 0
                 else:
                     assert s["first_collision_seconds"] == pytest.approx(
-                        _expected(t, 200, 2, first))
+                        _expected(t, 200, _lengths(1, 2, 40), first))
                     assert 0 <= s["first_collision_seconds"] <= s["search_seconds"]
-                assert s["search_seconds"] == pytest.approx(_expected(t, 200, 2, budget))
+                assert s["search_seconds"] == pytest.approx(
+                    _expected(t, 200, _lengths(1, 2, 40), budget))
                 assert s["search_seconds"] <= np.sum(t) * (1 + 1e-12)
                 # failures per second from compare.json's own per-seed numbers
                 assert s["failures_per_second"] == pytest.approx(
