@@ -147,6 +147,44 @@ def controller_cost(space, sut, sut_params, batch, updates=20, repeats=3):
     return best / updates, sim_s / updates
 
 
+def first_update(space_name, strategy, batch, calls=30, options=None):
+    """``(first ms, later ms)``: medians over ``calls`` of the campaign's compiled chunk called
+    for one update, from a fresh start (the strategy's initialisation, its first ask, the
+    batch's rollout, no tell) and from the state after that update (tell, ask, rollout), each
+    call timed until its records are on the host, as :func:`campaign.drive` times a chunk."""
+    import jax
+
+    from jaxfalsify.core import sim
+
+    space, sut, sut_params = SPACES[space_name]
+    b = runs.RunConfig(space=str(space), sut=sut, sut_params=sut_params, strategy=strategy,
+                       strategy_params=options or {}, batch=batch, evaluations=batch * 10,
+                       checkpoint_every=5).build()
+    args = campaign.args_for(b.space, b.sut_params, b.strategy_params, sim.WORLD,
+                             b.plan.evaluations)
+    prog = campaign.program(campaign.Campaign(b.space.layout, b.sut, b.strategy,
+                                              b.plan.updates_per_chunk), args, 1)
+    dev = jax.local_devices()[0]
+    leaves = jax.device_put(jax.tree.leaves(args), dev)
+    key_data = jax.device_put(np.stack([sim.seed_key_data(0)]), dev)
+    carry = jax.device_put([np.zeros(a.shape, a.dtype) for a in prog.in_avals[0]], dev)
+    fresh, later = (jax.device_put(np.bool_(f), dev) for f in (True, False))
+    one_update = jax.device_put(np.int32(1), dev)
+
+    def timed(c, flag):
+        out = prog(c, key_data, leaves, flag, one_update)  # compiled (and warmed) here
+        jax.tree.map(np.asarray, out[1])
+        ts = []
+        for _ in range(calls):
+            t = time.perf_counter()
+            jax.tree.map(np.asarray, prog(c, key_data, leaves, flag, one_update)[1])
+            ts.append(time.perf_counter() - t)
+        return float(np.median(ts)) * 1e3, out[0]
+
+    first, after = timed(carry, fresh)
+    return first, timed(after, later)[0]
+
+
 def learning(seeds: int, batch: int, evaluations: int | None):
     """The paper space's learning target: per seed, the last update's mean reward over the
     global maximum (the exhaustive sweep's, cached per machine). With ``evaluations`` given,
@@ -202,6 +240,10 @@ def main(argv=None):
     ap.add_argument("--cost", action="store_true",
                     help="first the controller's cost per update against the simulator's, "
                     "on the paper space and on 5 parameters x 4000 values")
+    ap.add_argument("--first-update", type=int, default=0, metavar="CALLS",
+                    help="first each strategy's first update on each space, timed alone "
+                    "(median of this many calls of the compiled chunk from a fresh start), "
+                    "and a later update")
     ap.add_argument("--learning", type=int, default=0, metavar="SEEDS",
                     help="first the paper space's learning target over this many seeds (the "
                     "main job's budget)")
@@ -237,6 +279,15 @@ def main(argv=None):
             print(f"  {label:28s} controller {c * 1e3:6.2f} ms, simulator {sim_s * 1e3:6.2f} ms: "
                   f"{c / sim_s:.1%}", flush=True)
             out.setdefault("cost", {})[label] = {"controller_s": c, "simulator_s": sim_s}
+    for sp in a.spaces if a.first_update else ():
+        print(f"{sp}: one update at batch {a.batch}, timed alone (median of {a.first_update} "
+              f"calls of the chunk program):")
+        for st, strategy, options in rows_of:
+            f, later = first_update(sp, strategy, a.batch, a.first_update, options)
+            print(f"  {st:20s} first update {f:6.2f} ms, a later one {later:6.2f} ms",
+                  flush=True)
+            out.setdefault("first_update", {}).setdefault(sp, {})[st] = {
+                "first_ms": f, "later_ms": later}
     for sp in a.spaces if a.estimate else ():
         hits, n = estimate_share(sp, a.estimate)
         lo, hi = poisson_interval(hits)

@@ -148,9 +148,10 @@ def evaluation_key(seed: int) -> jax.Array:
 
 
 def make_campaign(c: Campaign):
-    """Returns ``(init(key, args) -> carry, run_chunk(carry, args) -> (carry, records))``,
-    both pure. ``records`` hold, per update of the chunk, the batch's ``indices (U, B, P)`` and
-    each of ``RECORD_FIELDS`` ``(U, B)``."""
+    """Returns ``(init(key, args) -> carry, run_chunk(carry, args, count) -> (carry,
+    records))``, both pure. ``records`` hold, per update of the chunk, the batch's ``indices
+    (U, B, P)`` and each of ``RECORD_FIELDS`` ``(U, B)`` (``U = updates_per_chunk``; the rows
+    past ``count``, the updates the call ran, are zeros)."""
     strategy, B = c.strategy, c.batch
 
     def init(key, args: Args):
@@ -490,10 +491,11 @@ def run_seeds(space: Space, sut: sut_lib.SUT, sut_params, strategy: Strategy,
     """Campaigns for many seeds in one compiled function (mapped over the seeds), chunk by
     chunk on the host (see :func:`drive` for the keywords). A resumed campaign gives
     bit-identical results to an uninterrupted one: the carry (strategy and optimiser state,
-    PRNG keys, update count) is restored exactly and the same compiled chunk continues. Each
-    Result carries the chunks' measured seconds (:meth:`Result.search_seconds_at`); the seeds
-    of one call share them evenly, so a caller that wants each seed's own measured time calls
-    this once per seed (the one-seed program is compiled once and reused)."""
+    PRNG keys, update count, the batch not yet told) is restored exactly and the same compiled
+    chunk continues. Each Result carries the chunks' measured seconds
+    (:meth:`Result.search_seconds_at`); the seeds of one call share them evenly, so a caller
+    that wants each seed's own measured time calls this once per seed (the one-seed program is
+    compiled once and reused)."""
     args = args_for(space, sut_params, strategy_params, world, p.evaluations,
                     requirement_params)
     prog = program(Campaign(space.layout, sut, strategy, p.updates_per_chunk, requirement),

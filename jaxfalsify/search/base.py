@@ -22,8 +22,9 @@ by :func:`resolve_signal`.
 
 Rewards given to ``tell`` are finite or ``-inf``: the campaign replaces NaN (a non-finite
 rollout) and evaluations beyond the budget by ``-inf``, so they never rank as best. Every
-function is jit-compatible; the campaign runs ask -> simulate -> tell inside one ``lax.scan``
-and jits once at the edge. States are :func:`jaxfalsify.base.pytree.dataclass` pytrees.
+function is jit-compatible; the campaign runs its updates (tell the previous batch -> ask ->
+simulate) inside one compiled loop and jits once at the edge. States are
+:func:`jaxfalsify.base.pytree.dataclass` pytrees.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ XLA compilation); ``PaperController(...).init`` gives the same tree with Flax's 
 ``tests/search/test_strategy_contract.py`` checks the cell against the LSTM equations in NumPy.
 
 ``flax.linen`` rather than ``flax.nnx``: a linen module is a pure function of a parameter
-pytree, which is what a strategy's state holds, a campaign's ``lax.scan`` carries, checkpoints
+pytree, which is what a strategy's state holds, a campaign's loop carries, checkpoints
 store and ``jax.export`` caches; and it imports faster (on top of jax and optax, measured on
 2 CPU cores: linen +0.09 s, nnx +0.16 s).
 """

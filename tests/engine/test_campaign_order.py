@@ -18,7 +18,7 @@ from jaxfalsify.suts import registry as sut_lib
 
 
 @pytest.mark.parametrize("strategy", [
-    "cem", pytest.param("reinforce/default", marks=pytest.mark.slow)])
+    "cem", "cmaes", pytest.param("reinforce/default", marks=pytest.mark.slow)])
 def test_the_campaign_asks_what_an_eager_ask_tell_loop_asks(tmp_path, strategy):
     path = tmp_path / "tiny.toml"
     path.write_text(TINY_SPACE)

@@ -29,10 +29,12 @@ FAST_RESUME = ("random",)  # the rest in the slow pass (test_trust resumes reinf
 @pytest.mark.parametrize("strategy", [
     s if s in FAST_RESUME else pytest.param(s, marks=pytest.mark.slow) for s in search.REGISTRY])
 def test_every_strategy_resumes_bit_identically(strategy, tmp_path):
-    """Stop after 2 of 4 chunks, restore the carry (strategy + optimiser state, PRNG keys,
-    update count) from disk, continue: every recorded field equals the uninterrupted run's."""
+    """Stop after 2 of 5 chunks, restore the carry (strategy + optimiser state, PRNG keys,
+    update count, the batch not yet told) from disk, continue: every recorded field equals the
+    uninterrupted run's."""
     rc = runs.RunConfig(strategy=strategy, evaluations=16 * 8 - 5, batch=16,
-                        checkpoint_every=2, seed=5)  # 8 updates, 4 chunks, a partial batch
+                        checkpoint_every=2, seed=5)  # 8 updates (chunks 1, 2, 2, 2, 1), a
+    # partial last batch
     b = rc.build()
     ref = campaign.run(b.space, b.sut, b.sut_params, b.strategy, b.strategy_params, b.plan, 5)
     ck = CampaignCheckpoint(tmp_path / "checkpoint", {"test": strategy})
@@ -52,7 +54,7 @@ def test_every_strategy_resumes_bit_identically(strategy, tmp_path):
 
 @pytest.mark.parametrize("strategy", ["random", pytest.param("reinforce", marks=pytest.mark.slow)])
 def test_results_do_not_depend_on_chunking(strategy):
-    """Checkpointing every update or every 5 updates scans the same update function."""
+    """Checkpointing every update or every 5 updates runs the same update function."""
     sp = jf.load_space("paper")
     a = run_campaign(sp, strategy, batch=20, evaluations=200, seed=2, every=1)
     b = run_campaign(sp, strategy, batch=20, evaluations=200, seed=2, every=5)
