@@ -294,7 +294,7 @@ def main(argv=None):
         print(f"{sp}: {hits} collisions in {n} uniform draws: share {hits / n:.2e} "
               f"(95 % interval {lo / n:.1e}-{hi / n:.1e})", flush=True)
         out.setdefault("shares", {})[sp] = {"collisions": hits, "draws": n}
-    for sp in a.spaces:
+    for sp in a.spaces if a.seeds else ():  # --seeds 0: the first sections only
         print(f"\n== {sp}: batch {a.batch}, budget {a.evaluations}, {a.seeds} seeds")
         print(f"{'strategy':20s} {'found':>6s} {'median first (eval)':>20s} "
               f"{'median s to first':>18s} {'x random':>9s} {'distinct':>9s} "
