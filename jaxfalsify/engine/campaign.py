@@ -153,13 +153,20 @@ def make_campaign(c: Campaign):
     (U, B, P)`` and each of ``RECORD_FIELDS`` ``(U, B)`` (``U = updates_per_chunk``; the rows
     past ``count``, the updates the call ran, are zeros)."""
     strategy, B = c.strategy, c.batch
+    P = len(c.layout.shape)
+
+    def pending_of(key, indices, reward, robustness, violated, ttc):
+        """A batch's outcomes as the carry keeps them until the next update tells them."""
+        return {"key": key, "indices": indices.astype(jnp.int32),
+                "reward": reward.astype(jnp.float32),
+                "robustness": robustness.astype(jnp.float32), "violated": violated,
+                "ttc": ttc.astype(jnp.float32)}
 
     def init(key, args: Args):
         k_init, k_eval, k_run = jax.random.split(key, 3)  # k_eval: see evaluation_key
-        P = len(c.layout.shape)
-        pending = {"key": k_run, "indices": jnp.zeros((B, P), jnp.int32),  # (never told)
-                   "reward": jnp.zeros(B, jnp.float32), "robustness": jnp.zeros(B, jnp.float32),
-                   "violated": jnp.zeros(B, bool), "ttc": jnp.zeros(B, jnp.float32)}
+        zeros = jnp.zeros(B, jnp.float32)  # (never told: the first update tells nothing)
+        pending = pending_of(k_run, jnp.zeros((B, P), jnp.int32), zeros, zeros,
+                             jnp.zeros(B, bool), zeros)
         return {"state": strategy.init(k_init, args.strategy_params), "key": k_run,
                 "eval_key": k_eval, "update": jnp.int32(0), "pending": pending}
 
@@ -193,9 +200,8 @@ def make_campaign(c: Campaign):
             robustness = requirements.robustness(c.requirement, out, args.requirement_params)
             violated = (robustness < 0) & counted
         rob = jnp.where(counted & jnp.isfinite(robustness), robustness, jnp.inf)
-        pending = {"key": k_tell, "indices": idx, "reward": r.astype(jnp.float32),
-                   "robustness": rob.astype(jnp.float32), "violated": violated,
-                   "ttc": jnp.where(counted, out.min_ttc, jnp.inf).astype(jnp.float32)}
+        pending = pending_of(k_tell, idx, r, rob, violated,
+                             jnp.where(counted, out.min_ttc, jnp.inf))
         rec = {"indices": idx, **{f: getattr(out, f) for f in RECORD_FIELDS
                                   if f != "violated"}, "violated": violated}
         return {**carry, "state": state, "key": key, "update": carry["update"] + 1,
@@ -204,7 +210,7 @@ def make_campaign(c: Campaign):
     def run_chunk(carry, args: Args, count):
         """``count`` (traced, at most ``updates_per_chunk``) updates; the records of the
         chunk's remaining rows are zeros (the host keeps the first ``count``)."""
-        U, P = c.updates_per_chunk, len(c.layout.shape)
+        U = c.updates_per_chunk
         recs = {"indices": jnp.zeros((U, B, P), jnp.int32),
                 **{f: jnp.zeros((U, B), bool if f in BOOL_FIELDS else jnp.float32)
                    for f in RECORD_FIELDS}}

@@ -392,9 +392,11 @@ class BatchedReinforce(Strategy):
         bold = (state.told == 0) & (jnp.arange(self.learners) < params.first_learners)
         lr = jnp.where(found, params.lr, jnp.where(bold, params.lr_first, params.lr_search))
 
+        shares = self._shares(signal, -jnp.inf)
+
         def own(_):
             elite, w, at, best = self._each(self.pick_elite)(
-                self._keys(key), self._shares(indices), self._shares(signal, -jnp.inf))
+                self._keys(key), self._shares(indices), shares)
             mask = self._each(lambda a, b: jnp.zeros(self.share, bool).at[a].set(
                 jnp.isfinite(b)))(at, best)
             return elite, w, mask.reshape(-1)[:self.batch]
@@ -417,15 +419,15 @@ class BatchedReinforce(Strategy):
             # scored best on average (a learner whose components lie far from the elite gets
             # a gradient that underflows to 0 and would never move)
             first = together_now & (state.told - self.batch < params.novelty_until)
-            shares = self._shares(signal, -jnp.inf)
-            ok = jnp.isfinite(shares)
-            score = jnp.sum(jnp.where(ok, shares, 0.0), axis=1) / jnp.maximum(
-                jnp.sum(ok, axis=1), 1)
-            score = jnp.where(jnp.any(ok, axis=1), score, -jnp.inf)
-            best = jnp.argmax(score)
-            weights, opt = jax.lax.cond(
-                first, lambda t: jax.tree.map(lambda x: jnp.broadcast_to(x[best], x.shape), t),
-                lambda t: t, (weights, opt))
+
+            def from_best(t):  # (computed at that update only)
+                ok = jnp.isfinite(shares)
+                score = jnp.sum(jnp.where(ok, shares, 0.0), axis=1) / jnp.maximum(
+                    jnp.sum(ok, axis=1), 1)
+                best = jnp.argmax(jnp.where(jnp.any(ok, axis=1), score, -jnp.inf))
+                return jax.tree.map(lambda x: jnp.broadcast_to(x[best], x.shape), t)
+
+            weights, opt = jax.lax.cond(first, from_best, lambda t: t, (weights, opt))
         weights, opt = self._each(
             lambda wt, o, e, ew, r: self._learn_one(wt, o, e, ew, params, r))(
             weights, opt, elite, w, lr)
