@@ -15,7 +15,8 @@ this is the distribution the space defines). Two estimators:
   of ``ce_components`` products of one categorical distribution per parameter (a product alone
   cannot hold several failure clusters), fitted by weighted EM over levels to the draws whose
   robustness is below the level's ``ce_quantile`` (weighted by p/q), until enough draws
-  violate the requirement; then to those.
+  violate the requirement; then to those. Each level's EM (``ce_iterations``) starts from the
+  previous level's mixture, so its components keep the parts of the failure set they cover.
   The final draws come from a defensive mixture ``(1 - defensive) q + defensive * uniform``,
   so every weight ``p/q`` is at most ``1 / defensive``; the estimate is the mean of
   ``w * 1[violated]`` and its interval the normal one on its sample variance. The proposal's
@@ -77,8 +78,8 @@ ELITE_MIN = 100  # violating draws of a cross-entropy level that end the levels 
 class EstimateConfig(Problem):
     """What an estimate needs. ``samples``: most draws of the final stage; ``batch``: draws per
     compiled call; ``ce_*``: the cross-entropy stage (draws per level, the elite quantile, the
-    most levels, the mixture's components); ``defensive``: the uniform share of the final
-    proposal."""
+    most levels, the mixture's components, EM iterations per level); ``defensive``: the uniform
+    share of the final proposal."""
 
     requirement: str = req_lib.DEFAULT
     requirement_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
@@ -92,6 +93,7 @@ class EstimateConfig(Problem):
     ce_quantile: float = 0.5
     ce_levels: int = 40
     ce_components: int = 16
+    ce_iterations: int = 10
     defensive: float = 0.1
 
     def check(self) -> None:
@@ -104,6 +106,7 @@ class EstimateConfig(Problem):
         check_int("ce_samples", self.ce_samples, 1, 1 << 22)
         check_int("ce_levels", self.ce_levels, 1, 1000)
         check_int("ce_components", self.ce_components, 1, 256)
+        check_int("ce_iterations", self.ce_iterations, 1, 10_000)
         for key, lo, hi in (("target_rel_error", 0.0, math.inf), ("confidence", 0.0, 1.0),
                             ("ce_quantile", 0.0, 1.0), ("defensive", 0.0, 1.0)):
             v = getattr(self, key)
@@ -181,14 +184,20 @@ def _compile(sp: Space, sut, req, batch: int):
 
     @jax.jit
     def run(key, log_w, log_q, log_u, params, rparams):
-        k_mix, k_comp, k_val, k_u = jax.random.split(key, 4)
+        k_mix, k_comp, k_val = jax.random.split(key, 3)
         n_comp, n_par, width = log_q.shape
-        comp = jax.random.categorical(k_comp, log_w, shape=(batch,))
+        # the component by the inverse of its weights' cumulative sum, one uniform per draw
+        # (a Gumbel arg-max drew K: on a CPU the random bits cost more than the draw)
+        cum_w = jnp.cumsum(jnp.exp(log_w - jnp.max(log_w)))
+        pick = jax.random.uniform(k_comp, (batch,)) * cum_w[-1]
+        comp = jnp.minimum(jnp.sum(cum_w[None, :] <= pick[:, None], axis=1), n_comp - 1)
         cdf = jnp.cumsum(jnp.exp(log_q), axis=-1)
         cdf = jnp.where(jnp.arange(width) < sizes[:, None], cdf, 2.0)  # beyond: never chosen
         par = jnp.arange(n_par)[None, :]
-        u = jax.random.uniform(k_val, (batch, n_par)) * cdf[comp[:, None], par,
-                                                            (sizes - 1)[None, :]]
+        # one uniform per value serves both halves of the defensive mixture: each draw uses it
+        # in the half it is drawn from, chosen independently of it
+        raw = jax.random.uniform(k_val, (batch, n_par))
+        u = raw * cdf[comp[:, None], par, (sizes - 1)[None, :]]
         # first value whose cumulative probability reaches u: a binary search, log2(V) gathers
         lo = jnp.zeros((batch, n_par), jnp.int32)
         hi = jnp.broadcast_to(sizes - 1, (batch, n_par))
@@ -200,8 +209,7 @@ def _compile(sp: Space, sut, req, batch: int):
             return jnp.where(up, mid + 1, lo), jnp.where(up, hi, mid)
 
         from_q, _ = jax.lax.fori_loop(0, steps, halve, (lo, hi))
-        from_u = jnp.minimum(jnp.floor(jax.random.uniform(k_u, (batch, n_par))
-                                       * sizes).astype(jnp.int32), sizes - 1)
+        from_u = jnp.minimum(jnp.floor(raw * sizes).astype(jnp.int32), sizes - 1)
         uniform = jnp.log(jax.random.uniform(k_mix, (batch,))) < log_u
         idx = jnp.where(uniform[:, None], from_u, from_q).astype(jnp.int32)
         per = jnp.sum(log_q[:, par, idx], axis=-1)  # (K, B)
@@ -282,45 +290,59 @@ def no_violation_bound(uniform_draws: float, confidence: float) -> float:
 
 # ----------------------------------------------------------------------------- estimation
 def fit_mixture(idx: np.ndarray, w: np.ndarray, shape: np.ndarray, k: int, rng,
-                iterations: int = 30, floor: float = 1e-3) -> Proposal:
+                iterations: int = 30, floor: float = 1e-3,
+                start: Proposal | None = None) -> Proposal:
     """Weighted EM for a mixture of ``k`` products of categoricals on index vectors ``idx``
     (N, P) with weights ``w`` (N,); every value keeps at least ``floor`` of a uniform
-    distribution's probability within its component."""
+    distribution's probability within its component. The EM starts from ``start``'s
+    responsibilities for the draws where ``start`` is a mixture of ``k`` components (a warm
+    start), else from a random hard assignment drawn with ``rng``."""
+    from scipy import sparse  # jax's dependency; imported only where a proposal is fitted
+
     n, n_par = idx.shape
     width = int(shape.max())
     mask = np.arange(width)[None, :] < shape[:, None]
     k = max(1, min(k, n))
-    resp = np.zeros((n, k))
-    resp[np.arange(n), rng.integers(0, k, n)] = 1.0  # a random hard start
     w = w / w.sum()
-    # each draw's values as rows of one (P * width) table: a component's value counts are
-    # one bincount over every parameter, and each draw's log-probabilities gather rows of
-    # the (P * width, K) table (both contiguous; the same sums in the same order as a
-    # bincount per parameter and component and a column gather per parameter, 1.3-1.7x
-    # faster)
-    flat = idx + (np.arange(n_par) * width)[None, :]
-    values = flat.ravel()
-    uniform = np.where(mask, 1.0 / shape[:, None], 0.0)[None]
+    # each draw's values as the P ones of a row of a sparse (N, P * width) matrix: a
+    # component's value counts are a column of its transpose times the weights, and each
+    # draw's log-probabilities a row of it times the (P * width, K) table of log-probabilities.
+    # The sums run in the same order as one bincount per component and a gather per parameter
+    # (the same proposal to the last bit), 2-3x faster; the maximum over the components is
+    # taken column by column (an (N, 16) reduction along its short axis took 1.6 ms, the
+    # columns 0.6 ms).
+    flat = (idx + (np.arange(n_par) * width)[None, :]).ravel()
+    draws = sparse.csr_matrix((np.ones(n * n_par), flat, np.arange(0, n * n_par + 1, n_par)),
+                              shape=(n, n_par * width))
+    values = draws.T.tocsr()  # (P * width, N), each row's draws in their order
+    uniform = np.where(mask, 1.0 / shape[:, None], 0.0)[:, :, None]
+    top = np.empty(n)
+    if start is not None and len(start.log_weight) == k:
+        table = np.where(mask[None], start.log_prob, 0.0).astype(np.float64)
+        per = draws @ np.moveaxis(table, 0, -1).reshape(n_par * width, k)
+        per += start.log_weight
+        per -= per.max(1, keepdims=True)
+        resp = np.exp(per)
+        resp /= resp.sum(1, keepdims=True)
+    else:
+        resp = np.zeros((n, k))
+        resp[np.arange(n), rng.integers(0, k, n)] = 1.0  # a random hard start
     for _ in range(iterations):
         rw = resp * w[:, None]  # (N, K)
         mass = rw.sum(0) + 1e-300
         log_weight = np.log(mass / mass.sum())
-        rw_t = np.ascontiguousarray(rw.T)  # (K, N): each component's weights contiguous
-        prob = np.empty((k, n_par, width))
-        for c in range(k):
-            prob[c] = np.bincount(values, np.repeat(rw_t[c], n_par),
-                                  minlength=n_par * width).reshape(n_par, width)
-        prob /= mass[:, None, None]
+        prob = (values @ rw).reshape(n_par, width, k) / mass
         prob = (1 - floor) * prob + floor * uniform
-        log_prob = np.where(mask[None], np.log(np.maximum(prob, 1e-300)), -np.inf)
-        table = np.ascontiguousarray(log_prob.reshape(k, n_par * width).T)  # (P * width, K)
-        per = table[flat[:, 0]]  # (N, K): summed over the parameters in order
-        for j in range(1, n_par):
-            per = per + table[flat[:, j]]
+        table = np.log(np.maximum(prob, 1e-300)).reshape(n_par * width, k)
+        per = draws @ table  # (N, K): summed over the parameters in order
         per += log_weight
-        per -= per.max(1, keepdims=True)
+        np.copyto(top, per[:, 0])
+        for c in range(1, k):
+            np.maximum(top, per[:, c], out=top)
+        per -= top[:, None]
         resp = np.exp(per)
         resp /= resp.sum(1, keepdims=True)
+    log_prob = np.where(mask[None], np.moveaxis(table.reshape(n_par, width, k), 2, 0), -np.inf)
     return Proposal(log_weight.astype(np.float32), log_prob.astype(np.float32))
 
 
@@ -420,7 +442,7 @@ def cross_entropy(sp: Space, run, params, rparams, c: EstimateConfig, key,
         # no more components than the elite draws can inform (PER_COMPONENT each): fitted to
         # a few draws, a mixture puts its mass on them and misses the failures beside them
         k = min(c.ce_components, max(1, int(elite.sum()) // PER_COMPONENT))
-        q = fit_mixture(idx[elite], w, shape, k, rng)
+        q = fit_mixture(idx[elite], w, shape, k, rng, c.ce_iterations, start=q)
         if n_bad >= ELITE_MIN:
             break
     return q, {"levels": levels, "samples": used}

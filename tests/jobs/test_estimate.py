@@ -73,6 +73,20 @@ def test_weights_and_draws_follow_the_defensive_mixture(paper):
     counts = np.bincount(idx[:, 0], minlength=paper.shape[0])
     sigma = np.sqrt(n * marginal * (1 - marginal))
     assert np.all(np.abs(counts - n * marginal) <= 4 * sigma + 1)
+    # two parameters jointly (one component per draw for all its values): the pair's counts
+    # against the mixture's pair probabilities, by a chi-square test at the 1e-4 level
+    m0, m1 = paper.shape[0], paper.shape[1]
+    pair = share / (m0 * m1) + (1 - share) * np.einsum(
+        "k,ka,kb->ab", weights, probs[:, 0, :m0], probs[:, 1, :m1])
+    seen = np.bincount(idx[:, 0] * m1 + idx[:, 1], minlength=m0 * m1).reshape(m0, m1)
+    expected = n * pair
+    keep = expected >= 5  # the chi-square approximation's rule; the rest pooled into one cell
+    cells = np.append(seen[keep], seen[~keep].sum())
+    want = np.append(expected[keep], expected[~keep].sum())
+    from scipy.stats import chi2
+
+    stat = float(np.sum((cells - want) ** 2 / np.maximum(want, 1e-12)))
+    assert stat < chi2.ppf(1 - 1e-4, len(cells) - 1)
     # the requirement's robustness of those draws, through the public evaluate
     out = jf.evaluate(paper.scenario(idx[:2000]))
     np.testing.assert_allclose(rob[:2000], np.asarray(out.min_distance) - 1.0, atol=1e-5)
@@ -80,9 +94,19 @@ def test_weights_and_draws_follow_the_defensive_mixture(paper):
 
 def _em_one_by_one(idx, w, shape, k, start, iterations, floor):
     """The cross-entropy stage's weighted EM written scenario by scenario and value by value in
-    plain Python: the reference for :func:`est.fit_mixture`."""
+    plain Python: the reference for :func:`est.fit_mixture`. ``start``: each draw's component
+    (a hard start) or a mixture ``(weights [k], probs [k][j][value])`` whose posterior over
+    the components starts the EM (a warm start)."""
     n, n_par = len(idx), len(idx[0])
-    resp = [[1.0 if start[i] == c else 0.0 for c in range(k)] for i in range(n)]
+    if isinstance(start, tuple):
+        weight, prob = start
+        resp = []
+        for i in range(n):
+            like = [weight[c] * math.prod(prob[c][j][idx[i][j]] for j in range(n_par))
+                    for c in range(k)]
+            resp.append([x / sum(like) for x in like])
+    else:
+        resp = [[1.0 if start[i] == c else 0.0 for c in range(k)] for i in range(n)]
     total = sum(w)
     w = [x / total for x in w]
     for _ in range(iterations):
@@ -117,6 +141,38 @@ def test_the_mixture_fit_matches_em_computed_one_scenario_at_a_time():
         for j, m in enumerate(shape):
             np.testing.assert_allclose(np.exp(q.log_prob[c, j, :m]), prob[c][j], rtol=1e-5)
             assert np.all(np.isneginf(q.log_prob[c, j, m:]))
+
+
+def test_a_warm_started_fit_matches_em_started_from_the_previous_mixture():
+    rng = np.random.default_rng(6)
+    shape = np.array([5, 3, 6])
+    idx = np.stack([rng.integers(0, m, 50) for m in shape], 1)
+    w = rng.random(50) + 0.1
+    k, iterations, floor = 3, 4, 1e-2
+    weights = rng.dirichlet(np.ones(k))
+    probs = [[list(rng.dirichlet(np.ones(m))) for m in shape] for _ in range(k)]
+    table = np.full((k, len(shape), int(shape.max())), -np.inf)
+    for c in range(k):
+        for j, m in enumerate(shape):
+            table[c, j, :m] = np.log(probs[c][j])
+    start = est.Proposal(np.log(weights).astype(np.float32), table.astype(np.float32))
+    q = est.fit_mixture(idx, w, shape, k, np.random.default_rng(0), iterations, floor,
+                        start=start)
+    # the reference starts from the float32 tables the proposal holds
+    weight, prob = _em_one_by_one(
+        idx.tolist(), w.tolist(), shape, k,
+        (np.exp(start.log_weight.astype(np.float64)).tolist(),
+         [[np.exp(start.log_prob[c, j, :m].astype(np.float64)).tolist()
+           for j, m in enumerate(shape)] for c in range(k)]), iterations, floor)
+    np.testing.assert_allclose(np.exp(q.log_weight), weight, rtol=1e-5)
+    for c in range(k):
+        for j, m in enumerate(shape):
+            np.testing.assert_allclose(np.exp(q.log_prob[c, j, :m]), prob[c][j], rtol=1e-5)
+    # a start of another size is ignored: the random hard start, as without one
+    cold = est.fit_mixture(idx, w, shape, 2, np.random.default_rng(0), iterations, floor)
+    other = est.fit_mixture(idx, w, shape, 2, np.random.default_rng(0), iterations, floor,
+                            start=start)
+    np.testing.assert_array_equal(cold.log_prob, other.log_prob)
 
 
 def test_violations_the_proposal_misses_are_counted_and_reported():
@@ -313,3 +369,9 @@ def test_ctrl_c_ends_an_estimate_with_exit_130_and_says_so(tmp_path):
     assert s["interrupted"] is True and 0 < s["samples"] < 1_000_000_000
     assert f"interrupted after {s['samples']:,} draws" in said
     assert json.loads((out / "status.json").read_text())["state"] == "interrupted"
+
+
+@pytest.mark.parametrize("key", ["ce_samples", "ce_levels", "ce_components", "ce_iterations"])
+def test_a_cross_entropy_setting_below_one_is_refused_by_name(key):
+    with pytest.raises(ValueError, match=key):
+        est.EstimateConfig(**{key: 0}).check()
