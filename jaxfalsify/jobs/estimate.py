@@ -299,6 +299,7 @@ def fit_mixture(idx: np.ndarray, w: np.ndarray, shape: np.ndarray, k: int, rng,
     start), else from a random hard assignment drawn with ``rng``."""
     from scipy import sparse  # jax's dependency; imported only where a proposal is fitted
 
+    check_int("iterations", iterations, 1)
     n, n_par = idx.shape
     width = int(shape.max())
     mask = np.arange(width)[None, :] < shape[:, None]
@@ -308,9 +309,9 @@ def fit_mixture(idx: np.ndarray, w: np.ndarray, shape: np.ndarray, k: int, rng,
     # component's value counts are a column of its transpose times the weights, and each
     # draw's log-probabilities a row of it times the (P * width, K) table of log-probabilities.
     # The sums run in the same order as one bincount per component and a gather per parameter
-    # (the same proposal to the last bit), 2-3x faster; the maximum over the components is
-    # taken column by column (an (N, 16) reduction along its short axis took 1.6 ms, the
-    # columns 0.6 ms).
+    # (the same proposal to the last bit), 1.7x faster on 32,768 draws of 8 parameters; the
+    # maximum over the components is taken column by column (an (N, 16) reduction along its
+    # short axis took 1.6 ms, the columns 0.6 ms).
     flat = (idx + (np.arange(n_par) * width)[None, :]).ravel()
     draws = sparse.csr_matrix((np.ones(n * n_par), flat, np.arange(0, n * n_par + 1, n_par)),
                               shape=(n, n_par * width))
