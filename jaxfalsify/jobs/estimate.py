@@ -26,8 +26,11 @@ Both stop once the interval's half-width is at most ``target_rel_error`` of the 
 (with at least ``MIN_VIOLATIONS`` violating draws) or after ``samples`` draws beyond the
 proposal's fitting. The draws of the cross-entropy levels count in the estimate, each
 weighted by p/q of the proposal it came from (:class:`Tally`; the first level's are uniform,
-Monte Carlo's). Each batch is one compiled call (draw, simulate on lanes refilled as
-episodes end, requirement, weights); the host keeps the sums in float64.
+Monte Carlo's), but for those of the first ``ce_burn_in`` share of the levels run: at a rare
+rate the first levels' proposals are still broad, and their draws carry most of the
+variance (a uniform draw's relative variance is ``1/p``). Each batch is one compiled call
+(draw, simulate on lanes refilled as episodes end, requirement, weights); the host keeps the
+sums in float64.
 :func:`exact_rate` evaluates every scenario of a space small enough to sweep (the oracle).
 """
 
@@ -78,8 +81,9 @@ ELITE_MIN = 100  # violating draws of a cross-entropy level that end the levels 
 class EstimateConfig(Problem):
     """What an estimate needs. ``samples``: most draws of the final stage; ``batch``: draws per
     compiled call; ``ce_*``: the cross-entropy stage (draws per level, the elite quantile, the
-    most levels, the mixture's components, EM iterations per level); ``defensive``: the uniform
-    share of the final proposal."""
+    most levels, the mixture's components, EM iterations per level, the share of the levels,
+    the first ones, whose draws the estimate leaves out); ``defensive``: the uniform share of
+    the final proposal."""
 
     requirement: str = req_lib.DEFAULT
     requirement_params: Mapping[str, float] = dataclasses.field(default_factory=dict)
@@ -94,6 +98,7 @@ class EstimateConfig(Problem):
     ce_levels: int = 40
     ce_components: int = 16
     ce_iterations: int = 10
+    ce_burn_in: float = 0.25
     defensive: float = 0.1
 
     def check(self) -> None:
@@ -107,6 +112,9 @@ class EstimateConfig(Problem):
         check_int("ce_levels", self.ce_levels, 1, 1000)
         check_int("ce_components", self.ce_components, 1, 256)
         check_int("ce_iterations", self.ce_iterations, 1, 10_000)
+        b = self.ce_burn_in
+        if isinstance(b, bool) or not isinstance(b, (int, float)) or not 0.0 <= b < 1.0:
+            raise ValueError(f"ce_burn_in must be a number in [0, 1) (got {b!r})")
         for key, lo, hi in (("target_rel_error", 0.0, math.inf), ("confidence", 0.0, 1.0),
                             ("ce_quantile", 0.0, 1.0), ("defensive", 0.0, 1.0)):
             v = getattr(self, key)
@@ -358,40 +366,71 @@ def _draw(run, key, q: Proposal, log_u: float, params, rparams, n: int, batch: i
 
 
 class Tally:
-    """The running estimate over every draw so far, each weighted by p/q of the proposal it
-    was drawn from (1 for uniform draws): draws of the cross-entropy levels count too, so an
-    estimate never takes more draws than Monte Carlo's where the first, uniform, level
-    already reaches the target."""
+    """The running estimate over the draws it counts, each weighted by p/q of the proposal it
+    was drawn from (1 for uniform draws). Draws come in stages (each cross-entropy level, then
+    the final draws); :meth:`leave_out` drops the first stages from the estimate (their draws
+    still count in ``n``, the draws made). Without it every draw counts, the levels' too, so an
+    estimate never takes more draws than Monte Carlo's where the first, uniform, level already
+    reaches the target."""
+
+    FIELDS = ("n", "s1", "s2", "bad", "uniform_draws", "w_max", "above_uniform")
 
     def __init__(self, method: str, confidence: float):
         self.method, self.confidence = method, confidence
-        self.s1 = self.s2 = self.w_max = 0.0
-        self.n = self.bad = 0
-        self.uniform_draws = 0.0  # sum over draws of the uniform share of their proposal
-        self.above_uniform = 0  # violating draws with p/q > 1: the proposal's mass there is
-        # below uniform sampling's (drawn through the defensive share), a region it misses
+        self.stages: list[dict] = []  # per stage: the sums of FIELDS over its draws
+        self.first = 0  # the first stage the estimate counts
+        self.n = 0  # every draw made
+        self.s1 = self.s2 = self.w_max = self.uniform_draws = 0.0  # over the counted draws:
+        self.counted = self.bad = self.above_uniform = 0  # uniform_draws sums each draw's
+        # uniform share of its proposal; above_uniform counts violating draws with p/q > 1,
+        # where the proposal's mass is below uniform sampling's (drawn through the defensive
+        # share): a region it misses
         self.estimate = self.low = self.high = float("nan")
         self.rel = math.inf
 
-    def add(self, violated: np.ndarray, log_weight: np.ndarray, share: float = 1.0) -> None:
+    def add(self, violated: np.ndarray, log_weight: np.ndarray, share: float = 1.0,
+            new_stage: bool = False) -> None:
         """One batch of draws: ``violated (n,)`` bool, ``log_weight (n,)`` log p/q, ``share``
-        the uniform share of the proposal they came from (1: uniform draws)."""
+        the uniform share of the proposal they came from (1: uniform draws); ``new_stage``
+        starts a stage with them (the first batch always does)."""
+        if new_stage or not self.stages:
+            self.stages.append(dict.fromkeys(self.FIELDS, 0))
+        st = self.stages[-1]
         w = np.exp(np.asarray(log_weight, np.float64)) * violated
-        self.uniform_draws += share * len(violated)
-        self.s1 += float(w.sum())
-        self.s2 += float((w * w).sum())
-        self.w_max = max(self.w_max, float(w.max(initial=0.0)))
-        self.above_uniform += int(np.sum(violated & (np.asarray(log_weight) > 1e-6)))
+        st["n"] += len(violated)
+        st["s1"] += float(w.sum())
+        st["s2"] += float((w * w).sum())
+        st["bad"] += int(violated.sum())
+        st["uniform_draws"] += share * len(violated)
+        st["w_max"] = max(st["w_max"], float(w.max(initial=0.0)))
+        st["above_uniform"] += int(np.sum(violated & (np.asarray(log_weight) > 1e-6)))
         self.n += len(violated)
-        self.bad += int(violated.sum())
+        self._update()
+
+    def leave_out(self, stages: int) -> None:
+        """Count the draws of stage ``stages`` (0-based) on only."""
+        self.first = stages
+        self._update()
+
+    def _update(self) -> None:
+        kept = self.stages[self.first:]
+        self.counted = sum(st["n"] for st in kept)
+        self.s1, self.s2, self.uniform_draws = (sum(st[f] for st in kept)
+                                                for f in ("s1", "s2", "uniform_draws"))
+        self.bad = sum(st["bad"] for st in kept)
+        self.above_uniform = sum(st["above_uniform"] for st in kept)
+        self.w_max = max((st["w_max"] for st in kept), default=0.0)
+        if self.counted == 0:
+            return
         if self.method == "mc":
-            self.estimate = self.bad / self.n
-            self.low, self.high = wilson(self.bad, self.n, self.confidence)
+            self.estimate = self.bad / self.counted
+            self.low, self.high = wilson(self.bad, self.counted, self.confidence)
         elif self.bad == 0:  # no violation yet: the normal interval would be [0, 0]
             self.estimate, self.low = 0.0, 0.0
             self.high = no_violation_bound(self.uniform_draws, self.confidence)
         else:
-            self.estimate, self.low, self.high = normal_interval(self.s1, self.s2, self.n,
+            self.estimate, self.low, self.high = normal_interval(self.s1, self.s2,
+                                                                 self.counted,
                                                                  self.confidence)
         self.rel = (self.high - self.low) / 2 / self.estimate if self.estimate > 0 \
             else math.inf
@@ -427,7 +466,8 @@ def cross_entropy(sp: Space, run, params, rparams, c: EstimateConfig, key,
         used += len(rob)
         n_bad = int(np.sum(rob < 0))
         if tally is not None:
-            tally.add(rob < 0, logw, 1.0 if level == 0 else c.defensive)
+            tally.add(rob < 0, logw, 1.0 if level == 0 else c.defensive, new_stage=True)
+            tally.leave_out(int(c.ce_burn_in * levels))
             if tally.reached(c.target_rel_error):
                 progress.message(f"cross-entropy level {levels}: the estimate reached the "
                                  "target")
@@ -451,12 +491,14 @@ def cross_entropy(sp: Space, run, params, rparams, c: EstimateConfig, key,
 
 def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None) -> dict:
     """The failure rate of ``config``'s requirement under its space: a dict with
-    ``estimator``, ``samples`` (every draw the estimate counts), ``proposal_samples`` (those
-    drawn while fitting the proposal, counted too; ``samples`` allows ``config.samples`` more),
-    ``violations`` (violating draws), ``estimate``, ``interval`` [low, high] at
-    ``confidence``, ``relative_half_width``, ``reached_target``, ``interrupted`` (``stop()``
-    turned true before the draws allowed or the target: the estimate and interval are those
-    of the draws so far, each weighted by the proposal it was drawn from), ``seconds``."""
+    ``estimator``, ``samples`` (every draw made), ``proposal_samples`` (those drawn while
+    fitting the proposal; ``samples`` allows ``config.samples`` more), ``counted_samples`` (the
+    draws the estimate counts: all but those of the first ``left_out_levels`` cross-entropy
+    levels), ``violations`` (violating draws among them), ``estimate``, ``interval`` [low,
+    high] at ``confidence``, ``relative_half_width``, ``reached_target``, ``interrupted``
+    (``stop()`` turned true before the draws allowed or the target: the estimate and interval
+    are those of the draws so far, each weighted by the proposal it was drawn from),
+    ``seconds``."""
     cfg.check_type(config, EstimateConfig, "config")
     progress = progress or Progress()
     sp, sut, params, req, rparams = config.build()
@@ -488,6 +530,7 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
     interrupted = bool(ce.get("stopped"))
     if not interrupted:
         progress.start(total, done=t.n, unit="draw", desc=f"{c.method} estimate")
+    new_stage = True  # the final draws: one stage
     while not interrupted and t.n < total and not t.reached(c.target_rel_error):
         if stop is not None and stop():
             interrupted = True
@@ -496,13 +539,14 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
         _, rob, logw = run(k, jnp.asarray(q.log_weight), jnp.asarray(q.log_prob),
                            jnp.float32(log_u), params, rparams)
         m = min(c.batch, total - t.n)
-        t.add(np.asarray(rob)[:m] < 0, np.asarray(logw)[:m], math.exp(log_u))
+        t.add(np.asarray(rob)[:m] < 0, np.asarray(logw)[:m], math.exp(log_u), new_stage)
+        new_stage = False
         progress.update(t.n, estimate=f"{t.estimate:.3g}", rel=f"{t.rel:.3f}")
     progress.close()
     est, low, high, rel, n, k_bad = t.estimate, t.low, t.high, t.rel, t.n, t.bad
     reached = t.reached(c.target_rel_error)
     diagnostics = {} if c.method == "mc" else {
-        "violations_above_uniform": t.above_uniform,
+        "left_out_levels": t.first, "violations_above_uniform": t.above_uniform,
         "largest_weight_share": t.w_max / t.s1 if t.s1 > 0 else 0.0}
     return {"estimator": {"mc": "monte-carlo", "is": "importance-sampling (cross-entropy "
                           "proposal, defensive mixture)"}[c.method],
@@ -510,7 +554,8 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
             "requirement_params": sut_lib.params_dict(rparams),
             "space": sp.name, "space_size": float(sp.size), "sut": c.sut,
             "samples": n, "proposal_samples": ce["samples"], "proposal_levels": ce["levels"],
-            "violations": k_bad, "estimate": est, "interval": [low, high],
+            "counted_samples": t.counted, "violations": k_bad, "estimate": est,
+            "interval": [low, high],
             "confidence": c.confidence, "relative_half_width": rel,
             "target_rel_error": c.target_rel_error,
             "reached_target": reached, "interrupted": interrupted and not reached,
@@ -566,13 +611,18 @@ def summary_lines(s: dict) -> list[str]:
     if s["method"] == "exact":
         return [f"{s['requirement']} violated by {s['violations']:,} of the "
                 f"{s['samples']:,} scenarios: {s['estimate']:.4g} (exact), {s['seconds']:.1f} s"]
+    left = s.get("left_out_levels", 0)
     lines = [f"{s['requirement']} violated with probability {s['estimate']:.4g} "
              f"({s['confidence']:.0%} interval [{lo:.4g}, {hi:.4g}], relative half-width "
              f"{s['relative_half_width']:.3g})",
-             f"{s['estimator']}: {s['samples']:,} draws ({s['violations']:,} violating)"
+             f"{s['estimator']}: {s['samples']:,} draws"
+             + (f" ({s['violations']:,} violating)" if not left else "")
              + (f", {s['proposal_samples']:,} of them while fitting the proposal in "
                 f"{s['proposal_levels']} level{'s' if s['proposal_levels'] > 1 else ''}"
                 if s["proposal_samples"] else "")
+             + (f"; the estimate counts {s['counted_samples']:,} of them "
+                f"({s['violations']:,} violating), leaving out those of the first {left} "
+                f"level{'s' if left > 1 else ''}" if left else "")
              + f", {s['seconds']:.1f} s"]
     if s.get("interrupted"):
         lines.append(f"interrupted after {s['samples']:,} draws: the estimate and interval are "

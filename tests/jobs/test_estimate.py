@@ -211,6 +211,31 @@ def test_intervals_cover_the_exact_rate(paper, exact, method, draws):
     assert sum(covered) >= 34, sum(covered)
 
 
+def test_the_estimate_leaves_out_the_first_stages_it_is_told_to():
+    """Three stages of weighted draws; with the first left out the estimate, its interval and
+    the diagnostics are those of the other two's draws alone (a NumPy computation over them),
+    while ``n`` still counts every draw."""
+    rng = np.random.default_rng(3)
+    stages = [(rng.random(n) < p, rng.normal(0, 2, n)) for n, p in
+              ((500, 0.02), (400, 0.1), (300, 0.2))]
+    t = est.Tally("is", 0.9)
+    for i, (v, lw) in enumerate(stages):
+        t.add(v, lw, 1.0 if i == 0 else 0.1, new_stage=True)
+    t.leave_out(1)
+    v = np.concatenate([x[0] for x in stages[1:]])
+    w = np.exp(np.concatenate([x[1] for x in stages[1:]])) * v
+    n = len(w)
+    mean = w.mean()
+    half = 1.6448536269514722 * w.std(ddof=1) / math.sqrt(n)
+    assert t.n == 1200 and t.counted == n and t.bad == int(v.sum())
+    np.testing.assert_allclose([t.estimate, t.low, t.high], [mean, mean - half, mean + half],
+                               rtol=1e-9)
+    np.testing.assert_allclose(t.uniform_draws, 0.1 * n)
+    np.testing.assert_allclose(t.w_max, w.max())
+    assert t.above_uniform == int(np.sum(v & (np.concatenate([x[1] for x in stages[1:]])
+                                              > 1e-6)))
+
+
 @pytest.mark.parametrize("method", ["mc", "is"])
 def test_no_violation_gives_an_interval_above_zero(method):
     """A requirement never violated (time-to-collision >= 0 s): the estimate is 0 and the
@@ -234,6 +259,32 @@ def test_no_violation_gives_an_interval_above_zero(method):
         cp = float(beta.ppf(0.975, 1, s["samples"]))
         assert cp <= s["interval"][1] <= 1.1 * cp
     assert "[0, 0]" not in " ".join(est.summary_lines(s))
+
+
+def test_the_first_quarter_of_the_levels_is_left_out_of_the_estimate():
+    """Eight cross-entropy levels of a requirement never violated (all eight run): the
+    estimate leaves out the first two levels' draws (a quarter), so the interval's upper end
+    is Clopper-Pearson's for the uniform mass of the other six levels' and the final draws
+    alone (the exponential bound exceeds it by a factor of at most ``1 + ln(40) / mass``);
+    ``ce_burn_in=0`` counts every level's."""
+    from scipy.stats import beta
+
+    for burn_in, left in ((0.25, 2), (0.0, 0)):
+        s = est.estimate(est.EstimateConfig(
+            requirement="ttc", requirement_params={"min_ttc": 0.0}, method="is", samples=1000,
+            batch=1000, ce_samples=2000, ce_levels=8, ce_burn_in=burn_in, seed=0))
+        assert s["proposal_levels"] == 8 and s["left_out_levels"] == left
+        assert s["samples"] == 8 * 2000 + 1000
+        assert s["counted_samples"] == (8 - left) * 2000 + 1000
+        # the uniform first level counts 1 per draw, the others' defensive mixtures 0.1
+        mass = 2000 + 0.1 * (7 * 2000 + 1000) if left == 0 else 0.1 * ((8 - left) * 2000
+                                                                        + 1000)
+        cp = float(beta.ppf(0.975, 1, mass))  # Clopper-Pearson's upper end
+        assert cp <= s["interval"][1] <= (1 + math.log(40) / mass) * cp
+    line = est.summary_lines({**s, "left_out_levels": 2, "violations": 0,
+                              "counted_samples": 13000})[1]
+    assert "the estimate counts 13,000 of them (0 violating), leaving out those of the " \
+        "first 2 levels" in line
 
 
 def test_importance_sampling_narrows_the_interval_at_equal_draws(paper, exact):
@@ -371,7 +422,9 @@ def test_ctrl_c_ends_an_estimate_with_exit_130_and_says_so(tmp_path):
     assert json.loads((out / "status.json").read_text())["state"] == "interrupted"
 
 
-@pytest.mark.parametrize("key", ["ce_samples", "ce_levels", "ce_components", "ce_iterations"])
-def test_a_cross_entropy_setting_below_one_is_refused_by_name(key):
+@pytest.mark.parametrize("key, value", [("ce_samples", 0), ("ce_levels", 0),
+                                        ("ce_components", 0), ("ce_iterations", 0),
+                                        ("ce_burn_in", 1.0), ("ce_burn_in", -0.1)])
+def test_a_cross_entropy_setting_out_of_range_is_refused_by_name(key, value):
     with pytest.raises(ValueError, match=key):
-        est.EstimateConfig(**{key: 0}).check()
+        est.EstimateConfig(**{key: value}).check()
