@@ -16,7 +16,8 @@ this is the distribution the space defines). Two estimators:
   cannot hold several failure clusters), fitted by weighted EM over levels to the draws whose
   robustness is below the level's ``ce_quantile`` (weighted by p/q), until enough draws
   violate the requirement; then to those. Each level's EM (``ce_iterations``) starts from the
-  previous level's mixture, so its components keep the parts of the failure set they cover.
+  previous level's mixture (its heaviest components where the fit has fewer), so its
+  components keep the parts of the failure set they cover.
   The final draws come from a defensive mixture ``(1 - defensive) q + defensive * uniform``,
   so every weight ``p/q`` is at most ``1 / defensive``; the estimate is the mean of
   ``w * 1[violated]`` and its interval the normal one on its sample variance. The proposal's
@@ -195,7 +196,7 @@ def _compile(sp: Space, sut, req, batch: int):
         k_mix, k_comp, k_val = jax.random.split(key, 3)
         n_comp, n_par, width = log_q.shape
         # the component by the inverse of its weights' cumulative sum, one uniform per draw
-        # (a Gumbel arg-max drew K: on a CPU the random bits cost more than the draw)
+        # (a Gumbel arg-max would take K: on a CPU the random bits cost more than the draw)
         cum_w = jnp.cumsum(jnp.exp(log_w - jnp.max(log_w)))
         pick = jax.random.uniform(k_comp, (batch,)) * cum_w[-1]
         comp = jnp.minimum(jnp.sum(cum_w[None, :] <= pick[:, None], axis=1), n_comp - 1)
@@ -302,9 +303,10 @@ def fit_mixture(idx: np.ndarray, w: np.ndarray, shape: np.ndarray, k: int, rng,
                 start: Proposal | None = None) -> Proposal:
     """Weighted EM for a mixture of ``k`` products of categoricals on index vectors ``idx``
     (N, P) with weights ``w`` (N,); every value keeps at least ``floor`` of a uniform
-    distribution's probability within its component. The EM starts from ``start``'s
-    responsibilities for the draws where ``start`` is a mixture of ``k`` components (a warm
-    start), else from a random hard assignment drawn with ``rng``."""
+    distribution's probability within its component. The EM starts from the responsibilities
+    for the draws of ``start``'s ``k`` heaviest components, reweighted to sum to 1, where
+    ``start`` has at least ``k`` (a warm start), else from a random hard assignment drawn with
+    ``rng``."""
     from scipy import sparse  # jax's dependency; imported only where a proposal is fitted
 
     check_int("iterations", iterations, 1)
@@ -315,21 +317,21 @@ def fit_mixture(idx: np.ndarray, w: np.ndarray, shape: np.ndarray, k: int, rng,
     w = w / w.sum()
     # each draw's values as the P ones of a row of a sparse (N, P * width) matrix: a
     # component's value counts are a column of its transpose times the weights, and each
-    # draw's log-probabilities a row of it times the (P * width, K) table of log-probabilities.
-    # The sums run in the same order as one bincount per component and a gather per parameter
-    # (the same proposal to the last bit), 1.7x faster on 32,768 draws of 8 parameters; the
-    # maximum over the components is taken column by column (an (N, 16) reduction along its
-    # short axis took 1.6 ms, the columns 0.6 ms).
+    # draw's log-probabilities a row of it times the (P * width, K) table of log-probabilities
+    # (each sum runs over the draws, or the parameters, in order); the maximum over the
+    # components is taken column by column, faster than a reduction along the short axis
+    # (measurements in experiments/results/NOTES.md)
     flat = (idx + (np.arange(n_par) * width)[None, :]).ravel()
     draws = sparse.csr_matrix((np.ones(n * n_par), flat, np.arange(0, n * n_par + 1, n_par)),
                               shape=(n, n_par * width))
     values = draws.T.tocsr()  # (P * width, N), each row's draws in their order
     uniform = np.where(mask, 1.0 / shape[:, None], 0.0)[:, :, None]
     top = np.empty(n)
-    if start is not None and len(start.log_weight) == k:
-        table = np.where(mask[None], start.log_prob, 0.0).astype(np.float64)
+    if start is not None and len(start.log_weight) >= k:
+        keep = np.sort(np.argsort(-start.log_weight, kind="stable")[:k])
+        table = np.where(mask[None], start.log_prob[keep], 0.0).astype(np.float64)
         per = draws @ np.moveaxis(table, 0, -1).reshape(n_par * width, k)
-        per += start.log_weight
+        per += start.log_weight[keep]  # a constant shift of their logarithms is no change
         per -= per.max(1, keepdims=True)
         resp = np.exp(per)
         resp /= resp.sum(1, keepdims=True)
@@ -420,7 +422,9 @@ class Tally:
         self.bad = sum(st["bad"] for st in kept)
         self.above_uniform = sum(st["above_uniform"] for st in kept)
         self.w_max = max((st["w_max"] for st in kept), default=0.0)
-        if self.counted == 0:
+        if self.counted == 0:  # nothing counted (yet): no estimate
+            self.estimate = self.low = self.high = float("nan")
+            self.rel = math.inf
             return
         if self.method == "mc":
             self.estimate = self.bad / self.counted
@@ -467,7 +471,7 @@ def cross_entropy(sp: Space, run, params, rparams, c: EstimateConfig, key,
         n_bad = int(np.sum(rob < 0))
         if tally is not None:
             tally.add(rob < 0, logw, 1.0 if level == 0 else c.defensive, new_stage=True)
-            tally.leave_out(int(c.ce_burn_in * levels))
+            tally.leave_out(math.floor(c.ce_burn_in * levels + 1e-9))
             if tally.reached(c.target_rel_error):
                 progress.message(f"cross-entropy level {levels}: the estimate reached the "
                                  "target")
@@ -497,7 +501,7 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
     levels), ``violations`` (violating draws among them), ``estimate``, ``interval`` [low,
     high] at ``confidence``, ``relative_half_width``, ``reached_target``, ``interrupted``
     (``stop()`` turned true before the draws allowed or the target: the estimate and interval
-    are those of the draws so far, each weighted by the proposal it was drawn from),
+    are those of the counted draws so far, each weighted by the proposal it was drawn from),
     ``seconds``."""
     cfg.check_type(config, EstimateConfig, "config")
     progress = progress or Progress()
@@ -626,7 +630,7 @@ def summary_lines(s: dict) -> list[str]:
              + f", {s['seconds']:.1f} s"]
     if s.get("interrupted"):
         lines.append(f"interrupted after {s['samples']:,} draws: the estimate and interval are "
-                     "those of the draws so far")
+                     "those of the draws counted so far")
     elif not s["reached_target"]:
         lines.append(f"the target relative half-width {s['target_rel_error']:g} was not "
                      "reached within the draws allowed (raise --samples)")

@@ -48,14 +48,28 @@ def test_exact_rate_is_the_share_of_evaluated_collisions(paper, exact):
     assert got["scenarios"] == paper.size and got["rate"] == pytest.approx(exact, abs=1e-12)
 
 
-def test_weights_and_draws_follow_the_defensive_mixture(paper):
+@pytest.fixture(scope="module")
+def draw_program(paper):
+    return est._compile(paper, sut_lib.resolve("carla-tm"), req_lib.resolve("clash"), 20000)
+
+
+@pytest.mark.parametrize("zero, share", [(None, 0.2), (0, 0.2), (1, 0.2), (2, 0.2),
+                                         (None, 1.0)])
+def test_weights_and_draws_follow_the_defensive_mixture(paper, draw_program, zero, share):
+    """A mixture of three components (``zero``: that one's weight 0) with a uniform share:
+    the log-weights against a NumPy computation of p/q, the draws' values and pairs of values
+    against the mixture's probabilities (``share`` 1: uniform draws, weight 1)."""
     rng = np.random.default_rng(5)
     q, probs = _random_proposal(paper, 3, rng)
+    if zero is not None:
+        lw = q.log_weight.astype(np.float64)
+        lw[zero] = -np.inf
+        lw -= np.log(np.exp(lw).sum())
+        q = est.Proposal(lw.astype(np.float32), q.log_prob)
     weights = np.exp(q.log_weight.astype(np.float64))
-    share = 0.2
     sut = sut_lib.resolve("carla-tm")
     req = req_lib.resolve("clash")
-    run = est._compile(paper, sut, req, 20000)
+    run = draw_program
     idx, rob, logw = (np.asarray(a) for a in run(
         jf.core.sim.seed_key(3), q.log_weight, q.log_prob, np.float32(math.log(share)),
         sut.default_params, req.default_params))
@@ -87,6 +101,8 @@ def test_weights_and_draws_follow_the_defensive_mixture(paper):
 
     stat = float(np.sum((cells - want) ** 2 / np.maximum(want, 1e-12)))
     assert stat < chi2.ppf(1 - 1e-4, len(cells) - 1)
+    if zero is not None or share == 1.0:
+        return
     # the requirement's robustness of those draws, through the public evaluate
     out = jf.evaluate(paper.scenario(idx[:2000]))
     np.testing.assert_allclose(rob[:2000], np.asarray(out.min_distance) - 1.0, atol=1e-5)
@@ -168,9 +184,22 @@ def test_a_warm_started_fit_matches_em_started_from_the_previous_mixture():
     for c in range(k):
         for j, m in enumerate(shape):
             np.testing.assert_allclose(np.exp(q.log_prob[c, j, :m]), prob[c][j], rtol=1e-5)
-    # a start of another size is ignored: the random hard start, as without one
-    cold = est.fit_mixture(idx, w, shape, 2, np.random.default_rng(0), iterations, floor)
-    other = est.fit_mixture(idx, w, shape, 2, np.random.default_rng(0), iterations, floor,
+    # fewer components than the start: the EM starts from its two heaviest, reweighted
+    q2 = est.fit_mixture(idx, w, shape, 2, np.random.default_rng(0), iterations, floor,
+                         start=start)
+    heavy = sorted(np.argsort(-weights)[:2])
+    weight2, prob2 = _em_one_by_one(
+        idx.tolist(), w.tolist(), shape, 2,
+        ([float(np.exp(np.float64(start.log_weight[c]))) for c in heavy],
+         [[np.exp(start.log_prob[c, j, :m].astype(np.float64)).tolist()
+           for j, m in enumerate(shape)] for c in heavy]), iterations, floor)
+    np.testing.assert_allclose(np.exp(q2.log_weight), weight2, rtol=1e-5)
+    for c in range(2):
+        for j, m in enumerate(shape):
+            np.testing.assert_allclose(np.exp(q2.log_prob[c, j, :m]), prob2[c][j], rtol=1e-5)
+    # more components than the start: the random hard start, as without one
+    cold = est.fit_mixture(idx, w, shape, 4, np.random.default_rng(0), iterations, floor)
+    other = est.fit_mixture(idx, w, shape, 4, np.random.default_rng(0), iterations, floor,
                             start=start)
     np.testing.assert_array_equal(cold.log_prob, other.log_prob)
 
@@ -218,6 +247,7 @@ def test_the_estimate_leaves_out_the_first_stages_it_is_told_to():
     rng = np.random.default_rng(3)
     stages = [(rng.random(n) < p, rng.normal(0, 2, n)) for n, p in
               ((500, 0.02), (400, 0.1), (300, 0.2))]
+    stages[0][0][0], stages[0][1][0] = True, 12.0  # the heaviest violation, left out
     t = est.Tally("is", 0.9)
     for i, (v, lw) in enumerate(stages):
         t.add(v, lw, 1.0 if i == 0 else 0.1, new_stage=True)
