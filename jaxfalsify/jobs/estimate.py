@@ -641,4 +641,9 @@ def summary_lines(s: dict) -> list[str]:
                      f"{s['largest_weight_share']:.0%} of the estimate): the proposal misses "
                      "part of the failure set, so the interval may be too narrow; compare "
                      "with --method mc")
+    size = s.get("space_size", math.inf)
+    if size <= min(s["samples"], MAX_SIZE):  # a sweep would have evaluated fewer scenarios
+        lines.append(f"the space has {int(size):,} scenarios, no more than these "
+                     f"{s['samples']:,} draws: --method exact evaluates each once and gives "
+                     "the rate itself")
     return lines

@@ -225,6 +225,20 @@ def test_violations_the_proposal_misses_are_counted_and_reported():
                    est.summary_lines({**s, "violations_above_uniform": 0}))
 
 
+@pytest.mark.parametrize("size, draws, says", [(60_000, 393_216, True), (1e6, 1e6, True),
+                                               (1e5, 65_536, False), (6e15, 3e6, False)])
+def test_the_closing_lines_point_to_a_sweep_where_it_evaluates_fewer(size, draws, says):
+    s = {"interval": [1e-4, 2e-4], "method": "is", "requirement": "collision",
+         "estimate": 1.5e-4, "confidence": 0.95, "relative_half_width": 0.1,
+         "estimator": "importance-sampling", "samples": int(draws), "violations": 40,
+         "proposal_samples": 0, "seconds": 1.0, "reached_target": True, "space_size": size}
+    lines = [x for x in est.summary_lines(s) if "--method exact" in x]
+    assert len(lines) == int(says)
+    if says:
+        assert lines[0].startswith(f"the space has {int(size):,} scenarios, no more than "
+                                   f"these {int(draws):,} draws")
+
+
 @pytest.mark.parametrize("method, draws", [("mc", 1500), ("is", 600)])
 def test_intervals_cover_the_exact_rate(paper, exact, method, draws):
     """40 seeds of each estimator at a 95 % level: the interval holds the exact rate in at
