@@ -33,10 +33,9 @@ seconds divided evenly among its updates, up to the end of ``e``'s update
 (:meth:`jaxfalsify.engine.campaign.Result.search_seconds_at`; resolution one update, exact at chunk
 boundaries). Per seed: ``first_collision_seconds`` (None when the seed found no collision
 within the budget, never 0), ``search_seconds`` (to the end of the update holding the budget's
-last evaluation) and
-``failures_per_second`` (distinct collision scenarios / ``search_seconds``). With ``jobs`` > 1
-the strategies share the machine while they search, so their seconds include that sharing;
-``jobs = 1`` times each strategy alone.
+last evaluation) and ``failures_per_second`` (distinct collision scenarios /
+``search_seconds``). With ``jobs`` > 1 the strategies share the machine while they search, so
+their seconds include that sharing; ``jobs = 1`` times each strategy alone.
 
 ``compare.json`` holds every figure per seed (``per_seed`` rows); ``compare.md`` the tables
 of :mod:`jaxfalsify.jobs.compare_tables`.

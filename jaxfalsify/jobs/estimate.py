@@ -327,14 +327,25 @@ def fit_mixture(idx: np.ndarray, w: np.ndarray, shape: np.ndarray, k: int, rng,
     values = draws.T.tocsr()  # (P * width, N), each row's draws in their order
     uniform = np.where(mask, 1.0 / shape[:, None], 0.0)[:, :, None]
     top = np.empty(n)
+
+    def responsibilities(table, log_weight):
+        """Each draw's posterior over the components, (N, K), from the (P * width, K) table."""
+        per = draws @ table  # (N, K): summed over the parameters in order
+        per += log_weight
+        np.copyto(top, per[:, 0])
+        for c in range(1, k):
+            np.maximum(top, per[:, c], out=top)
+        per -= top[:, None]
+        resp = np.exp(per)
+        resp /= resp.sum(1, keepdims=True)
+        return resp
+
     if start is not None and len(start.log_weight) >= k:
         keep = np.sort(np.argsort(-start.log_weight, kind="stable")[:k])
         table = np.where(mask[None], start.log_prob[keep], 0.0).astype(np.float64)
-        per = draws @ np.moveaxis(table, 0, -1).reshape(n_par * width, k)
-        per += start.log_weight[keep]  # a constant shift of their logarithms is no change
-        per -= per.max(1, keepdims=True)
-        resp = np.exp(per)
-        resp /= resp.sum(1, keepdims=True)
+        # (their weights need not sum to 1: a constant shift of the logarithms is no change)
+        resp = responsibilities(np.moveaxis(table, 0, -1).reshape(n_par * width, k),
+                                start.log_weight[keep])
     else:
         resp = np.zeros((n, k))
         resp[np.arange(n), rng.integers(0, k, n)] = 1.0  # a random hard start
@@ -345,14 +356,7 @@ def fit_mixture(idx: np.ndarray, w: np.ndarray, shape: np.ndarray, k: int, rng,
         prob = (values @ rw).reshape(n_par, width, k) / mass
         prob = (1 - floor) * prob + floor * uniform
         table = np.log(np.maximum(prob, 1e-300)).reshape(n_par * width, k)
-        per = draws @ table  # (N, K): summed over the parameters in order
-        per += log_weight
-        np.copyto(top, per[:, 0])
-        for c in range(1, k):
-            np.maximum(top, per[:, c], out=top)
-        per -= top[:, None]
-        resp = np.exp(per)
-        resp /= resp.sum(1, keepdims=True)
+        resp = responsibilities(table, log_weight)
     log_prob = np.where(mask[None], np.moveaxis(table.reshape(n_par, width, k), 2, 0), -np.inf)
     return Proposal(log_weight.astype(np.float32), log_prob.astype(np.float32))
 

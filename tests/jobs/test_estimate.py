@@ -114,13 +114,14 @@ def _em_one_by_one(idx, w, shape, k, start, iterations, floor):
     (a hard start) or a mixture ``(weights [k], probs [k][j][value])`` whose posterior over
     the components starts the EM (a warm start)."""
     n, n_par = len(idx), len(idx[0])
+
+    def posterior(i, weight, prob):  # draw i's responsibilities under a mixture
+        like = [weight[c] * math.prod(prob[c][j][idx[i][j]] for j in range(n_par))
+                for c in range(k)]
+        return [x / sum(like) for x in like]
+
     if isinstance(start, tuple):
-        weight, prob = start
-        resp = []
-        for i in range(n):
-            like = [weight[c] * math.prod(prob[c][j][idx[i][j]] for j in range(n_par))
-                    for c in range(k)]
-            resp.append([x / sum(like) for x in like])
+        resp = [posterior(i, *start) for i in range(n)]
     else:
         resp = [[1.0 if start[i] == c else 0.0 for c in range(k)] for i in range(n)]
     total = sum(w)
@@ -135,11 +136,24 @@ def _em_one_by_one(idx, w, shape, k, start, iterations, floor):
                     prob[c][j][idx[i][j]] += resp[i][c] * w[i] / mass[c]
             for j in range(n_par):
                 prob[c][j] = [(1 - floor) * v + floor / shape[j] for v in prob[c][j]]
-        for i in range(n):
-            like = [weight[c] * math.prod(prob[c][j][idx[i][j]] for j in range(n_par))
-                    for c in range(k)]
-            resp[i] = [x / sum(like) for x in like]
+        resp = [posterior(i, weight, prob) for i in range(n)]
     return weight, prob
+
+
+def _assert_fit_is(q, weight, prob, shape):
+    """``q`` (a fitted proposal) holds the reference EM's weights and probabilities."""
+    np.testing.assert_allclose(np.exp(q.log_weight), weight, rtol=1e-5)
+    for c in range(len(weight)):
+        for j, m in enumerate(shape):
+            np.testing.assert_allclose(np.exp(q.log_prob[c, j, :m]), prob[c][j], rtol=1e-5)
+            assert np.all(np.isneginf(q.log_prob[c, j, m:]))
+
+
+def _mixture_of(q, components, shape):
+    """Components of a proposal as the reference EM's ``(weights, probs)``, float64."""
+    return ([float(np.exp(np.float64(q.log_weight[c]))) for c in components],
+            [[np.exp(q.log_prob[c, j, :m].astype(np.float64)).tolist()
+              for j, m in enumerate(shape)] for c in components])
 
 
 def test_the_mixture_fit_matches_em_computed_one_scenario_at_a_time():
@@ -152,11 +166,7 @@ def test_the_mixture_fit_matches_em_computed_one_scenario_at_a_time():
     q = est.fit_mixture(idx, w, shape, k, np.random.default_rng(9), iterations, floor)
     weight, prob = _em_one_by_one(idx.tolist(), w.tolist(), shape, k, start.tolist(),
                                   iterations, floor)
-    np.testing.assert_allclose(np.exp(q.log_weight), weight, rtol=1e-5)
-    for c in range(k):
-        for j, m in enumerate(shape):
-            np.testing.assert_allclose(np.exp(q.log_prob[c, j, :m]), prob[c][j], rtol=1e-5)
-            assert np.all(np.isneginf(q.log_prob[c, j, m:]))
+    _assert_fit_is(q, weight, prob, shape)
 
 
 def test_a_warm_started_fit_matches_em_started_from_the_previous_mixture():
@@ -175,28 +185,16 @@ def test_a_warm_started_fit_matches_em_started_from_the_previous_mixture():
     q = est.fit_mixture(idx, w, shape, k, np.random.default_rng(0), iterations, floor,
                         start=start)
     # the reference starts from the float32 tables the proposal holds
-    weight, prob = _em_one_by_one(
-        idx.tolist(), w.tolist(), shape, k,
-        (np.exp(start.log_weight.astype(np.float64)).tolist(),
-         [[np.exp(start.log_prob[c, j, :m].astype(np.float64)).tolist()
-           for j, m in enumerate(shape)] for c in range(k)]), iterations, floor)
-    np.testing.assert_allclose(np.exp(q.log_weight), weight, rtol=1e-5)
-    for c in range(k):
-        for j, m in enumerate(shape):
-            np.testing.assert_allclose(np.exp(q.log_prob[c, j, :m]), prob[c][j], rtol=1e-5)
+    weight, prob = _em_one_by_one(idx.tolist(), w.tolist(), shape, k,
+                                  _mixture_of(start, range(k), shape), iterations, floor)
+    _assert_fit_is(q, weight, prob, shape)
     # fewer components than the start: the EM starts from its two heaviest, reweighted
     q2 = est.fit_mixture(idx, w, shape, 2, np.random.default_rng(0), iterations, floor,
                          start=start)
     heavy = sorted(np.argsort(-weights)[:2])
-    weight2, prob2 = _em_one_by_one(
-        idx.tolist(), w.tolist(), shape, 2,
-        ([float(np.exp(np.float64(start.log_weight[c]))) for c in heavy],
-         [[np.exp(start.log_prob[c, j, :m].astype(np.float64)).tolist()
-           for j, m in enumerate(shape)] for c in heavy]), iterations, floor)
-    np.testing.assert_allclose(np.exp(q2.log_weight), weight2, rtol=1e-5)
-    for c in range(2):
-        for j, m in enumerate(shape):
-            np.testing.assert_allclose(np.exp(q2.log_prob[c, j, :m]), prob2[c][j], rtol=1e-5)
+    weight2, prob2 = _em_one_by_one(idx.tolist(), w.tolist(), shape, 2,
+                                    _mixture_of(start, heavy, shape), iterations, floor)
+    _assert_fit_is(q2, weight2, prob2, shape)
     # more components than the start: the random hard start, as without one
     cold = est.fit_mixture(idx, w, shape, 4, np.random.default_rng(0), iterations, floor)
     other = est.fit_mixture(idx, w, shape, 4, np.random.default_rng(0), iterations, floor,
