@@ -13,6 +13,12 @@ over integer index vectors whose hyperparameters come in as a traced ``params`` 
   epsilon [m], ``+inf`` where unknown), violation flags and minimum times-to-collision ``ttc``
   [s] beside the rewards. The default turns them into the strategy's learning ``signal`` and
   calls ``tell`` with it.
+* ``ask_screened(key, state, params, screen) -> (indices, state)``: ``ask`` given a *screen*,
+  a function from candidate scenarios ``(N, P)`` int32 to ``(N,)`` float32 seconds between the
+  unbraked car's and the walker's windows at the crossing (:mod:`jaxfalsify.core.screen`; <= 0
+  where they meet). The campaign calls it when it simulates the crossing world itself (not for
+  an external evaluator); the default ignores the screen. ``reinforce/default`` draws its first
+  batch by it.
 
 **The learning signal is a function** (evosax's fitness shaping): ``signal(rewards,
 robustness, collision, ttc) -> (B,)``, higher is better. :data:`SIGNALS` names the shipped ones
@@ -73,6 +79,12 @@ class Strategy:
 
     def ask(self, key: jax.Array, state, params) -> tuple[jax.Array, Any]:
         raise NotImplementedError
+
+    def ask_screened(self, key: jax.Array, state, params,
+                     screen: Callable[[jax.Array], jax.Array]) -> tuple[jax.Array, Any]:
+        """``ask`` with a kinematic screen of candidate scenarios (the module docstring);
+        this default does not use it."""
+        return self.ask(key, state, params)
 
     def tell(self, key: jax.Array, state, indices: jax.Array, rewards: jax.Array, params):
         raise NotImplementedError
