@@ -19,15 +19,19 @@ them) and 4 % others; the 9 ``sensor-aeb`` collisions have gaps of -0.9 to 0 s.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 
 from jaxfalsify.core import sim
+from jaxfalsify.scenario.space import KNOWN_PARAMETERS, Layout
 from jaxfalsify.suts import registry as sut_lib
 
-__all__ = ["unbraked_drive", "walker_travel", "walker_arrival", "conflict_gap"]
+__all__ = [
+    "unbraked_drive", "walker_travel", "walker_arrival", "car_window", "walker_window", "gap_of",
+    "conflict_gap", "for_space"
+]
 
 OUT_OF_REACH = 1000.0  # m beyond the kerb: where the walker is put for the unbraked drive
 
@@ -122,29 +126,72 @@ def walker_arrival(travel, ped_speed, ped_accel, horizon: int) -> jax.Array:
     return jnp.where(k > horizon, horizon + 1.0, k)
 
 
+def car_window(ego_offset, drive: jax.Array, world: sim.World = sim.WORLD):
+    """``(first step inside, first step beyond)`` float32 of the unbraked car's window at the
+    crossing: its box centre within ``half_x`` of the crosswalk (``drive``: :func:`unbraked_drive`,
+    non-decreasing, so a search of it); ``horizon + 1`` where never."""
+    w = world
+    half_x = (w.ego_length + w.ped_length) / 2
+    start_x, _ = sim.start_positions(ego_offset, 0.0, w)
+    enter = jnp.searchsorted(drive, w.crosswalk_x - half_x - start_x, side="left")
+    leave = jnp.searchsorted(drive, w.crosswalk_x + half_x - start_x, side="right")
+    return enter.astype(jnp.float32), leave.astype(jnp.float32)
+
+
+def walker_window(ped_offset, ped_speed, ped_accel, world: sim.World = sim.WORLD):
+    """``(first step inside, first step beyond)`` float32 of the walker's window: its centre
+    within ``half_y`` of the lane's centre line; ``horizon + 1`` where never."""
+    w = world
+    half_y = (w.ego_width + w.ped_width) / 2
+    _, ped_y0 = sim.start_positions(0.0, ped_offset, w)
+    H = int(w.horizon)
+    enter = walker_arrival((w.ego_y - half_y - ped_y0) / w.dt, ped_speed, ped_accel, H)
+    leave = walker_arrival((w.ego_y + half_y - ped_y0) / w.dt, ped_speed, ped_accel, H)
+    return enter, leave
+
+
+def gap_of(car, walker, world: sim.World = sim.WORLD) -> jax.Array:
+    """Seconds between two windows ``(enter, leave)``: ``<= 0`` where they overlap, otherwise
+    how long the later opens after the earlier closes."""
+    return jnp.maximum(car[0] - walker[1], walker[0] - car[1]) * jnp.asarray(world.dt,
+                                                                            jnp.float32)
+
+
 def conflict_gap(scenario: dict, drive: jax.Array, world: sim.World = sim.WORLD) -> jax.Array:
     """Seconds between the unbraked car's and the walker's windows at the crossing, per
     scenario (``scenario``: ``{name: (...)}`` float32 with ``ego_offset``, ``ped_offset``,
-    ``ped_speed`` and ``ped_accel``; ``drive``: :func:`unbraked_drive`). Each window is the
-    steps ``[first inside, first beyond)``: the car's box centre within ``half_x`` of the
-    crosswalk, the walker's centre within ``half_y`` of the lane's centre line. ``<= 0`` where
-    the windows overlap (the unbraked car would hit the walker, to a step), otherwise how long
-    the later window opens after the earlier closes. An actor that never gets there has its
-    window at ``horizon + 1``."""
-    w = world
-    H = int(w.horizon)
-    half_x = (w.ego_length + w.ped_length) / 2
-    half_y = (w.ego_width + w.ped_width) / 2
-    start_x, ped_y0 = sim.start_positions(scenario["ego_offset"], scenario["ped_offset"], w)
-    # stored once: fused into the bisections' kernels, the scenario's gather from the value
-    # table was recomputed in each (5.8 ms instead of 1.2 ms for 32,768 scenarios on one core)
-    start_x, ped_y0, speed, accel = jax.lax.optimization_barrier(
-        (start_x, ped_y0, scenario["ped_speed"], scenario["ped_accel"]))
+    ``ped_speed`` and ``ped_accel``; ``drive``: :func:`unbraked_drive`): :func:`gap_of` of
+    :func:`car_window` and :func:`walker_window`. ``<= 0`` where the unbraked car would hit the
+    walker (to a step)."""
+    return gap_of(car_window(scenario["ego_offset"], drive, world),
+                  walker_window(scenario["ped_offset"], scenario["ped_speed"],
+                                scenario["ped_accel"], world), world)
 
-    # the car's drive is non-decreasing: its windows by a search of the drive
-    car_in = jnp.searchsorted(drive, w.crosswalk_x - half_x - start_x, side="left")
-    car_out = jnp.searchsorted(drive, w.crosswalk_x + half_x - start_x, side="right")
-    car_in, car_out = car_in.astype(jnp.float32), car_out.astype(jnp.float32)
-    ped_in = walker_arrival((w.ego_y - half_y - ped_y0) / w.dt, speed, accel, H)
-    ped_out = walker_arrival((w.ego_y + half_y - ped_y0) / w.dt, speed, accel, H)
-    return jnp.maximum(car_in - ped_out, ped_in - car_out) * jnp.asarray(w.dt, jnp.float32)
+
+def for_space(layout: Layout, table, sut: sut_lib.SUT, params: Any,
+              world: sim.World = sim.WORLD) -> Callable[[jax.Array], jax.Array]:
+    """The screen of a space's scenarios: ``indices (N, P)`` int32 -> ``(N,)`` float32
+    :func:`conflict_gap` (``table``: the space's ``(P, max_n)`` value table; a parameter the
+    space does not declare takes its default). Computed per value where a window depends on
+    one parameter (the car's on ``ego_offset``), per scenario otherwise; the car's drive
+    (:func:`unbraked_drive`) inside, so a caller that never calls it never computes it."""
+    names = layout.names
+
+    def column(name, indices, per_value=None):
+        if name not in names:
+            v = jnp.float32(KNOWN_PARAMETERS[name]["default"])
+            return per_value(v) if per_value else v
+        p = names.index(name)
+        values = jnp.asarray(table, jnp.float32)[p]
+        if per_value is None:
+            return values[indices[:, p]]
+        return tuple(x[indices[:, p]] for x in per_value(values))
+
+    def screen(indices):
+        drive = unbraked_drive(sut, params, world)
+        car = column("ego_offset", indices, lambda v: car_window(v, drive, world))
+        walker = walker_window(column("ped_offset", indices), column("ped_speed", indices),
+                               column("ped_accel", indices), world)
+        return jnp.broadcast_to(gap_of(car, walker, world), indices.shape[:1])
+
+    return screen

@@ -185,12 +185,8 @@ def make_campaign(c: Campaign):
         # the strategy has learnt from them; the order of asks and tells is the same
         state = jax.lax.cond(carry["update"] > 0, lambda s: tell(s, carry["pending"], args),
                              lambda s: s, carry["state"])
-        def screen_of(candidates):  # the kinematic screen (core/screen.py); traced only where
-            # the strategy uses it
-            drive = screen.unbraked_drive(c.sut, args.sut_params, args.world)
-            return screen.conflict_gap(c.layout.scenario(candidates, args.table), drive,
-                                       args.world)
-
+        # the kinematic screen (core/screen.py), traced only where the strategy uses it
+        screen_of = screen.for_space(c.layout, args.table, c.sut, args.sut_params, args.world)
         idx, state = strategy.ask_screened(k_ask, state, args.strategy_params, screen_of)
         if sharding is not None:  # the proposal batch is simulated on all local devices
             idx = jax.lax.with_sharding_constraint(idx, sharding)

@@ -109,3 +109,22 @@ def test_conflict_gap_against_a_step_by_step_search_and_the_unbraked_collisions(
     assert np.all(gap[hit] <= 1e-6)
     deep = gap <= -0.2 + 1e-6
     assert deep.sum() > 30 and np.mean(hit[deep]) > 0.95
+
+
+def test_the_screen_of_a_space_without_ego_offset_uses_its_default():
+    """A space that does not declare ``ego_offset`` (nor ``ped_accel``): the per-value screen
+    of its indices equals :func:`screen.conflict_gap` of the decoded scenarios, which take the
+    parameters' defaults."""
+    from jaxfalsify.scenario.space import space_from_dict
+    space = space_from_dict({"parameters": {
+        "ped_speed": {"distribution": "uniform", "low": 0.5, "high": 3.0, "samples": 30},
+        "ped_offset": {"distribution": "uniform", "low": 0.0, "high": 8.0, "samples": 20}}})
+    sut = sut_lib.resolve("carla-tm")
+    every = np.asarray(space.unravel(np.arange(space.size)))
+    drive = screen.unbraked_drive(sut, sut.default_params)
+    want = np.asarray(screen.conflict_gap(
+        {k: jnp.asarray(v) for k, v in space.scenario(every).items()}, drive))
+    got = np.asarray(jax.jit(screen.for_space(space.layout, space.table_array, sut,
+                                              sut.default_params))(jnp.asarray(every)))
+    np.testing.assert_array_equal(got, want)
+    assert 0 < np.mean(want <= 0) < 1

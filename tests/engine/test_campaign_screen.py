@@ -44,13 +44,15 @@ def test_the_first_batch_is_screened_in_a_campaign_and_not_for_an_external_evalu
     path = tmp_path / "space.toml"
     path.write_text(SPACE)
     B, M = 2048, 8
-    b = runs.RunConfig(space=str(path), sut="sensor-aeb", batch=B, evaluations=B,
-                       strategy_params={"screen_tau": 1e-3}).build()
+    b = runs.RunConfig(space=str(path), sut="sensor-aeb", batch=B, evaluations=B).build()
     space = b.space
     every = np.asarray(space.unravel(np.arange(space.size)))
     drive = screen.unbraked_drive(b.sut, b.sut_params)
     gap = np.asarray(screen.conflict_gap(
         {k: jnp.asarray(v) for k, v in space.scenario(every).items()}, drive))
+    # the campaign's per-value screen of the indices gives the same gaps
+    np.testing.assert_array_equal(np.asarray(screen.for_space(
+        space.layout, space.table_array, b.sut, b.sut_params)(jnp.asarray(every))), gap)
     mass = np.ones(space.size)
     for j, n in enumerate(space.shape):
         mass *= discretised.boundary_probs(n, 0.02)[every[:, j]]
@@ -63,7 +65,7 @@ def test_the_first_batch_is_screened_in_a_campaign_and_not_for_an_external_evalu
     share = conflict[flat].mean()
     assert abs(share - want) <= 5 * math.sqrt(want * (1 - want) / B), (share, want)
     f = jf.Falsifier(str(path), strategy="reinforce/default", batch=B, evaluations=B, seed=4,
-                     strategy_params={"screen_tau": 1e-3}, out=tmp_path / "ext")
+                     out=tmp_path / "ext")
     asked = f.ask()
     share = conflict[np.asarray(space.ravel(asked.indices))].mean()
     assert abs(share - q) <= 5 * math.sqrt(q * (1 - q) / B), (share, q)

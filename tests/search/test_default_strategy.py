@@ -673,44 +673,39 @@ def test_the_first_update_of_the_boundary_learners_draws_from_the_boundary():
 
 
 @pytest.mark.parametrize("M", [1, 4])
-def test_the_screened_first_batch_is_a_gumbel_max_pick_among_boundary_candidates(M):
+def test_the_screened_first_batch_is_the_nearest_of_its_boundary_candidates(M):
     """``ask_screened`` with a screen that gives a set ``A`` of scenarios a gap of 0 s and the
-    rest 10 s, ``screen_tau`` 0.01 (the rest's weight ``exp(-1000)``, nothing): a first-batch
-    draw lies in ``A`` with probability ``1 - (1 - q)^M``, ``q`` the boundary distribution's mass
-    of ``A`` (exact, from the definition), and inside ``A`` it follows the boundary distribution
-    restricted to ``A``; each within 5 standard errors. With ``screen_tau`` 1e6 (all weights
-    equal) the draws follow the boundary distribution itself. ``screen_candidates`` 1 and plain
-    ``ask`` draw the boundary alone: the same draws as without a screen."""
+    rest 10 s: a first-batch draw lies in ``A`` with probability ``1 - (1 - q)^M``, ``q`` the
+    boundary distribution's mass of ``A`` (exact, from the definition), and inside ``A`` it
+    follows the boundary distribution restricted to ``A``. With the gap the rank of parameter 1's
+    value, the draw's value is the least of ``M`` independent boundary draws: ``P(v >= t) = S(t)^M``
+    with ``S`` one draw's survival function. Each within 5 standard errors. With equal gaps, or
+    ``screen_candidates`` 1, or plain ``ask``: the boundary's own draws."""
     shape = (9, 40)
     B = 60_000
     s, p = search.make("reinforce/default", shape, B, learners=4, hidden=8, components=3,
                        screen_candidates=M)
     state = jax.jit(s.init)(jax.random.key(2), p)
 
-    def screen(c):  # A: the first value of parameter 0 and the last 5 of parameter 1
-        return jnp.where((c[:, 0] == 0) & (c[:, 1] >= 35), 0.0, 10.0)
+    def asked(screen, key):
+        return np.asarray(jax.jit(lambda k, st: s.ask_screened(k, st, p, screen)[0])(
+            jax.random.key(key), state))
 
-    ask = jax.jit(lambda k, st, q: s.ask_screened(k, st, q, screen)[0])
     b0, b1 = _np_boundary_probs(9, 0.02), _np_boundary_probs(40, 0.02)
     q = b0[0] * b1[35:].sum()
-    idx = np.asarray(ask(jax.random.key(7), state, pytree.replace(p, screen_tau=0.01)))
+    idx = asked(lambda c: jnp.where((c[:, 0] == 0) & (c[:, 1] >= 35), 0.0, 10.0), 7)
     inside = (idx[:, 0] == 0) & (idx[:, 1] >= 35)
     want = 1 - (1 - q) ** M
     assert abs(inside.mean() - want) <= 5 * math.sqrt(want * (1 - want) / B), (inside.mean(), want)
     cond = b1[35:] / b1[35:].sum()
     freq = np.bincount(idx[inside, 1] - 35, minlength=5) / inside.sum()
     assert np.all(np.abs(freq - cond) <= 5 * np.sqrt(cond * (1 - cond) / inside.sum()))
-    flat = np.asarray(ask(jax.random.key(8), state, pytree.replace(p, screen_tau=1e6)))
-    for j, want_p in enumerate((b0, b1)):
-        f = np.bincount(flat[:, j], minlength=shape[j]) / B
-        assert np.all(np.abs(f - want_p) <= 5 * np.sqrt(want_p * (1 - want_p) / B) + 1e-6)
+    least = asked(lambda c: c[:, 1].astype(jnp.float32), 8)[:, 1]
+    for t in (1, 5, 20, 39):
+        want = b1[t:].sum() ** M
+        got = np.mean(least >= t)
+        assert abs(got - want) <= 5 * math.sqrt(want * (1 - want) / B) + 1e-6, (t, got, want)
     plain = np.asarray(jax.jit(s.ask)(jax.random.key(7), state, p)[0])
+    np.testing.assert_array_equal(asked(lambda c: jnp.zeros(c.shape[0]), 7), plain)
     if M == 1:
         np.testing.assert_array_equal(idx, plain)
-    else:  # the first of each slot's candidates is the unscreened draw: with equal weights
-        # the pick is it, or another candidate that happens to be the same scenario
-        first = np.asarray(jax.jit(lambda k, st, q: s.ask_screened(
-            k, st, q, lambda c: jnp.zeros(c.shape[0]))[0])(jax.random.key(7), state, p))
-        same = np.mean(np.all(first == plain, axis=1))
-        want = 1 / M + (M - 1) / M * (b0 ** 2).sum() * (b1 ** 2).sum()
-        assert abs(same - want) <= 5 * math.sqrt(want * (1 - want) / B), (same, want)
