@@ -1,5 +1,6 @@
 """The simulator (sim: world, rollout, batched evaluation), the requirements a rollout is judged by
-(requirements) and a NumPy reference rollout (reference). Imports the layers below and ``suts``.
+(requirements), a kinematic screen of scenarios (screen) and a NumPy reference rollout
+(reference). Imports the layers below and ``suts``.
 
 Its modules load on first access (``jaxfalsify.core.reference`` after ``import jaxfalsify``).
 """

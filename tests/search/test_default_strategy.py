@@ -684,7 +684,7 @@ def test_the_screened_first_batch_is_the_nearest_of_its_boundary_candidates(M):
     shape = (9, 40)
     B = 60_000
     s, p = search.make("reinforce/default", shape, B, learners=4, hidden=8, components=3,
-                       screen_candidates=M)
+                       screen_candidates=M, screened_learners=4)
     state = jax.jit(s.init)(jax.random.key(2), p)
 
     def asked(screen, key):
@@ -709,3 +709,11 @@ def test_the_screened_first_batch_is_the_nearest_of_its_boundary_candidates(M):
     np.testing.assert_array_equal(asked(lambda c: jnp.zeros(c.shape[0]), 7), plain)
     if M == 1:
         np.testing.assert_array_equal(idx, plain)
+    # two screened learners (the default): their shares as with four, the others' the plain draws
+    two = dataclasses.replace(s, screened_learners=2)
+    half = np.asarray(jax.jit(lambda k, st: two.ask_screened(k, st, p, lambda c: jnp.where(
+        (c[:, 0] == 0) & (c[:, 1] >= 35), 0.0, 10.0))[0])(jax.random.key(7), state))
+    np.testing.assert_array_equal(half[2 * s.share:], plain[2 * s.share:])
+    inside = (half[:2 * s.share, 0] == 0) & (half[:2 * s.share, 1] >= 35)
+    want = 1 - (1 - q) ** M
+    assert abs(inside.mean() - want) <= 5 * math.sqrt(want * (1 - want) / inside.size)
