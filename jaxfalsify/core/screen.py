@@ -6,13 +6,15 @@ when the two time windows overlap: the steps during which the car's box spans th
 (``|crosswalk_x - ego_x| <= half_x``, the box half-lengths summed) and the steps during which the
 walker spans the car's lane (``|ped_y - ego_y| <= half_y``). An AEB brakes, so its car passes
 later; it collides where the unbraked car would have, or just after. :func:`conflict_gap` gives
-the time between the windows, at most 0 where they overlap: ``reinforce/default`` draws its first
-batch where it is small (:mod:`jaxfalsify.search.batched`, docs/search.md).
+the time between the windows, at most 0 where they overlap: ``reinforce/default`` draws part of
+its first batch where it is small (:mod:`jaxfalsify.search.batched`, docs/search.md).
 
-Two approximations, both of which only blur the screen: the car's unbraked drive is the SUT's
-own command with the walker out of reach (:func:`unbraked_drive`, one scenario, the run's SUT
-parameters: a space's ``sut.NAME`` values are not used), and the walker follows the original's
-speed profile (exactly, in closed form) without the extended space's speed-change window. On
+Two approximations: the car's unbraked drive is the SUT's own command with the walker out of
+reach (:func:`unbraked_drive`, one drive for every scenario, with the run's SUT parameters: a
+space's ``sut.NAME`` values are not used, so where they change the car's speed keeping the
+screen prefers the conflicts of the run's drive; the built-in spaces vary only the AEB's
+thresholds), and the walker follows the original's speed profile (exactly, in closed form)
+without the extended space's speed-change window. On
 ``aeb-9e6`` (a million scenarios) the scenarios with a gap of at most 0 s are 9.7 % of the space:
 every collision of the car without AEB (``none``, 9.3 %) and a few more whose windows touch
 within a step; the 9 ``sensor-aeb`` collisions have gaps of -0.9 to 0 s.
@@ -41,7 +43,10 @@ def unbraked_drive(sut: sut_lib.SUT, params: Any, world: sim.World = sim.WORLD) 
     """``(horizon + 1,)`` float32 metres the car has travelled after ``k`` steps (``k = 0 ..
     horizon``), driven by ``sut`` from rest with the walker standing ``OUT_OF_REACH`` m beyond
     the right kerb (the same tick as the simulator's: constant acceleration over a step, stopping
-    at v = 0). A stochastic SUT draws from a fixed key. Not jitted."""
+    at v = 0). One drive for every scenario: it starts at x = 0 in weather preset 0, so a SUT
+    whose command depends on where the car is or on the weather drives differently in a
+    scenario (the built-ins' speed keeping does not). A stochastic SUT draws from a fixed key.
+    Not jitted."""
     w = world
     dt = jnp.asarray(w.dt, jnp.float32)
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
@@ -147,15 +152,21 @@ def walker_window(ped_offset, ped_speed, ped_accel, world: sim.World = sim.WORLD
     _, ped_y0 = sim.start_positions(0.0, ped_offset, w)
     H = int(w.horizon)
     enter = walker_arrival((w.ego_y - half_y - ped_y0) / w.dt, ped_speed, ped_accel, H)
-    leave = walker_arrival((w.ego_y + half_y - ped_y0) / w.dt, ped_speed, ped_accel, H)
+    # beyond: more than the far edge's travel (the next float up: reaching it is not beyond)
+    far = (w.ego_y + half_y - ped_y0) / w.dt
+    leave = walker_arrival(jnp.nextafter(jnp.float32(far), jnp.float32(jnp.inf)), ped_speed,
+                           ped_accel, H)
     return enter, leave
 
 
 def gap_of(car, walker, world: sim.World = sim.WORLD) -> jax.Array:
     """Seconds between two windows ``(enter, leave)``: ``<= 0`` where they overlap, otherwise
-    how long the later opens after the earlier closes."""
-    return jnp.maximum(car[0] - walker[1], walker[0] - car[1]) * jnp.asarray(world.dt,
-                                                                            jnp.float32)
+    how long the later opens after the earlier closes; ``inf`` where either never opens
+    (``enter`` past the horizon: that actor never gets there)."""
+    H = float(world.horizon)
+    gap = jnp.maximum(car[0] - walker[1], walker[0] - car[1]) * jnp.asarray(world.dt,
+                                                                           jnp.float32)
+    return jnp.where((car[0] > H) | (walker[0] > H), jnp.inf, gap)
 
 
 def conflict_gap(scenario: dict, drive: jax.Array, world: sim.World = sim.WORLD) -> jax.Array:

@@ -17,8 +17,9 @@ over integer index vectors whose hyperparameters come in as a traced ``params`` 
   a function from candidate scenarios ``(N, P)`` int32 to ``(N,)`` float32 seconds between the
   unbraked car's and the walker's windows at the crossing (:mod:`jaxfalsify.core.screen`; <= 0
   where they meet). The campaign calls it when it simulates the crossing world itself (not for
-  an external evaluator); the default ignores the screen. ``reinforce/default`` draws its first
-  batch by it.
+  an external evaluator); the default ignores the screen and calls ``ask`` (a strategy that
+  uses the screen overrides ``ask_screened``, and its ``ask`` is ``ask_screened`` without one).
+  ``reinforce/default`` screens part of its first batch by it.
 
 **The learning signal is a function** (evosax's fitness shaping): ``signal(rewards,
 robustness, collision, ttc) -> (B,)``, higher is better. :data:`SIGNALS` names the shipped ones

@@ -246,6 +246,13 @@ class BatchedReinforce(Strategy):
         return MixtureController(tuple(self.shape), self.hidden, self.components)
 
     @property
+    def n_screened_learners(self) -> int:
+        """Learners whose first-batch share is screened (``ask_screened``): the first
+        ``screened_learners``, never all (one learner, or two, keeps the boundary's draws for
+        at least one share)."""
+        return min(self.screened_learners, self.learners - 1)
+
+    @property
     def n_vertex_learners(self) -> int:
         """Learners that start at the box's vertices: the last ``vertex_learners``, never the
         first (a single learner always starts spread over the space)."""
@@ -324,7 +331,7 @@ class BatchedReinforce(Strategy):
         # become selects, every branch computed; the campaign maps seeds with lax.map.)
         def at_boundary(u):
             at = jnp.arange(u.shape[0]) // self.share < params.boundary * self.learners
-            bound = self._boundary(key, u, params, screen)
+            bound = self._boundary(u, params, screen)
             # the policies' draws only when some learner keeps its own (boundary < 1)
             return jax.lax.cond(jnp.all(at), lambda u: bound,
                                 lambda u: jnp.where(at[:, None], bound, own(u)), u)
@@ -332,7 +339,7 @@ class BatchedReinforce(Strategy):
         idx = jax.lax.cond(state.told == 0, at_boundary, own, u)
         return idx[:self.batch], state
 
-    def _boundary(self, key, u, params, screen):
+    def _boundary(self, u, params, screen):
         """``(N, P)`` first-batch boundary draws, one per row of the uniforms ``u (N, P + 2)``;
         with a ``screen``, in the shares of the first ``screened_learners`` learners each
         row's draw is the candidate nearest to a conflict (the least
@@ -345,7 +352,7 @@ class BatchedReinforce(Strategy):
         drawn = discretised.sample_boundary(u[:, 2:], self.shape, params.boundary_width)
         M = self.screen_candidates
         # the screened rows: the first screened_learners learners' shares
-        stop = min(self.screened_learners * self.share, drawn.shape[0])
+        stop = min(self.n_screened_learners * self.share, drawn.shape[0])
         if screen is None or M == 1 or stop == 0:
             return drawn
         first = drawn[:stop]
@@ -354,7 +361,8 @@ class BatchedReinforce(Strategy):
                 for j in range(1, M)]
         gap = jnp.maximum(screen(jnp.concatenate([first] + more)), 0.0).reshape(M, N)
         # the nearest by where's, not an argmin and a gather: XLA fused the screen into the
-        # reduction's kernel (2.5 against 1.6 ms for 8 x 4096 candidates on one core)
+        # reduction's kernel (2.5 against 1.6 ms for 8 x 4096 candidates on one core); an
+        # infinite gap (an actor that never gets there) never replaces a finite one
         best, best_gap = first, gap[0]
         for j in range(1, M):
             nearer = gap[j] < best_gap

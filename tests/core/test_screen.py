@@ -79,7 +79,8 @@ def _np_gap(sc, drive, w=sim.WORLD):
     car_out = first(car > w.crosswalk_x + half_x)
     ped_in = first(ped >= w.ego_y - half_y)
     ped_out = first(ped > w.ego_y + half_y)
-    return np.maximum(car_in - ped_out, ped_in - car_out) * w.dt
+    gap = np.maximum(car_in - ped_out, ped_in - car_out) * w.dt
+    return np.where((car_in > H) | (ped_in > H), np.inf, gap)
 
 
 def _sample(n, seed):
@@ -102,7 +103,10 @@ def test_conflict_gap_against_a_step_by_step_search_and_the_unbraked_collisions(
     gap = np.asarray(jax.jit(lambda s: screen.conflict_gap(s, jnp.asarray(drive)))(
         {k: jnp.asarray(v) for k, v in sc.items()}))
     want = _np_gap({k: v.astype(np.float64) for k, v in sc.items()}, drive)
-    off = np.abs(gap - want)
+    np.testing.assert_array_equal(np.isinf(gap), np.isinf(want))
+    assert 0 < np.mean(np.isinf(want)) < 0.5
+    finite = np.isfinite(want)
+    off = np.abs(gap[finite] - want[finite])
     assert np.all(off <= sim.WORLD.dt + 1e-5) and np.mean(off < 1e-5) > 0.995
     hit = np.asarray(jf.evaluate(sc, sut="none").collision)
     assert 50 < hit.sum() < len(hit) - 50
@@ -128,3 +132,19 @@ def test_the_screen_of_a_space_without_ego_offset_uses_its_default():
                                               sut.default_params))(jnp.asarray(every)))
     np.testing.assert_array_equal(got, want)
     assert 0 < np.mean(want <= 0) < 1
+
+
+def test_an_actor_that_never_gets_there_is_no_conflict():
+    """A walker that stands (speed 0) never enters the lane, and a car whose SUT commands no
+    acceleration never reaches the crossing: the gap is infinite, not 0 (two windows that both
+    never open do not overlap)."""
+    sc = {"ego_offset": jnp.float32([5.0, 5.0]), "ped_offset": jnp.float32([3.0, 3.0]),
+          "ped_speed": jnp.float32([0.0, 1.5]), "ped_accel": jnp.float32([0.0, 0.0])}
+    moving = sut_lib.resolve("none")
+    drive = screen.unbraked_drive(moving, moving.default_params)
+    gap = np.asarray(screen.conflict_gap(sc, drive))
+    assert gap[0] == np.inf and np.isfinite(gap[1])
+    standing = jf.SUT("standing", lambda obs, state, params, key: (jnp.float32(0.0), state))
+    still = np.asarray(screen.unbraked_drive(standing, None))
+    assert np.all(still == 0.0)
+    assert np.all(np.asarray(screen.conflict_gap(sc, jnp.asarray(still))) == np.inf)

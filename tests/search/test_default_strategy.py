@@ -680,23 +680,26 @@ def test_the_screened_first_batch_is_the_nearest_of_its_boundary_candidates(M):
     follows the boundary distribution restricted to ``A``. With the gap the rank of parameter 1's
     value, the draw's value is the least of ``M`` independent boundary draws: ``P(v >= t) = S(t)^M``
     with ``S`` one draw's survival function. Each within 5 standard errors. With equal gaps, or
-    ``screen_candidates`` 1, or plain ``ask``: the boundary's own draws."""
+    ``screen_candidates`` 1, or plain ``ask``: the boundary's own draws. (The screened rows:
+    the first three of four learners' shares, ``screened_learners`` 3; the fourth's are the
+    plain draws.)"""
     shape = (9, 40)
-    B = 60_000
+    B = 80_000
     s, p = search.make("reinforce/default", shape, B, learners=4, hidden=8, components=3,
-                       screen_candidates=M, screened_learners=4)
+                       screen_candidates=M, screened_learners=3)
     state = jax.jit(s.init)(jax.random.key(2), p)
+    R = 3 * s.share
 
     def asked(screen, key):
         return np.asarray(jax.jit(lambda k, st: s.ask_screened(k, st, p, screen)[0])(
-            jax.random.key(key), state))
+            jax.random.key(key), state))[:R]
 
     b0, b1 = _np_boundary_probs(9, 0.02), _np_boundary_probs(40, 0.02)
     q = b0[0] * b1[35:].sum()
     idx = asked(lambda c: jnp.where((c[:, 0] == 0) & (c[:, 1] >= 35), 0.0, 10.0), 7)
     inside = (idx[:, 0] == 0) & (idx[:, 1] >= 35)
     want = 1 - (1 - q) ** M
-    assert abs(inside.mean() - want) <= 5 * math.sqrt(want * (1 - want) / B), (inside.mean(), want)
+    assert abs(inside.mean() - want) <= 5 * math.sqrt(want * (1 - want) / R), (inside.mean(), want)
     cond = b1[35:] / b1[35:].sum()
     freq = np.bincount(idx[inside, 1] - 35, minlength=5) / inside.sum()
     assert np.all(np.abs(freq - cond) <= 5 * np.sqrt(cond * (1 - cond) / inside.sum()))
@@ -704,11 +707,11 @@ def test_the_screened_first_batch_is_the_nearest_of_its_boundary_candidates(M):
     for t in (1, 5, 20, 39):
         want = b1[t:].sum() ** M
         got = np.mean(least >= t)
-        assert abs(got - want) <= 5 * math.sqrt(want * (1 - want) / B) + 1e-6, (t, got, want)
+        assert abs(got - want) <= 5 * math.sqrt(want * (1 - want) / R) + 1e-6, (t, got, want)
     plain = np.asarray(jax.jit(s.ask)(jax.random.key(7), state, p)[0])
-    np.testing.assert_array_equal(asked(lambda c: jnp.zeros(c.shape[0]), 7), plain)
+    np.testing.assert_array_equal(asked(lambda c: jnp.zeros(c.shape[0]), 7), plain[:R])
     if M == 1:
-        np.testing.assert_array_equal(idx, plain)
+        np.testing.assert_array_equal(idx, plain[:R])
     # two screened learners (the default): their shares as with four, the others' the plain draws
     two = dataclasses.replace(s, screened_learners=2)
     half = np.asarray(jax.jit(lambda k, st: two.ask_screened(k, st, p, lambda c: jnp.where(
@@ -717,3 +720,24 @@ def test_the_screened_first_batch_is_the_nearest_of_its_boundary_candidates(M):
     inside = (half[:2 * s.share, 0] == 0) & (half[:2 * s.share, 1] >= 35)
     want = 1 - (1 - q) ** M
     assert abs(inside.mean() - want) <= 5 * math.sqrt(want * (1 - want) / inside.size)
+
+
+@pytest.mark.parametrize("learners,screened,batch", [(4, 1, 10), (4, 4, 10), (4, 8, 10),
+                                                     (2, 2, 12), (1, 1, 12)])
+def test_the_screened_shares_when_the_learners_do_not_divide_the_batch(learners, screened,
+                                                                       batch):
+    """The first ``min(screened_learners, learners - 1)`` learners' shares are screened and
+    the rest of the batch is the plain ``ask``'s, also where the last share is cut short; a
+    batch of the asked size. Oracle: a screen that prefers parameter 0's first value."""
+    shape = (6, 7)
+    s, p = search.make("reinforce/default", shape, batch, learners=learners, hidden=8,
+                       components=3, screened_learners=screened)
+    state = jax.jit(s.init)(jax.random.key(1), p)
+    plain = np.asarray(jax.jit(s.ask)(jax.random.key(4), state, p)[0])
+    got = np.asarray(jax.jit(lambda k, st: s.ask_screened(
+        k, st, p, lambda c: c[:, 0].astype(jnp.float32))[0])(jax.random.key(4), state))
+    assert got.shape == plain.shape == (batch, 2)
+    stop = min(min(screened, learners - 1) * s.share, batch)
+    np.testing.assert_array_equal(got[stop:], plain[stop:])
+    # screened rows: never further from value 0 than the row's own draw
+    assert np.all(got[:stop, 0] <= plain[:stop, 0])
