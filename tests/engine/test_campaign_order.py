@@ -12,7 +12,7 @@ from conftest import TINY_SPACE
 
 import jaxfalsify as jf
 from jaxfalsify import search
-from jaxfalsify.core import sim
+from jaxfalsify.core import screen, sim
 from jaxfalsify.engine import campaign
 from jaxfalsify.suts import registry as sut_lib
 
@@ -35,7 +35,10 @@ def test_the_campaign_asks_what_an_eager_ask_tell_loop_asks(tmp_path, strategy):
     # the next one, the ask's and the tell's), the outcomes taken from the campaign's records
     k_init, _, key = jax.random.split(sim.seed_key(seed), 3)
     state = strat.init(k_init, params)
-    ask = jax.jit(lambda k, s: strat.ask(k, s, params))
+    # the campaign's kinematic screen of the first batch (the world and SUT as it traces them)
+    screen_of = screen.for_space(space.layout, space.table_array, sut,
+                                 sim.as_float32(sut_params), sim.as_float32(sim.WORLD))
+    ask = jax.jit(lambda k, s: strat.ask_screened(k, s, params, screen_of))
     tell = jax.jit(lambda k, s, i, rew, rob, v: strat.tell_outcome(
         k, s, i, rew, rob, v, params, ttc=jnp.full(batch, jnp.inf)))
     n = p.n_updates * batch  # the records padded past the budget (those rows never count)
