@@ -42,11 +42,10 @@ OUT_OF_REACH = 1000.0  # m beyond the kerb: where the walker is put for the unbr
 def unbraked_drive(sut: sut_lib.SUT, params: Any, world: sim.World = sim.WORLD) -> jax.Array:
     """``(horizon + 1,)`` float32 metres the car has travelled after ``k`` steps (``k = 0 ..
     horizon``), driven by ``sut`` from rest with the walker standing ``OUT_OF_REACH`` m beyond
-    the right kerb (the same tick as the simulator's: constant acceleration over a step, stopping
-    at v = 0). One drive for every scenario: it starts at x = 0 in weather preset 0, so a SUT
-    whose command depends on where the car is or on the weather drives differently in a
-    scenario (the built-ins' speed keeping does not). A stochastic SUT draws from a fixed key.
-    Not jitted."""
+    the right kerb (the simulator's tick, :func:`jaxfalsify.core.sim.ego_tick`). One drive for
+    every scenario: it starts at x = 0 in weather preset 0, so a SUT whose command depends on
+    where the car is or on the weather drives differently in a scenario (the built-ins' speed
+    keeping does not). A stochastic SUT draws from a fixed key. Not jitted."""
     w = world
     dt = jnp.asarray(w.dt, jnp.float32)
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
@@ -64,12 +63,9 @@ def unbraked_drive(sut: sut_lib.SUT, params: Any, world: sim.World = sim.WORLD) 
             road_left=f32(w.road_left), weather=jnp.int32(0))
         k_step = jax.random.fold_in(k_act, k) if sut.stochastic else k_act
         cmd, state = sut.act(obs, state, params, k_step)
-        a = jnp.clip(jnp.asarray(cmd, jnp.float32), -w.max_brake, w.max_accel)
-        v1 = v + a * dt
-        stops = v1 < 0
-        dx = jnp.where(stops, v * v / (2.0 * jnp.maximum(-a, 1e-6)), (v + v1) / 2 * dt)
+        _, dx, v1 = sim.ego_tick(v, jnp.asarray(cmd, jnp.float32), w, dt)
         x1 = x + jnp.where(jnp.isfinite(dx), dx, 0.0)
-        v1 = jnp.where(jnp.isfinite(v1), jnp.maximum(v1, 0.0), 0.0)
+        v1 = jnp.where(jnp.isfinite(v1), v1, 0.0)
         return (x1, v1, state), x1
 
     init = (jnp.float32(0.0), jnp.float32(0.0), sut.init(k_init, params))

@@ -57,7 +57,7 @@ from jaxfalsify.suts import registry as sut_lib
 
 __all__ = [
     "World", "WORLD", "Trajectory", "Outcome", "BLOCK", "STILL", "WINDOW",
-    "ped_profile_constants", "ped_speed_profile", "start_positions", "rollout",
+    "ped_profile_constants", "ped_speed_profile", "start_positions", "ego_tick", "rollout",
     "batch_rollout", "LANES_PER", "lane_count", "as_float32", "seed_key_data", "seed_key",
     "simulate", "CPU_CHUNK", "default_chunk", "evaluate", "local_batch_sharding", "describe"
 ]
@@ -270,6 +270,17 @@ def start_positions(ego_offset, ped_offset, world: World = WORLD):
     return -ego_offset, world.road_right + world.walker_base - (ped_offset + 1.0)
 
 
+def ego_tick(v, cmd, world: World, dt):
+    """One tick of the ego, exact for constant acceleration over the step and stopping at
+    v = 0: ``(acceleration [m/s^2], the SUT's command clipped to the vehicle's limits; distance
+    travelled [m]; speed after [m/s])`` from the speed before ``v`` [m/s] and the command."""
+    a = jnp.clip(cmd, -world.max_brake, world.max_accel)
+    v1 = v + a * dt
+    stops = v1 < 0
+    dx = jnp.where(stops, v**2 / (2.0 * jnp.maximum(-a, 1e-6)), (v + v1) / 2 * dt)
+    return a, dx, jnp.maximum(v1, 0.0)
+
+
 def rollout(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array,
             world: World = WORLD, record: bool = False):
     """Simulate one concrete scenario (all values scalars).
@@ -377,12 +388,7 @@ def _parts(scenario: dict, sut: sut_lib.SUT, params: Any, key: jax.Array, world:
         one = jnp.where(k >= 0, jnp.float32(1.0), jnp.float32(2.0))
         cmd, new_sut_state, vp = _once(one, (jnp.asarray(cmd, jnp.float32), new_sut_state, vp))
 
-        # --- the tick (exact for constant acceleration over the step; stops at v = 0)
-        a = jnp.clip(cmd, -w.max_brake, w.max_accel)
-        v1 = c.ego_v + a * dt
-        stops = v1 < 0
-        dx = jnp.where(stops, c.ego_v**2 / (2.0 * jnp.maximum(-a, 1e-6)), (c.ego_v + v1) / 2 * dt)
-        v1 = jnp.maximum(v1, 0.0)
+        a, dx, v1 = ego_tick(c.ego_v, cmd, w, dt)
         x1 = c.ego_x + dx
         y1 = c.ped_y + vp * dt
         valid = c.alive & (k < w.horizon)
