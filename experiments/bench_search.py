@@ -147,42 +147,57 @@ def controller_cost(space, sut, sut_params, batch, updates=20, repeats=3):
     return best / updates, sim_s / updates
 
 
-def first_update(space_name, strategy, batch, calls=30, options=None):
-    """``(first ms, later ms)``: medians over ``calls`` of the campaign's compiled chunk called
-    for one update, from a fresh start (the strategy's initialisation, its first ask, the
-    batch's rollout, no tell) and from the state after that update (tell, ask, rollout), each
-    call timed until its records are on the host, as :func:`campaign.drive` times a chunk."""
+def first_update(space_name, rows, batch, calls=30):
+    """``{label: (first ms, later ms, first / random's)}`` for ``rows`` ``(label, strategy,
+    options)``: medians over ``calls`` of the campaign's compiled chunk called for one update,
+    from a fresh start (the strategy's start, its first ask, the batch's rollout, no tell) and
+    from the state after that update (tell, ask, rollout), each call timed until its records
+    are on the host, as :func:`campaign.drive` times a chunk. The rows' programs are called in
+    turn (round robin, the order reversed every other round), so a slow spell of the shared
+    machine falls on all of them; the ratio is the median over rounds of each first update's
+    time over the same round's first update of ``random`` (None without a ``random`` row)."""
     import jax
 
     from jaxfalsify.core import sim
 
     space, sut, sut_params = SPACES[space_name]
-    b = runs.RunConfig(space=str(space), sut=sut, sut_params=sut_params, strategy=strategy,
-                       strategy_params=options or {}, batch=batch, evaluations=batch * 10,
-                       checkpoint_every=5).build()
-    args = campaign.args_for(b.space, b.sut_params, b.strategy_params, sim.WORLD,
-                             b.plan.evaluations)
-    prog = campaign.program(campaign.Campaign(b.space.layout, b.sut, b.strategy,
-                                              b.plan.updates_per_chunk), args, 1)
     dev = jax.local_devices()[0]
-    leaves = jax.device_put(jax.tree.leaves(args), dev)
-    key_data = jax.device_put(np.stack([sim.seed_key_data(0)]), dev)
-    carry = jax.device_put([np.zeros(a.shape, a.dtype) for a in prog.in_avals[0]], dev)
     fresh, later = (jax.device_put(np.bool_(f), dev) for f in (True, False))
     one_update = jax.device_put(np.int32(1), dev)
+    key_data = jax.device_put(np.stack([sim.seed_key_data(0)]), dev)
 
-    def timed(c, flag):
-        out = prog(c, key_data, leaves, flag, one_update)  # compiled (and warmed) here
-        jax.tree.map(np.asarray, out[1])
-        ts = []
-        for _ in range(calls):
+    def program(strategy, options):
+        b = runs.RunConfig(space=str(space), sut=sut, sut_params=sut_params,
+                           strategy=strategy, strategy_params=options or {}, batch=batch,
+                           evaluations=batch * 10, checkpoint_every=5).build()
+        args = campaign.args_for(b.space, b.sut_params, b.strategy_params, sim.WORLD,
+                                 b.plan.evaluations)
+        prog = campaign.program(campaign.Campaign(b.space.layout, b.sut, b.strategy,
+                                                  b.plan.updates_per_chunk), args, 1)
+        leaves = jax.device_put(jax.tree.leaves(args), dev)
+        carry = jax.device_put([np.zeros(a.shape, a.dtype) for a in prog.in_avals[0]], dev)
+        after = prog(carry, key_data, leaves, fresh, one_update)[0]  # compiled here
+
+        def call(c, flag):
             t = time.perf_counter()
             jax.tree.map(np.asarray, prog(c, key_data, leaves, flag, one_update)[1])
-            ts.append(time.perf_counter() - t)
-        return float(np.median(ts)) * 1e3, out[0]
+            return time.perf_counter() - t
 
-    first, after = timed(carry, fresh)
-    return first, timed(after, later)[0]
+        call(carry, fresh), call(after, later)  # warmed
+        return lambda: call(carry, fresh), lambda: call(after, later)
+
+    calls_of = [(label, *program(strategy, options)) for label, strategy, options in rows]
+    firsts = {label: [] for label, _, _ in calls_of}
+    laters = {label: [] for label, _, _ in calls_of}
+    for r in range(calls):
+        for label, f, g in (calls_of if r % 2 == 0 else calls_of[::-1]):
+            firsts[label].append(f())
+            laters[label].append(g())
+    base = np.asarray(firsts["random"]) if "random" in firsts else None
+    return {label: (float(np.median(firsts[label])) * 1e3,
+                    float(np.median(laters[label])) * 1e3,
+                    None if base is None else float(np.median(np.asarray(firsts[label]) / base)))
+            for label in firsts}
 
 
 def learning(seeds: int, batch: int, evaluations: int | None):
@@ -242,8 +257,8 @@ def main(argv=None):
                     "on the paper space and on 5 parameters x 4000 values")
     ap.add_argument("--first-update", type=int, default=0, metavar="CALLS",
                     help="first each strategy's first update on each space, timed alone "
-                    "(median of this many calls of the compiled chunk from a fresh start), "
-                    "and a later update")
+                    "(median of this many calls of the compiled chunk from a fresh start, "
+                    "the strategies in turn, and its ratio to random's), and a later update")
     ap.add_argument("--learning", type=int, default=0, metavar="SEEDS",
                     help="first the paper space's learning target over this many seeds (the "
                     "main job's budget)")
@@ -280,14 +295,15 @@ def main(argv=None):
                   f"{c / sim_s:.1%}", flush=True)
             out.setdefault("cost", {})[label] = {"controller_s": c, "simulator_s": sim_s}
     for sp in a.spaces if a.first_update else ():
-        print(f"{sp}: one update at batch {a.batch}, timed alone (median of {a.first_update} "
-              f"calls of the chunk program):")
-        for st, strategy, options in rows_of:
-            f, later = first_update(sp, strategy, a.batch, a.first_update, options)
-            print(f"  {st:20s} first update {f:6.2f} ms, a later one {later:6.2f} ms",
+        print(f"{sp}: one update at batch {a.batch}, timed alone (medians of {a.first_update} "
+              f"calls of each chunk program, the strategies in turn):")
+        for st, (f, later, ratio) in first_update(sp, rows_of, a.batch,
+                                                  a.first_update).items():
+            x = "" if ratio is None else f" ({ratio:.3f} x random's in the same rounds)"
+            print(f"  {st:20s} first update {f:6.2f} ms{x}, a later one {later:6.2f} ms",
                   flush=True)
             out.setdefault("first_update", {}).setdefault(sp, {})[st] = {
-                "first_ms": f, "later_ms": later}
+                "first_ms": f, "later_ms": later, "first_over_random": ratio}
     for sp in a.spaces if a.estimate else ():
         hits, n = estimate_share(sp, a.estimate)
         lo, hi = poisson_interval(hits)

@@ -167,7 +167,7 @@ def make_campaign(c: Campaign):
         zeros = jnp.zeros(B, jnp.float32)  # (never told: the first update tells nothing)
         pending = pending_of(k_run, jnp.zeros((B, P), jnp.int32), zeros, zeros,
                              jnp.zeros(B, bool), zeros)
-        return {"state": strategy.init(k_init, args.strategy_params), "key": k_run,
+        return {"state": strategy.start(k_init, args.strategy_params), "key": k_run,
                 "eval_key": k_eval, "update": jnp.int32(0), "pending": pending}
 
     sharding = sim.local_batch_sharding() if B % jax.local_device_count() == 0 else None

@@ -290,7 +290,7 @@ def overhead_program(strategy, strategy_params, p: campaign.Plan, n_seeds: int):
             return state, idx[0, 0]
 
         k_init, k_run = jax.random.split(key)
-        _, out = jax.lax.scan(upd, strategy.init(k_init, params),
+        _, out = jax.lax.scan(upd, strategy.start(k_init, params),
                               jax.random.split(k_run, p.n_updates))
         return out.sum()
 

@@ -162,7 +162,7 @@ class Falsifier:
 
         def init(key_data):
             k_init, _, k_run = jax.random.split(jax.random.wrap_key_data(key_data), 3)
-            return {"state": strat.init(k_init, params), "key": k_run}
+            return {"state": strat.start(k_init, params), "key": k_run}
 
         def ask(carry):
             key, k_ask, k_tell = jax.random.split(carry["key"], 3)

@@ -182,7 +182,7 @@ STATE_COPIES = 3  # a strategy's state, its updated copy and the gradients of it
 
 
 def check_strategy_memory(b: Built, name: str, options: Mapping[str, Any]) -> None:
-    """Refuse (one line) a strategy whose state (its size found by tracing ``init`` alone,
+    """Refuse (one line) a strategy whose state (its size found by tracing ``start`` alone,
     without allocating it), counted three times (the state, its update, gradients), exceeds
     half the available memory: e.g. ``hidden=1024, learners=1024`` of ``reinforce/screened``,
     51 GiB of weights and Adam moments."""
@@ -190,7 +190,7 @@ def check_strategy_memory(b: Built, name: str, options: Mapping[str, Any]) -> No
 
     # the key made inside the trace: a concrete one would start the backend, which must wait
     # for jax.distributed.initialize in a multi-process comparison
-    state = jax.eval_shape(lambda: b.strategy.init(jax.random.key(0), b.strategy_params))
+    state = jax.eval_shape(lambda: b.strategy.start(jax.random.key(0), b.strategy_params))
     need = sum(int(np.prod(x.shape)) * x.dtype.itemsize for x in jax.tree.leaves(state))
     given = ", ".join(f"{k}={v}" for k, v in sorted(options.items()))
     cfg.check_memory(STATE_COPIES * need, f"the state of {name}"

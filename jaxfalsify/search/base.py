@@ -78,6 +78,12 @@ class Strategy:
     def init(self, key: jax.Array, params) -> Any:
         raise NotImplementedError
 
+    def start(self, key: jax.Array, params) -> Any:
+        """The state a campaign starts from: ``init``'s, or a state that behaves as it does
+        under ``ask`` and ``tell`` (the same draws, the same updates) with the parts the
+        first ask does not need computed when they are first needed (this default: ``init``)."""
+        return self.init(key, params)
+
     def ask(self, key: jax.Array, state, params) -> tuple[jax.Array, Any]:
         raise NotImplementedError
 

@@ -741,3 +741,35 @@ def test_the_screened_shares_when_the_learners_do_not_divide_the_batch(learners,
     np.testing.assert_array_equal(got[stop:], plain[stop:])
     # screened rows: never further from value 0 than the row's own draw
     assert np.all(got[:stop, 0] <= plain[:stop, 0])
+
+
+@pytest.mark.parametrize("boundary", [1.0, 0.5])
+def test_a_started_state_asks_and_learns_as_an_initialised_one(boundary):
+    """``start`` (the campaign's state, weights drawn at the first tell or at an ask that
+    needs them) against ``init`` (weights drawn at once), same key: the same draws at every
+    update and the same weights and Adam moments after each tell, bit for bit, with the
+    first batch all boundary draws (``boundary`` 1, the policies not needed before the first
+    tell) and half policy draws (0.5); before its first tell the started state holds no
+    weights (zeros)."""
+    s, p = search.make("reinforce/default", SHAPE, 256, hidden=8, components=3, learners=4)
+    p = pytree.replace(p, boundary=boundary)
+    started = jax.jit(s.start)(jax.random.key(5), p)
+    assert not bool(started.ready)
+    assert all(not np.any(np.asarray(x)) for x in jax.tree.leaves(started.params))
+
+    @jax.jit
+    def updates(state):
+        def one(st, k):
+            k_ask, k_tell = jax.random.split(k)
+            idx, st = s.ask(k_ask, st, p)
+            r = -jnp.sum((idx - 1.0) ** 2, axis=1)  # any reward that ranks the batch
+            st = s.tell_outcome(k_tell, st, idx, r, r, r > -1.5, p)
+            return st, (idx, st.params, st.opt)
+        return jax.lax.scan(one, state, jax.random.split(jax.random.key(8), 3))[1]
+
+    eager = updates(jax.jit(s.init)(jax.random.key(5), p))
+    lazy = updates(started)
+    for a, b in zip(jax.tree.leaves(eager), jax.tree.leaves(lazy)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # (the draws are not trivially equal: the policies learnt, so later batches differ)
+    assert not np.array_equal(np.asarray(eager[0][0]), np.asarray(eager[0][2]))
