@@ -787,6 +787,33 @@ COMMANDS = {"run": cmd_run, "sweep": cmd_sweep, "compare": cmd_compare,
             "figures": cmd_figures, "estimate": cmd_estimate}
 
 
+def _user_file(spec) -> str | None:
+    """The source file of a user's ``file.py:attr`` or ``module:attr`` (None for a built-in
+    name or a module not imported)."""
+    if not isinstance(spec, str) or ":" not in spec:
+        return None
+    mod = spec.rsplit(":", 1)[0]
+    if mod.endswith(".py"):
+        return str(Path(mod).resolve())
+    return getattr(sys.modules.get(mod), "__file__", None)
+
+
+def _who_raised(text: str, args) -> str:
+    """Which user code a host callback's error ``text`` (its traceback names the file) came
+    from: ``the requirement SPEC`` or ``the SUT SPEC``; where the traceback names neither,
+    the one given as user code (the SUT where both or neither are)."""
+    given = [(what, getattr(args, attr, None)) for what, attr in
+             (("requirement", "requirement"), ("SUT", "sut"))]
+    user = [(what, spec) for what, spec in given if _user_file(spec)]
+    for what, spec in user:
+        if f'File "{_user_file(spec)}"' in text:
+            return f"the {what} {spec}"
+    if len(user) == 1:
+        return f"the {user[0][0]} {user[0][1]}"
+    sut = getattr(args, "sut", None)
+    return f"the SUT{f' {sut}' if sut else ''}"
+
+
 def main(argv=None, startup: float = 0.0) -> int:
     """Run the command line ``argv``; returns the exit code. ``startup``: seconds the process
     spent before (the console script passes its start-up, for ``timing.json``)."""
@@ -836,8 +863,7 @@ def main(argv=None, startup: float = 0.0) -> int:
 
         raised = callback_error(e)
         if raised is not None:
-            sut = getattr(args, "sut", None)
-            print(f"jaxfalsify: error: the SUT{f' {sut}' if sut else ''} raised at run time "
+            print(f"jaxfalsify: error: {_who_raised(str(e), args)} raised at run time "
                   f"(in a host callback): {raised}", file=sys.stderr)
             return 2
         if not str(e).startswith("Unable to initialize backend"):

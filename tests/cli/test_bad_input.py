@@ -88,6 +88,12 @@ def world(tmp_path_factory):
         "    raise RuntimeError('sensor driver crashed')\n\n\n"
         "def act(obs, state, params, key):\n"
         "    return jax.pure_callback(_boom, jax.ShapeDtypeStruct((), jnp.float32), 0.0), state\n")
+    (w / "req_callback_raises.py").write_text(
+        "import jax\nimport jax.numpy as jnp\n\n\ndef _boom(x):\n"
+        "    raise ValueError('logger offline')\n\n\n"
+        "def req(outcome, params):\n"
+        "    return jax.pure_callback(_boom, jax.ShapeDtypeStruct((), jnp.float32),\n"
+        "                             outcome.min_distance, vmap_method='sequential')\n")
     (w / "state_change.py").write_text(
         "import jax.numpy as jnp\nfrom jaxfalsify import SUT\n\n\ndef init(key, params):\n"
         "    return jnp.int32(0)\n\n\ndef to_float(obs, state, params, key):\n"
@@ -683,3 +689,26 @@ def test_a_sut_raising_at_run_time_is_one_line_and_leaves_nothing(argv, world, c
     assert "sensor driver crashed" in capsys.readouterr().err
     assert [p.name for p in (world / "cb").iterdir()] == ["notes.txt"]
     shutil.rmtree(world / "cb")
+
+
+@pytest.mark.parametrize("argv", [
+    ["run", "--strategy", "random", "--evaluations", "20", "--batch", "10", "--out", "rq",
+     "--no-figures"],
+    ["estimate", "--method", "mc", "--samples", "512", "--batch", "256", "--out", "rq"]])
+@pytest.mark.parametrize("user_sut", [False, True])
+def test_a_requirement_raising_at_run_time_is_named_not_the_sut(argv, user_sut, world, capsys,
+                                                                 monkeypatch):
+    """A user's requirement that raises inside the compiled program (a host callback): the
+    one line names the requirement by its import path (also beside a user SUT, which the
+    traceback tells apart), exit 2, and the folder this command created is gone."""
+    monkeypatch.chdir(world)
+    extra = []
+    if user_sut:  # a user SUT of its own file, which does not raise
+        (world / "quiet_sut.py").write_text(
+            "def act(obs, state, params, key):\n    return 0.0, state\n")
+        extra = ["--sut", "quiet_sut.py:act"]
+    assert main([*argv, *extra, "--requirement", "req_callback_raises.py:req", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("jaxfalsify: error: the requirement req_callback_raises.py:req raised at run "
+                   "time (in a host callback): ValueError: logger offline"), err
+    assert not (world / "rq").exists()
