@@ -114,6 +114,20 @@ def check_settings() -> None:
         raise ValueError(X64_ERROR)
 
 
+def check_backend() -> None:
+    """ValueError (one line) if JAX's backend cannot start (e.g. ``JAX_PLATFORMS`` naming a
+    platform this machine lacks): called before a job's folder is touched. It starts the
+    backend, so not where ``jax.distributed.initialize`` must come first."""
+    import jax
+
+    try:
+        jax.devices()
+    except RuntimeError as e:
+        raise ValueError(f"JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: "
+                         f"{str(e).splitlines()[0][:200] if str(e) else type(e).__name__}"
+                         ) from None
+
+
 def check_xla_flags() -> None:
     """Refuse (ValueError, one line) an ``XLA_FLAGS`` that XLA would end the process for (an
     unknown flag is a fatal error inside XLA, which no Python code can catch): the flags are

@@ -61,7 +61,7 @@ from jaxfalsify.engine.problem import (
     check_space_sut,
     fixed_sut_params,
 )
-from jaxfalsify.io import store
+from jaxfalsify.io import cache, store
 from jaxfalsify.io.files import write_atomic, write_json
 from jaxfalsify.scenario.space import MAX_SIZE, Space
 from jaxfalsify.suts import registry as sut_lib
@@ -581,6 +581,7 @@ def execute(config: EstimateConfig, out: Path | str, *, force: bool = False,
     cfg.check_type(config, EstimateConfig, "config")
     clock = Clock(startup_seconds)
     built = config.build()
+    cache.check_backend()
     out = Path(out)
     existed = out.exists()
     lk = store.open_folder(out, "estimate", force=force)

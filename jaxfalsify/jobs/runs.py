@@ -305,6 +305,7 @@ def execute(config: RunConfig, out: Path | str | None, *, resume: bool = False,
     """
     cfg.check_type(config, RunConfig, "config")
     cache.check_settings()  # before anything is written
+    cache.check_backend()
 
     clock = Clock(startup_seconds)
     progress = progress or Progress()

@@ -296,3 +296,34 @@ def test_jax_settings_jax_refuses_give_one_line_and_exit_2(tmp_path, env, says):
     lines = p.stderr.strip().splitlines()
     assert p.returncode == 2 and len(lines) == 1 and says in lines[0], p.stderr[-500:]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["run", "--strategy", "random", "--evaluations", "20", "--batch", "10", "--no-figures"],
+    ["estimate", "--method", "mc", "--samples", "512", "--batch", "256"]])
+def test_a_backend_that_cannot_start_touches_no_folder(tmp_path, argv):
+    """``JAX_PLATFORMS`` naming a platform this machine lacks: one line, exit 2, checked
+    before the output folder is touched: no new folder, and an earlier result in the folder
+    given with ``--force`` stays as it was, byte for byte."""
+    import os
+    import subprocess
+    import sys
+
+    def cli(out, env=None, force=False):
+        return subprocess.run([sys.executable, "-m", "jaxfalsify", *argv, "--quiet", "--out",
+                               str(out), *(["--force"] if force else [])], capture_output=True,
+                              text=True, env={**os.environ, **(env or {})}, timeout=300)
+
+    bogus = {"JAX_PLATFORMS": "bogus"}
+    p = cli(tmp_path / "new", bogus)
+    lines = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(lines) == 1 and "JAX_PLATFORMS='bogus'" in lines[0], \
+        p.stderr[-500:]
+    assert not (tmp_path / "new").exists()
+    good = tmp_path / "good"
+    assert cli(good).returncode == 0
+    before = {f.relative_to(good): f.read_bytes() for f in good.rglob("*") if f.is_file()}
+    p = cli(good, bogus, force=True)
+    assert p.returncode == 2 and "JAX_PLATFORMS='bogus'" in p.stderr, p.stderr[-500:]
+    after = {f.relative_to(good): f.read_bytes() for f in good.rglob("*") if f.is_file()}
+    assert after == before and "summary.json" in {f.name for f in before}
