@@ -28,7 +28,7 @@ from jaxfalsify.io.files import write_json
 __all__ = [
     "FolderError", "FIGURES", "folder_kind", "check_out", "clear", "FolderLock", "discard",
     "open_folder", "open_new_folder", "shell_path", "write_status", "run_folder_lock",
-    "check_out_plain", "Interrupted"
+    "check_out_plain", "Interrupted", "with_article"
 ]
 
 
@@ -64,6 +64,11 @@ FINISHED = {"run": "summary.json", "sweep": "summary.json", "compare": "compare.
 
 OPTIONAL = ("best.rrd", "campaign.rrd", "trajectories.npz")  # written on request only (--rerun,
 # replay, an evaluator's trajectories)
+
+
+def with_article(kind) -> str:
+    """``kind`` with its indefinite article: ``a run``, ``an estimate``."""
+    return f"{'an' if str(kind)[:1] in 'aeiou' else 'a'} {kind}"
 
 
 def _result_names(kind: str) -> list[str]:
@@ -153,9 +158,11 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
     have = folder_kind(out)
     if resume:
         if have is None:
-            raise FolderError(f"--resume {out}: no config.toml there (not a {kind} folder)")
+            raise FolderError(f"--resume {out}: no config.toml there "
+                              f"(not {with_article(kind)} folder)")
         if have != kind:
-            raise FolderError(f"--resume {out}: that folder holds a {have}, not a {kind}")
+            raise FolderError(f"--resume {out}: that folder holds {with_article(have)}, "
+                              f"not {with_article(kind)}")
         damaged = status_damage(out)
         if damaged:
             raise FolderError(f"--resume {out}: status.json is damaged ({damaged}), so whether "
@@ -166,8 +173,8 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
                               f"({FINISHED[kind]})")
     else:
         if have is not None and have != kind:
-            raise FolderError(f"--out {out} holds a {have}; a {kind} is never written into it "
-                              "(choose another folder)")
+            raise FolderError(f"--out {out} holds {with_article(have)}; {with_article(kind)} "
+                              "is never written into it (choose another folder)")
         if complete(out, kind) and not force:
             raise FolderError(f"--out {out} already holds {FINISHED[kind]}; pass --force to "
                               "overwrite")
@@ -404,7 +411,8 @@ def check_out_plain(out: Path, patterns: tuple[str, ...], force: bool) -> None:
     if out.exists() and not out.is_dir():
         raise FolderError(f"--out {out} exists and is not a folder")
     if folder_kind(out) is not None:
-        raise FolderError(f"--out {out} holds a {folder_kind(out)}; choose another folder")
+        raise FolderError(f"--out {out} holds {with_article(folder_kind(out))}; "
+                          "choose another folder")
     for a in [out, *out.parents]:  # a job's checkpoint folder is its own: --force removes it
         if not (a.name == "checkpoint" or a.name.startswith("checkpoint-part-")) or \
                 a.parent == a:

@@ -76,7 +76,7 @@ import numpy as np
 from jaxfalsify.core.sim import STILL, WINDOW, WORLD, start_positions
 from jaxfalsify.engine.rundir import check_simulated, indices_of, load_run, resimulate
 from jaxfalsify.io.files import naming_errors, replace_files
-from jaxfalsify.io.store import folder_kind
+from jaxfalsify.io.store import folder_kind, with_article
 from jaxfalsify.outputs import analysis
 from jaxfalsify.scenario import weather as weather_lib
 from jaxfalsify.scenario.space import KNOWN_PARAMETERS, decimal_grid
@@ -706,7 +706,7 @@ def _check_out(out: Path, force: bool) -> None:
     if anc != out:
         return
     if (kind := folder_kind(out)) is not None:
-        raise ValueError(f"{out} holds a {kind}; choose another folder")
+        raise ValueError(f"{out} holds {with_article(kind)}; choose another folder")
     there = sorted(f.name for f in out.iterdir() if is_export_file(f.name))
     if there and not force:
         raise ValueError(f"{out} already holds {there[0]}"

@@ -712,3 +712,19 @@ def test_a_requirement_raising_at_run_time_is_named_not_the_sut(argv, user_sut, 
     assert err == ("jaxfalsify: error: the requirement req_callback_raises.py:req raised at run "
                    "time (in a host callback): ValueError: logger offline"), err
     assert not (world / "rq").exists()
+
+
+def test_a_folder_of_another_kind_is_named_with_its_article(world, capsys, monkeypatch):
+    """An estimate's folder given to run and sweep: one line naming what it holds, with the
+    right article ("an estimate", "a run"), exit 2, the estimate untouched."""
+    monkeypatch.chdir(world)
+    assert main(["estimate", "--method", "mc", "--samples", "512", "--batch", "256",
+                 "--out", "est_kind", "--quiet"]) == 0
+    capsys.readouterr()
+    before = (world / "est_kind" / "summary.json").read_bytes()
+    for cmd, kind in (("run", "a run"), ("sweep", "a sweep")):
+        assert main([cmd, "--out", "est_kind", "--quiet"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err == (f"jaxfalsify: error: --out est_kind holds an estimate; {kind} is never "
+                       "written into it (choose another folder)"), err
+    assert (world / "est_kind" / "summary.json").read_bytes() == before
