@@ -157,9 +157,16 @@ def load_run(run_dir: Path) -> RunFolder:
 def check_counts(run_dir: Path, summary: dict, ep: dict) -> None:
     """ValueError (one line) where ``summary.json``'s counts, first evaluations and best
     reward are not those of ``evaluations.parquet`` (a hand-edited summary): the collisions
-    and violations counted over finite rollouts, the first of each, and the reward recorded
-    at the best evaluation (the same float32)."""
+    and violations counted over finite rollouts, the first of each, the best evaluation (the
+    first reaching the highest reward) and the reward recorded there (the same float32); and
+    where a rollout recorded as finite has a non-finite reward (a hand-edited parquet)."""
     ok = ~np.asarray(ep["nonfinite"], bool)
+    reward = np.asarray(ep["reward"], np.float64)
+    bad = np.flatnonzero(ok & ~np.isfinite(reward))
+    if bad.size:
+        raise ValueError(f"{run_dir / 'evaluations.parquet'} is damaged: evaluation "
+                         f"{bad[0] + 1}'s reward is {reward[bad[0]]} while its rollout is "
+                         "recorded as finite")
     want = {}
     for name, col in (("collisions", "collision"), ("violations", "violated")):
         if col in ep:
@@ -168,12 +175,15 @@ def check_counts(run_dir: Path, summary: dict, ep: dict) -> None:
             first = np.flatnonzero(hit)
             want[f"first_{name[:-1]}_evaluation"] = int(first[0]) + 1 if first.size else None
     want["n_nonfinite"] = int((~ok).sum())
+    # the best: the first evaluation reaching the highest reward (analysis.best)
+    want["best.evaluation"] = int(np.argmax(np.where(np.isnan(reward), -np.inf, reward))) + 1
     got_best = summary["best"].get("reward")
     if got_best is not None:
         at = np.float32(ep["reward"][summary["best"]["evaluation"] - 1])
         want["best.reward"] = float(str(at)) if np.isfinite(at) else None
     for key, v in want.items():
-        have = got_best if key == "best.reward" else summary.get(key, v)
+        have = (got_best if key == "best.reward" else summary["best"].get("evaluation", v)
+                if key == "best.evaluation" else summary.get(key, v))
         if have != v:
             raise ValueError(f"{run_dir / 'summary.json'} does not match evaluations.parquet "
                              f"('{key}' is {json.dumps(have)}; the evaluations give "

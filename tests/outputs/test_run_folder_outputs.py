@@ -668,6 +668,11 @@ def test_a_run_where_everything_collided_shows_no_typical_scenario(tmp_path, mon
      "the evaluations give "),
     ("best_reward_edited", "summary.json does not match evaluations.parquet ('best.reward' "
      "is 99.0;"),
+    # hand-edited rewards: one above the best, one NaN on a finite rollout
+    ("reward_above_best", "summary.json does not match evaluations.parquet ('best.evaluation' "
+     "is "),
+    ("reward_nan", "evaluations.parquet is damaged: evaluation 4's reward is nan while its "
+     "rollout is recorded as finite"),
 ])
 def test_a_damaged_run_folder_gets_one_line_and_nothing_redrawn(run_with_figures, tmp_path,
                                                                  capsys, damage, message):
@@ -708,6 +713,12 @@ def test_a_damaged_run_folder_gets_one_line_and_nothing_redrawn(run_with_figures
         pq.write_table(t.slice(0, 100), eps)
     elif damage == "rows_repeated":
         pq.write_table(pa.concat_tables([t, t]), eps)
+    elif damage in ("reward_above_best", "reward_nan"):
+        i = t.schema.get_field_index("reward")
+        col = t.column(i).to_pylist()
+        assert not t.column("nonfinite").to_pylist()[3]
+        col[3] = max(col) + 1.0 if damage == "reward_above_best" else float("nan")
+        pq.write_table(t.set_column(i, "reward", pa.array(col, t.schema.field(i).type)), eps)
     elif damage in ("collision_text", "reward_text", "evaluation_float"):
         name = {"collision_text": "collision", "reward_text": "reward",
                 "evaluation_float": "evaluation"}[damage]
