@@ -27,6 +27,7 @@ from jaxfalsify.io.files import write_atomic
 
 __all__ = [
     "enabled", "folder", "enable_compilation_cache", "program_settings", "check_settings",
+    "check_backend",
     "check_xla_flags", "check_no_cache_setting", "key_of", "PACKAGE", "package_files",
     "code_hash", "user_code_hash",
     "source_hash", "stale", "Program", "exported_jit"
