@@ -868,8 +868,9 @@ def main(argv=None, startup: float = 0.0) -> int:
             return 2
         if not str(e).startswith("Unable to initialize backend"):
             raise
-        print(f"jaxfalsify: error: JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: "
-              f"{str(e).splitlines()[0][:200]}", file=sys.stderr)
+        from jaxfalsify.io.cache import backend_error
+
+        print(f"jaxfalsify: error: {backend_error(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("jaxfalsify: interrupted; nothing was written in place of earlier results",

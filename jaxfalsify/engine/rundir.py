@@ -181,9 +181,9 @@ def check_counts(run_dir: Path, summary: dict, ep: dict) -> None:
     if got_best is not None:
         at = np.float32(ep["reward"][summary["best"]["evaluation"] - 1])
         want["best.reward"] = float(str(at)) if np.isfinite(at) else None
+    recorded = {"best.reward": got_best, "best.evaluation": summary["best"]["evaluation"]}
     for key, v in want.items():
-        have = (got_best if key == "best.reward" else summary["best"].get("evaluation", v)
-                if key == "best.evaluation" else summary.get(key, v))
+        have = recorded[key] if key in recorded else summary.get(key, v)
         if have != v:
             raise ValueError(f"{run_dir / 'summary.json'} does not match evaluations.parquet "
                              f"('{key}' is {json.dumps(have)}; the evaluations give "

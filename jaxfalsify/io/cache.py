@@ -27,7 +27,7 @@ from jaxfalsify.io.files import write_atomic
 
 __all__ = [
     "enabled", "folder", "enable_compilation_cache", "program_settings", "check_settings",
-    "check_backend",
+    "check_backend", "backend_error",
     "check_xla_flags", "check_no_cache_setting", "key_of", "PACKAGE", "package_files",
     "code_hash", "user_code_hash",
     "source_hash", "stale", "Program", "exported_jit"
@@ -124,9 +124,13 @@ def check_backend() -> None:
     try:
         jax.devices()
     except RuntimeError as e:
-        raise ValueError(f"JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: "
-                         f"{str(e).splitlines()[0][:200] if str(e) else type(e).__name__}"
-                         ) from None
+        raise ValueError(backend_error(e)) from None
+
+
+def backend_error(e: BaseException) -> str:
+    """One line for JAX's error when its backend cannot start, naming ``JAX_PLATFORMS``."""
+    return (f"JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')!r}: "
+            f"{str(e).splitlines()[0][:200] if str(e) else type(e).__name__}")
 
 
 def check_xla_flags() -> None:
