@@ -2,7 +2,9 @@
 ``compare``, ``estimate``, a system outside JAX): ``status.json`` says ``running`` when the work
 starts, then ``interrupted`` (with the command that resumes it), ``failed`` (with the error, one
 line) or ``complete``, written after every result file. A job whose user SUT raised discards
-what it wrote (:func:`sut_raised`): nothing of it is worth keeping."""
+what it wrote (:func:`sut_raised`): nothing of it is worth keeping; complete results that
+``--force`` set aside are put back then, and removed once the job completes
+(:func:`jaxfalsify.io.store.set_aside`)."""
 
 from __future__ import annotations
 

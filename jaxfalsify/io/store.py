@@ -27,6 +27,7 @@ from jaxfalsify.io.files import write_json
 
 __all__ = [
     "FolderError", "FIGURES", "folder_kind", "check_out", "clear", "FolderLock", "discard",
+    "set_aside", "put_back", "drop_earlier", "EARLIER",
     "open_folder", "open_new_folder", "shell_path", "write_status", "run_folder_lock",
     "check_out_plain", "Interrupted", "with_article"
 ]
@@ -206,27 +207,82 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
         raise FolderError(f"{flag}: cannot write in {parent} ({e.strerror})") from None
 
 
-def clear(out: Path, kind: str) -> None:
-    """Remove a folder's earlier results, status and checkpoints (``--force``): the files of
+EARLIER = ".earlier"  # where --force sets a folder's complete results aside until the job ends
+
+
+def _results_in(out: Path, kind: str) -> list[Path]:
+    """The paths in ``out`` that hold a job's results, status and checkpoints: the files of
     those names, its checkpoint folders, and where ``config.toml`` says the folder holds a
     run, that run's figures and recordings by name; a user's own files (``checkpoints/``,
-    ``figures/plot.png``) stay."""
+    ``figures/plot.png``) are not among them."""
     out = Path(out)
-    ours = folder_kind(out) == kind
-    for name in RESULT_FILES[kind] + ("status.json", "config.toml"):
-        (out / name).unlink(missing_ok=True)
-    for p in out.glob(".summary.part-*.json"):
-        p.unlink(missing_ok=True)
-    for p in _checkpoints(out):
-        shutil.rmtree(p, ignore_errors=True)
-    if ours and kind == "run":  # the earlier run's figures and the recordings replay wrote
-        for p in [*(out / "figures" / f for f, _ in FIGURES), out / "campaign.rrd",
-                  *out.glob("replay-*.rrd")]:
+    paths = [out / n for n in RESULT_FILES[kind] + ("status.json", "config.toml")]
+    paths += [*out.glob(".summary.part-*.json"), *_checkpoints(out),
+              *out.glob("sweep.part-*.parquet")]
+    if folder_kind(out) == kind and kind == "run":  # its figures and replay's recordings
+        paths += [*(out / "figures" / f for f, _ in FIGURES), out / "campaign.rrd",
+                  *out.glob("replay-*.rrd")]
+    return [p for p in paths if p.exists() or p.is_symlink()]
+
+
+def _remove_empty_figures(out: Path) -> None:
+    with contextlib.suppress(OSError):  # only if nothing else is in it
+        (Path(out) / "figures").rmdir()
+
+
+def clear(out: Path, kind: str) -> None:
+    """Remove a folder's earlier results, status and checkpoints (the paths of
+    :func:`_results_in`); a user's own files stay."""
+    out = Path(out)
+    for p in _results_in(out, kind):
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
             p.unlink(missing_ok=True)
-        with contextlib.suppress(OSError):  # only if nothing else is in it
-            (out / "figures").rmdir()
-    for p in out.glob("sweep.part-*.parquet"):
-        p.unlink(missing_ok=True)
+    _remove_empty_figures(out)
+
+
+def set_aside(out: Path, kind: str) -> None:
+    """``--force``: move a folder's complete results into ``OUT/.earlier`` (same relative
+    paths), where they stay until the new job completes (:func:`drop_earlier`) or are put
+    back if it fails with nothing worth keeping (:func:`discard`). Results that are not
+    complete (an interrupted or failed job started over) are removed, as are those of a
+    folder whose ``.earlier`` already holds the last complete ones."""
+    out = Path(out)
+    if (out / EARLIER).exists() or not complete(out, kind):
+        clear(out, kind)
+        return
+    for p in _results_in(out, kind):
+        target = out / EARLIER / p.relative_to(out)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(p, target)
+    _remove_empty_figures(out)
+
+
+def put_back(out: Path) -> bool:
+    """Move the results :func:`set_aside` kept in ``OUT/.earlier`` back into ``out`` (the
+    new job's files of those names replaced). Returns whether there were any."""
+    out = Path(out)
+    earlier = out / EARLIER
+    if not earlier.is_dir():
+        return False
+    for p in earlier.iterdir():
+        target = out / p.name
+        if p.name == "figures" and p.is_dir():  # a run's figures, beside a user's own
+            target.mkdir(exist_ok=True)
+            for f in p.iterdir():
+                os.replace(f, target / f.name)
+            continue
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        os.replace(p, target)
+    shutil.rmtree(earlier, ignore_errors=True)
+    return True
+
+
+def drop_earlier(out: Path) -> None:
+    """The job in ``out`` completed: the results :func:`set_aside` kept are removed."""
+    shutil.rmtree(Path(out) / EARLIER, ignore_errors=True)
 
 
 class FolderLock:
@@ -315,9 +371,11 @@ def lock(out: Path, kind: str, name: str = ".lock") -> FolderLock:
 def discard(out: Path, kind: str, lk: "FolderLock", existed: bool) -> None:
     """Remove what a failed command wrote to ``out`` (a user's SUT that raised: its results
     mean nothing): results, status, config and checkpoints (:func:`clear`), the lock file, and
-    the folder itself if the command created it and nothing else is in it."""
+    the folder itself if the command created it and nothing else is in it. Results that
+    ``--force`` set aside (:func:`set_aside`) are put back."""
     out = Path(out)
     clear(out, kind)
+    put_back(out)
     with contextlib.suppress(OSError):
         lk.path.unlink()
     lk.release()
@@ -387,7 +445,12 @@ def write_status(out: Path, kind: str, state: str, **extra) -> None:
     doc = {"state": state, **extra}
     if state != "complete" and kind in RESUMABLE:
         doc.setdefault("resume", f"jaxfalsify {kind} --resume {shell_path(out)}")
+    if state != "complete" and (Path(out) / EARLIER).is_dir():
+        doc.setdefault("earlier_results", f"{EARLIER}/ (set aside by --force until this "
+                       f"{kind} completes)")
     write_json(Path(out) / "status.json", doc, indent=2)
+    if state == "complete":
+        drop_earlier(out)
 
 
 def run_folder_lock(run_dir: Path, what: str) -> FolderLock:

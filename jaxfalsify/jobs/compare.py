@@ -438,10 +438,11 @@ def execute(config: CompareConfig, out: Path | str | None, *, force: bool = Fals
         sort_keys=True, default=str).encode()))
     if out is None:
         out, lk = store.open_new_folder(Path("runs") / f"compare-{timestamp()}", "compare")
-        existed = False
+        existed = earlier = False
     else:
         out = Path(out)
         existed = out.exists()
+        earlier = store.complete(out, "compare")  # kept until this one's files replace them
         lk = store.open_folder(out, "compare", force=force,
                                name=".lock" if process_id == 0 else
                                f".lock-part-{process_id:05d}")
@@ -449,7 +450,7 @@ def execute(config: CompareConfig, out: Path | str | None, *, force: bool = Fals
         lk.claim("compare")
         return _execute(config, out, base, progress, process_id, num_processes, clock, stop)
     except BaseException as e:
-        if num_processes == 1 and sut_raised(e):
+        if num_processes == 1 and sut_raised(e) and not earlier:
             store.discard(out, "compare", lk, existed)  # the SUT raised: nothing to keep
         raise
     finally:

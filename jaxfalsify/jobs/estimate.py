@@ -588,7 +588,7 @@ def execute(config: EstimateConfig, out: Path | str, *, force: bool = False,
     try:
         lk.claim("estimate")
         if force:
-            store.clear(out, "estimate")
+            store.set_aside(out, "estimate")
         out.mkdir(parents=True, exist_ok=True)
         write_atomic(out / "config.toml", config.to_toml(*built))
         status = Status(out, "estimate")

@@ -215,8 +215,10 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
     try:
         lk.claim("compare")
         if force:
-            store.clear(out, "compare")
-            shutil.rmtree(out / "runs", ignore_errors=True)  # an earlier comparison's runs
+            store.set_aside(out, "compare")
+            if (out / store.EARLIER).is_dir() and (out / "runs").is_dir():
+                (out / "runs").rename(out / store.EARLIER / "runs")  # its runs go with it
+            shutil.rmtree(out / "runs", ignore_errors=True)  # an unfinished one's runs
         out.mkdir(parents=True, exist_ok=True)
         first = configs[strategies[0]].resolved()
         doc = {"kind": "compare", "evaluator": sut_lib.recorded_spec(evaluator),

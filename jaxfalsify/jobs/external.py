@@ -198,7 +198,7 @@ class Falsifier:
                 carry = self._unflatten(leaves)
         else:
             if force:
-                store.clear(self.out, "run")
+                store.set_aside(self.out, "run")
             self.out.mkdir(parents=True, exist_ok=True)
             write_atomic(self.out / "config.toml", rc.to_toml())
         self.start_from = min(len(self.records) * self.batch, self.budget)

@@ -347,7 +347,7 @@ def _execute(b: Built, rc: RunConfig, out: Path, lk: store.FolderLock, resume: b
     start_from = b.plan.done_after(len(resumed[1])) if resumed else 0
     if resumed is None:
         if force:
-            store.clear(out, "run")
+            store.set_aside(out, "run")
         out.mkdir(parents=True, exist_ok=True)
         write_atomic(out / "config.toml", rc.to_toml())
     status = Status(out, "run")

@@ -281,7 +281,7 @@ def _execute(config: SweepConfig, out: Path, space: Space, calib: Calibrations,
     lk.claim("sweep")
     if process_id == 0 and not resume:
         if force:
-            store.clear(out, "sweep")
+            store.set_aside(out, "sweep")
         out.mkdir(parents=True, exist_ok=True)
         write_atomic(out / "config.toml", config.to_toml(space, num_processes))
     barrier("jaxfalsify-sweep-started")

@@ -691,6 +691,38 @@ def test_a_sut_raising_at_run_time_is_one_line_and_leaves_nothing(argv, world, c
     shutil.rmtree(world / "cb")
 
 
+def _files(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.name != ".lock"}
+
+
+@pytest.mark.parametrize("argv", [
+    ["run", "--strategy", "random", "--evaluations", "20", "--batch", "10", "--out", "fk",
+     "--no-figures"],
+    ["sweep", "--out", "fk"],
+    ["compare", "--seeds", "1", "--evaluations", "20", "--strategies", "random", "--out", "fk"],
+    ["estimate", "--method", "mc", "--samples", "512", "--batch", "256", "--out", "fk"]])
+def test_force_then_a_sut_raising_keeps_the_earlier_results(argv, world, capsys, monkeypatch):
+    """``--force`` over complete results, then the user's SUT raises at run time: one line,
+    exit 2, and every earlier file back byte for byte (set aside, then put back), nothing
+    else left; the same ``--force`` with a working SUT then replaces them and leaves no
+    set-aside copy."""
+    monkeypatch.chdir(world)
+    assert main([*argv, "--quiet"]) == 0
+    before = _files(world / "fk")
+    assert "config.toml" in before and len(before) >= 3
+    capsys.readouterr()
+    assert main([*argv, "--force", "--sut", "callback_raises.py:act", "--quiet"]) == 2
+    assert "sensor driver crashed" in capsys.readouterr().err
+    assert _files(world / "fk") == before
+    assert not (world / "fk" / ".earlier").exists()
+    assert main([*argv, "--force", "--seed", "1", "--quiet"] if argv[0] != "compare" else
+                [*argv, "--force", "--quiet"]) == 0
+    after = _files(world / "fk")
+    assert sorted(after) == sorted(before) and not (world / "fk" / ".earlier").exists()
+    shutil.rmtree(world / "fk")
+
+
 @pytest.mark.parametrize("argv", [
     ["run", "--strategy", "random", "--evaluations", "20", "--batch", "10", "--out", "rq",
      "--no-figures"],

@@ -23,6 +23,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace as dataclasses_replace
 from pathlib import Path
 
 import jax
@@ -505,6 +506,46 @@ def test_force_removes_the_earlier_runs_recordings(tmp_path):
         (out / name).write_bytes(b"an earlier run's recording")
     assert cli(args + ["--force"])[0] == 0
     assert not (out / "replay-best.rrd").exists() and not (out / "campaign.rrd").exists()
+
+
+def test_force_sets_complete_results_aside_until_the_new_run_completes(tmp_path, monkeypatch):
+    """--force moves a complete run's files (its figures by name, replay's recordings) into
+    `.earlier/`, byte for byte, while a user's own figure stays; a forced run that fails
+    keeps them there and its status.json names them; once it completes (resumed) they are
+    gone."""
+    from jaxfalsify.io import store
+    from jaxfalsify.outputs import figures
+
+    space = tmp_path / "tiny.toml"
+    space.write_text(TINY_SPACE)
+    out = tmp_path / "run"
+    rc = runs.RunConfig(space=str(space), strategy="random", evaluations=32, batch=8)
+    runs.execute(rc, out, figures=False)
+    (out / "figures").mkdir()
+    (out / "figures" / store.FIGURES[0][0]).write_bytes(b"an earlier figure")
+    (out / "figures" / "plot.png").write_bytes(b"the user's own")
+    (out / "replay-best.rrd").write_bytes(b"an earlier recording")
+    before = {str(q.relative_to(out)): q.read_bytes() for q in out.rglob("*")
+              if q.is_file() and q.name != ".lock"}
+
+    def broken(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(figures, "make_figures", broken)
+    with pytest.raises(KeyboardInterrupt):
+        runs.execute(dataclasses_replace(rc, seed=1), out, force=True)
+    monkeypatch.undo()
+    kept = {str(q.relative_to(out / ".earlier")): q.read_bytes()
+            for q in (out / ".earlier").rglob("*") if q.is_file()}
+    assert kept == {k: v for k, v in before.items() if k != "figures/plot.png"}
+    assert (out / "figures" / "plot.png").read_bytes() == b"the user's own"
+    status = json.loads((out / "status.json").read_text())
+    assert status["state"] == "failed" and status["earlier_results"].startswith(".earlier/")
+    code, err = cli(["run", "--resume", out, "--quiet", "--no-figures"])
+    assert code == 0, err
+    assert not (out / ".earlier").exists()
+    assert (out / "figures" / "plot.png").read_bytes() == b"the user's own"
+    assert json.loads((out / "summary.json").read_text()) != json.loads(before["summary.json"])
 
 
 def test_a_run_that_failed_while_writing_resumes(tmp_path, monkeypatch):
