@@ -125,6 +125,9 @@ class CompareConfig(Problem):
             check_int("batch", self.batch, 1, 10**6)
         for b in self.budgets:
             check_int("budgets", b, 1, self.evaluations)
+        twice = sorted({b for b in self.budgets if list(self.budgets).count(b) > 1})
+        if twice:
+            raise ValueError(f"budgets: {twice[0]} is given twice (each budget once)")
         if isinstance(self.strategies, str) or not all(isinstance(s, str)
                                                        for s in self.strategies):
             raise ValueError(f"strategies must be a list of names, e.g. ('random',) (got "

@@ -14,7 +14,7 @@ from jaxfalsify import search
 from jaxfalsify.base import config as cfg
 from jaxfalsify.base.progress import Clock, Progress
 from jaxfalsify.core import requirements
-from jaxfalsify.engine.problem import check_int
+from jaxfalsify.engine.problem import SEED_LIMIT, check_int
 from jaxfalsify.io import store
 from jaxfalsify.io.files import write_atomic, write_json
 from jaxfalsify.jobs.compare import DEFAULT_STRATEGIES, CompareConfig, execute
@@ -82,6 +82,9 @@ class SuiteConfig:
                                  f"({', '.join(self.strategies)})")
         for b in self.budgets:
             check_int("suite budgets", b, 1, 10**9)
+        twice = sorted({b for b in self.budgets if list(self.budgets).count(b) > 1})
+        if twice:
+            raise ValueError(f"suite budgets: {twice[0]} is given twice (each budget once)")
         seen: dict[tuple, int] = {}
         for k, e in enumerate(self.entries):
             try:  # the same search twice would only cost time (exclusions aside)
@@ -95,7 +98,10 @@ class SuiteConfig:
                 raise ValueError(f"suite: entry[{k}] repeats entry[{seen[key]}] (space "
                                  f"{e.space}, SUT {e.sut}); give each search once")
             seen[key] = k
-        for e in self.entries:
+        for k, e in enumerate(self.entries):
+            if e.exclude and not self.compare_config(e).strategies:
+                raise ValueError(f"suite: entry[{k}].exclude leaves none of the strategies "
+                                 f"({', '.join(self.strategies)}) to run")
             self.compare_config(e).check()
 
 
@@ -165,6 +171,12 @@ def load_suite(path: Path | str, seeds: int | None = None,
         exclude = e.get("exclude", [])
         if not isinstance(exclude, list) or not all(isinstance(x, str) for x in exclude):
             raise ValueError(f"{key}.exclude must be a list of strategy names")
+        for x in exclude:
+            try:
+                search.canonical(x)
+            except ValueError as err:
+                raise ValueError(f"{key}.exclude: {err}") from None
+        check_int(f"{key}.space_seed", e.get("space_seed", 0), 0, SEED_LIMIT - 1)
         req = e.get("requirement", "collision")
         if not isinstance(req, str):
             raise ValueError(f"{key}.requirement must be a requirement name or an import path")
@@ -192,6 +204,9 @@ def load_suite(path: Path | str, seeds: int | None = None,
         raise ValueError(f"{where}: budgets must be a list of evaluation counts")
     for b in budgets:
         check_int(f"{where}: budgets", b, 1, 10**9)
+    twice = sorted({b for b in budgets if budgets.count(b) > 1})
+    if twice:
+        raise ValueError(f"{where}: budgets: {twice[0]} is given twice (each budget once)")
     names = doc.get("strategies", list(DEFAULT_STRATEGIES))
     if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
         raise ValueError(f"{where}: strategies must be a list of strategy names "
@@ -231,8 +246,10 @@ def load_suite(path: Path | str, seeds: int | None = None,
     file_batch = doc.get("batch")
     if file_batch is not None:
         check_int(f"{where}: batch", file_batch, 1, 10**6)
+    if seeds is None and "seeds" in doc:
+        check_int(f"{where}: seeds", doc["seeds"], 1, 10_000)
     suite = SuiteConfig(name, tuple(out),
-                        tuple(sorted(set(budgets))), seeds or doc.get("seeds", 10), names,
+                        tuple(sorted(budgets)), seeds or doc.get("seeds", 10), names,
                         jobs, options, batch or file_batch)
     suite.check()
     return suite

@@ -138,6 +138,12 @@ def world(tmp_path_factory):
     for name, text in {
         "suite_budget_str.toml": 'budgets = [1, "a"]\n[[entry]]\nspace = "tiny.toml"\n',
         "suite_budget_nested.toml": 'budgets = [[1]]\n[[entry]]\nspace = "tiny.toml"\n',
+        "suite_budget_twice.toml": 'budgets = [10, 10]\n[[entry]]\nspace = "tiny.toml"\n',
+        "suite_exclude_unknown.toml": '[[entry]]\nspace = "tiny.toml"\nexclude = ["nope"]\n',
+        "suite_exclude_all.toml": ('strategies = ["random", "cem"]\n[[entry]]\n'
+                                   'space = "tiny.toml"\nexclude = ["cem", "random"]\n'),
+        "suite_space_seed_str.toml": '[[entry]]\nspace = "tiny.toml"\nspace_seed = "a"\n',
+        "suite_seeds_zero.toml": 'seeds = 0\n[[entry]]\nspace = "tiny.toml"\n',
         "suite_strategies_int.toml": 'strategies = 5\n[[entry]]\nspace = "tiny.toml"\n',
         "suite_strategies_nested.toml": ('strategies = [["random"]]\n[[entry]]\n'
                                          'space = "tiny.toml"\n'),
@@ -332,6 +338,7 @@ CASES = [
     (["run", "--config", ""], "an empty path"),
     (["compare", "--budgets", "100,"], "--budgets '100,': comma-separated integers"),
     (["compare", "--budgets", ""], "--budgets '': an empty value"),
+    (["compare", "--budgets", "8,8"], "budgets: 8 is given twice (each budget once)"),
     # an option of one value given twice: refused, not the last one silently kept
     (["run", "--seed", "1", "--seed", "2"], "--seed given twice"),
     (["estimate", "--method", "exact", "--method", "mc"], "--method given twice"),
@@ -521,6 +528,16 @@ CASES = [
     # malformed suites
     (["compare", "--suite", "suite_budget_str.toml"], "budgets must be an integer (got 'a')"),
     (["compare", "--suite", "suite_budget_nested.toml"], "budgets must be an integer"),
+    (["compare", "--suite", "suite_budget_twice.toml"],
+     "suite_budget_twice.toml: budgets: 10 is given twice"),
+    (["compare", "--suite", "suite_exclude_unknown.toml"],
+     "suite_exclude_unknown.toml: entry[0].exclude: unknown strategy 'nope'"),
+    (["compare", "--suite", "suite_exclude_all.toml"],
+     "entry[0].exclude leaves none of the strategies (random, cem) to run"),
+    (["compare", "--suite", "suite_space_seed_str.toml"],
+     "suite_space_seed_str.toml: entry[0].space_seed must be an integer (got 'a')"),
+    (["compare", "--suite", "suite_seeds_zero.toml"],
+     "suite_seeds_zero.toml: seeds must be in 1..10000 (got 0)"),
     (["compare", "--suite", "suite_strategies_int.toml"], "strategies must be a list"),
     (["compare", "--suite", "suite_strategies_nested.toml"], "strategies must be a list"),
     (["compare", "--suite", "suite_strategies_str.toml"], "strategies must be a list"),
