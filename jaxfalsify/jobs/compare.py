@@ -293,8 +293,10 @@ def overhead_program(strategy, strategy_params, p: campaign.Plan, n_seeds: int):
             return state, idx[0, 0]
 
         k_init, k_run = jax.random.split(key)
-        _, out = jax.lax.scan(upd, strategy.start(k_init, params),
-                              jax.random.split(k_run, p.n_updates))
+        # the barrier keeps XLA from folding the start state's constants into a short scan's
+        # unrolled first update (seconds of compile, and not the work a run does)
+        start = jax.lax.optimization_barrier(strategy.start(k_init, params))
+        _, out = jax.lax.scan(upd, start, jax.random.split(k_run, p.n_updates))
         return out.sum()
 
     def fn(key_data, leaves):
