@@ -157,6 +157,16 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
     if out.is_symlink() and not out.exists():
         raise FolderError(f"{flag} is a link to nothing ({os.readlink(out)})")
     have = folder_kind(out)
+    for a in out.absolute().parents:  # a run's, sweep's or estimate's folder nests nothing
+        try:
+            outer = folder_kind(a)
+        except FolderError:  # another tool's config.toml up the tree
+            continue
+        if outer in ("run", "sweep", "estimate") and ((a / FINISHED[outer]).exists()
+                                                      or (a / "status.json").exists()):
+            shown = a if out.is_absolute() or a == Path.cwd() else Path(os.path.relpath(a))
+            raise FolderError(f"{flag} is inside {shown}, which holds {with_article(outer)}; "
+                              "choose a folder outside it")
     if resume:
         if have is None:
             raise FolderError(f"--resume {out}: no config.toml there "

@@ -414,6 +414,10 @@ CASES = [
     (["replay", "done", "--save", "nowhere/x.rrd"], "no folder nowhere"),
     (["compare", "--out", "done", "--seeds", "1"], "holds a run"),
     (["sweep", "--out", "done"], "holds a run"),
+    (["run", "--out", "done/figures/mine", "--quiet"],
+     "--out done/figures/mine is inside done, which holds a run; choose a folder outside it"),
+    (["estimate", "--out", "sweep_done/e", "--method", "mc"],
+     "--out sweep_done/e is inside sweep_done, which holds a sweep"),
     # distributed
     (["sweep", "--distributed", "--coordinator", "nohost", "--num-processes", "2",
       "--process-id", "0"], "expected HOST:PORT"),
