@@ -111,6 +111,9 @@ def call(fn: Callable, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     if traj is not None:
         res.update(trajectory_arrays(traj, n))
     for k, v in out.items():
+        if np.ndim(v) == 0:  # never taken as one scenario's: the batch's shape is (n,)
+            raise ValueError(f"returned one {k} value (a scalar) for {n} scenario"
+                             f"{'s' if n != 1 else ''}: return an array of shape (n,)")
         try:
             a = np.asarray(v, object if k == "collision" else np.float64).reshape(-1)
         except (TypeError, ValueError):

@@ -107,3 +107,8 @@ def nan_collision(s):
     flag = (rob < 0).astype(float)
     flag[0] = np.nan
     return {"robustness": rob, "collision": flag}
+
+
+def scalar(s):
+    """One robustness for the whole batch: a float, not an array of shape (n,)."""
+    return float(np.min(plain(s)))

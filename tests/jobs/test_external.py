@@ -218,6 +218,21 @@ def test_cli_refuses_a_wrong_length_result_naming_it(tmp_path, capsys, monkeypat
     assert "No result: all 8 evaluations failed" in out and "ped_speed" not in out
 
 
+def test_a_scalar_result_fails_every_scenario_with_the_reason():
+    """An evaluator returning one number for a batch fails the batch, and each scenario tried
+    again alone fails too (a scalar is never read as one scenario's robustness), with the
+    reason; the same values as arrays succeed (oracle: ``ped_speed - 1.5``)."""
+    with evaluators.Pool(f"{HOST}:scalar", workers=1, retries=1) as pool:
+        res = pool.evaluate(pool_batch(3))
+    assert res.failed.all()
+    assert all("returned one robustness value (a scalar) for 1 scenario: return an array of "
+               "shape (n,)" in r for r in res.errors.values()), res.errors
+    with evaluators.Pool(f"{HOST}:plain", workers=1, retries=0) as pool:
+        ok = pool.evaluate(pool_batch(3))
+    assert not ok.failed.any()
+    np.testing.assert_allclose(ok.outputs["robustness"], pool_batch(3)["ped_speed"] - 1.5)
+
+
 def test_cli_run_with_an_evaluator(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     code = main(["run", "--evaluator", f"{HOST}:plain", "--out", "r", "--evaluations", "64",
