@@ -93,7 +93,8 @@ class Falsifier:
         (a checkpoint is committed after every update).
       out: the run folder (None: ``runs/<time>-<strategy>``).
       resume: continue the unfinished run in ``out`` (the same settings).
-      force: discard earlier results in ``out`` first.
+      force: replace earlier results in ``out`` (complete ones set aside in ``.earlier/`` until
+        this run completes: :func:`jaxfalsify.io.store.set_aside`).
       evaluator: what config.toml records as the evaluator (``python``: this loop).
       progress: a :class:`~jaxfalsify.base.progress.Progress`.
     Raises:

@@ -288,7 +288,8 @@ def execute(config: RunConfig, out: Path | str | None, *, resume: bool = False,
         appended when a run started in the same second has that name; ``RunOutcome.out``).
       resume: continue the unfinished run in ``out`` (its ``config.toml`` must equal
         ``config`` resolved; use :func:`resume_config` to read it).
-      force: discard earlier results in ``out`` first.
+      force: replace earlier results in ``out`` (complete ones set aside in ``.earlier/`` until
+        this run completes: :func:`jaxfalsify.io.store.set_aside`).
       progress: a :class:`~jaxfalsify.base.progress.Progress` (default: silent).
       stop: checked between chunks; when it returns True the run commits its checkpoint,
         marks itself interrupted and raises :class:`Interrupted`. A KeyboardInterrupt does
