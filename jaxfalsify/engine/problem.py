@@ -30,7 +30,7 @@ from jaxfalsify.scenario.space import (
 from jaxfalsify.suts import registry as sut_lib
 
 __all__ = [
-    "PAPER_BUDGET", "SEED_LIMIT", "check_int", "build_space", "space_sut_names",
+    "PAPER_BUDGET", "SEED_LIMIT", "check_int", "check_once", "build_space", "space_sut_names",
     "fixed_sut_params", "check_space_sut", "check_mapping", "Built", "Problem", "RunConfig",
     "CONFIG_KEYS", "build_requirement", "SETTINGS", "configure", "jax_settings"
 ]
@@ -48,6 +48,15 @@ def check_int(key: str, v, minimum: int = 0, maximum: int | None = None) -> int:
             raise ValueError(f"{key} must be at least {minimum} (got {v})")
         raise ValueError(f"{key} must be in {minimum}..{maximum} (got {v})")
     return int(v)
+
+
+def check_once(key: str, values) -> None:
+    """A one-line ValueError naming ``key`` and the first value ``values`` holds twice."""
+    seen = set()
+    for v in values:
+        if v in seen:
+            raise ValueError(f"{key}: {v} given twice")
+        seen.add(v)
 
 
 def build_space(space: Any, space_seed: int) -> Space:

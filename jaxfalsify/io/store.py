@@ -27,7 +27,7 @@ from jaxfalsify.io.files import write_json
 
 __all__ = [
     "FolderError", "FIGURES", "folder_kind", "check_out", "clear", "FolderLock", "discard",
-    "set_aside", "put_back", "drop_earlier", "EARLIER",
+    "set_aside", "put_back", "drop_earlier", "EARLIER", "complete",
     "open_folder", "open_new_folder", "shell_path", "write_status", "run_folder_lock",
     "check_out_plain", "Interrupted", "with_article"
 ]

@@ -60,7 +60,7 @@ from jaxfalsify.base.progress import Clock, Progress
 from jaxfalsify.core import requirements, sim
 from jaxfalsify.engine import campaign
 from jaxfalsify.engine.lifecycle import sut_raised
-from jaxfalsify.engine.problem import Problem, RunConfig, check_int
+from jaxfalsify.engine.problem import Problem, RunConfig, check_int, check_once
 from jaxfalsify.engine.truth import ground_truth
 from jaxfalsify.io import cache, store
 from jaxfalsify.io.files import sha256, write_atomic, write_json
@@ -125,9 +125,7 @@ class CompareConfig(Problem):
             check_int("batch", self.batch, 1, 10**6)
         for b in self.budgets:
             check_int("budgets", b, 1, self.evaluations)
-        twice = sorted({b for b in self.budgets if list(self.budgets).count(b) > 1})
-        if twice:
-            raise ValueError(f"budgets: {twice[0]} is given twice (each budget once)")
+        check_once("budgets", self.budgets)
         if isinstance(self.strategies, str) or not all(isinstance(s, str)
                                                        for s in self.strategies):
             raise ValueError(f"strategies must be a list of names, e.g. ('random',) (got "

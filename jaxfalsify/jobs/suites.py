@@ -14,7 +14,7 @@ from jaxfalsify import search
 from jaxfalsify.base import config as cfg
 from jaxfalsify.base.progress import Clock, Progress
 from jaxfalsify.core import requirements
-from jaxfalsify.engine.problem import SEED_LIMIT, check_int
+from jaxfalsify.engine.problem import SEED_LIMIT, check_int, check_once
 from jaxfalsify.io import store
 from jaxfalsify.io.files import write_atomic, write_json
 from jaxfalsify.jobs.compare import DEFAULT_STRATEGIES, CompareConfig, execute
@@ -82,9 +82,7 @@ class SuiteConfig:
                                  f"({', '.join(self.strategies)})")
         for b in self.budgets:
             check_int("suite budgets", b, 1, 10**9)
-        twice = sorted({b for b in self.budgets if list(self.budgets).count(b) > 1})
-        if twice:
-            raise ValueError(f"suite budgets: {twice[0]} is given twice (each budget once)")
+        check_once("suite budgets", self.budgets)
         seen: dict[tuple, int] = {}
         for k, e in enumerate(self.entries):
             try:  # the same search twice would only cost time (exclusions aside)
@@ -204,9 +202,7 @@ def load_suite(path: Path | str, seeds: int | None = None,
         raise ValueError(f"{where}: budgets must be a list of evaluation counts")
     for b in budgets:
         check_int(f"{where}: budgets", b, 1, 10**9)
-    twice = sorted({b for b in budgets if budgets.count(b) > 1})
-    if twice:
-        raise ValueError(f"{where}: budgets: {twice[0]} is given twice (each budget once)")
+    check_once(f"{where}: budgets", budgets)
     names = doc.get("strategies", list(DEFAULT_STRATEGIES))
     if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
         raise ValueError(f"{where}: strategies must be a list of strategy names "

@@ -338,7 +338,7 @@ CASES = [
     (["run", "--config", ""], "an empty path"),
     (["compare", "--budgets", "100,"], "--budgets '100,': comma-separated integers"),
     (["compare", "--budgets", ""], "--budgets '': an empty value"),
-    (["compare", "--budgets", "8,8"], "budgets: 8 is given twice (each budget once)"),
+    (["compare", "--budgets", "8,8"], "budgets: 8 given twice"),
     # an option of one value given twice: refused, not the last one silently kept
     (["run", "--seed", "1", "--seed", "2"], "--seed given twice"),
     (["estimate", "--method", "exact", "--method", "mc"], "--method given twice"),
@@ -533,7 +533,7 @@ CASES = [
     (["compare", "--suite", "suite_budget_str.toml"], "budgets must be an integer (got 'a')"),
     (["compare", "--suite", "suite_budget_nested.toml"], "budgets must be an integer"),
     (["compare", "--suite", "suite_budget_twice.toml"],
-     "suite_budget_twice.toml: budgets: 10 is given twice"),
+     "suite_budget_twice.toml: budgets: 10 given twice"),
     (["compare", "--suite", "suite_exclude_unknown.toml"],
      "suite_exclude_unknown.toml: entry[0].exclude: unknown strategy 'nope'"),
     (["compare", "--suite", "suite_exclude_all.toml"],
