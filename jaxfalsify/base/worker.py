@@ -111,13 +111,16 @@ def call(fn: Callable, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     if traj is not None:
         res.update(trajectory_arrays(traj, n))
     for k, v in out.items():
-        if np.ndim(v) == 0:  # never taken as one scenario's: the batch's shape is (n,)
-            raise ValueError(f"returned one {k} value (a scalar) for {n} scenario"
-                             f"{'s' if n != 1 else ''}: return an array of shape (n,)")
+        if v is None:
+            raise ValueError(f"returned {k} None (a missing return?)")
         try:
-            a = np.asarray(v, object if k == "collision" else np.float64).reshape(-1)
+            a = np.asarray(v, object if k == "collision" else np.float64)
         except (TypeError, ValueError):
             raise ValueError(f"returned {k} that is not {n} numbers") from None
+        if a.ndim == 0:  # never taken as one scenario's: the batch's shape is (n,)
+            raise ValueError(f"returned one {k} value (a scalar) for {n} scenario"
+                             f"{'s' if n != 1 else ''}: return an array of shape (n,)")
+        a = a.reshape(-1)
         if a.shape != (n,):
             raise ValueError(f"returned {k} of {a.size} values for {n} scenarios")
         if k == "collision":

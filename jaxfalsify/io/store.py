@@ -59,6 +59,7 @@ RESULT_FILES = {
     "suite": ("suite.json", "suite.md", "timing.json"),
     "estimate": ("summary.json", "timing.json"),
 }
+EARLIER = ".earlier"  # where --force sets a folder's complete results aside until the job ends
 FINISHED = {"run": "summary.json", "sweep": "summary.json", "compare": "compare.json",
             "suite": "suite.json", "estimate": "summary.json"}
 
@@ -157,14 +158,20 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
     if out.is_symlink() and not out.exists():
         raise FolderError(f"{flag} is a link to nothing ({os.readlink(out)})")
     have = folder_kind(out)
-    for a in out.absolute().parents:  # a run's, sweep's or estimate's folder nests nothing
+    earlier = out / EARLIER
+    if force and (earlier.is_symlink() or (earlier.exists() and not earlier.is_dir())):
+        raise FolderError(f"{flag}: {earlier} is not a folder (--force keeps earlier results "
+                          "there); move it away")
+    real = Path(os.path.realpath(out))
+    for a in real.parents:  # a run's, sweep's or estimate's folder nests nothing
         try:
             outer = folder_kind(a)
         except FolderError:  # another tool's config.toml up the tree
             continue
         if outer in ("run", "sweep", "estimate") and ((a / FINISHED[outer]).exists()
                                                       or (a / "status.json").exists()):
-            shown = a if out.is_absolute() or a == Path.cwd() else Path(os.path.relpath(a))
+            shown = (a if out.is_absolute() or a == Path.cwd().resolve() else
+                     Path(os.path.relpath(a, Path.cwd().resolve())))
             raise FolderError(f"{flag} is inside {shown}, which holds {with_article(outer)}; "
                               "choose a folder outside it")
     if resume:
@@ -217,16 +224,14 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
         raise FolderError(f"{flag}: cannot write in {parent} ({e.strerror})") from None
 
 
-EARLIER = ".earlier"  # where --force sets a folder's complete results aside until the job ends
-
-
-def _results_in(out: Path, kind: str) -> list[Path]:
+def _results_in(out: Path, kind: str, extra: tuple[str, ...] = ()) -> list[Path]:
     """The paths in ``out`` that hold a job's results, status and checkpoints: the files of
     those names, its checkpoint folders, and where ``config.toml`` says the folder holds a
-    run, that run's figures and recordings by name; a user's own files (``checkpoints/``,
-    ``figures/plot.png``) are not among them."""
+    run, that run's figures and recordings by name; ``extra``: more names (a comparison's
+    ``runs/``). A user's own files (``checkpoints/``, ``figures/plot.png``) are not among
+    them."""
     out = Path(out)
-    paths = [out / n for n in RESULT_FILES[kind] + ("status.json", "config.toml")]
+    paths = [out / n for n in RESULT_FILES[kind] + ("status.json", "config.toml") + extra]
     paths += [*out.glob(".summary.part-*.json"), *_checkpoints(out),
               *out.glob("sweep.part-*.parquet")]
     if folder_kind(out) == kind and kind == "run":  # its figures and replay's recordings
@@ -240,11 +245,11 @@ def _remove_empty_figures(out: Path) -> None:
         (Path(out) / "figures").rmdir()
 
 
-def clear(out: Path, kind: str) -> None:
+def clear(out: Path, kind: str, extra: tuple[str, ...] = ()) -> None:
     """Remove a folder's earlier results, status and checkpoints (the paths of
     :func:`_results_in`); a user's own files stay."""
     out = Path(out)
-    for p in _results_in(out, kind):
+    for p in _results_in(out, kind, extra):
         if p.is_dir() and not p.is_symlink():
             shutil.rmtree(p, ignore_errors=True)
         else:
@@ -252,17 +257,18 @@ def clear(out: Path, kind: str) -> None:
     _remove_empty_figures(out)
 
 
-def set_aside(out: Path, kind: str) -> None:
-    """``--force``: move a folder's complete results into ``OUT/.earlier`` (same relative
-    paths), where they stay until the new job completes (:func:`drop_earlier`) or are put
-    back if it fails with nothing worth keeping (:func:`discard`). Results that are not
-    complete (an interrupted or failed job started over) are removed, as are those of a
-    folder whose ``.earlier`` already holds the last complete ones."""
+def set_aside(out: Path, kind: str, extra: tuple[str, ...] = ()) -> None:
+    """``--force``: move a folder's complete results (and the ``extra`` names) into
+    ``OUT/.earlier`` (same relative paths), replacing what it held; they stay there until the
+    new job completes (:func:`drop_earlier`) or are put back if it fails with nothing worth
+    keeping (:func:`discard`). Results that are not complete (an interrupted or failed job
+    started over) are removed, and ``.earlier`` keeps the last complete ones."""
     out = Path(out)
-    if (out / EARLIER).exists() or not complete(out, kind):
-        clear(out, kind)
+    if not complete(out, kind):
+        clear(out, kind, extra)
         return
-    for p in _results_in(out, kind):
+    drop_earlier(out)
+    for p in _results_in(out, kind, extra):
         target = out / EARLIER / p.relative_to(out)
         target.parent.mkdir(parents=True, exist_ok=True)
         os.replace(p, target)

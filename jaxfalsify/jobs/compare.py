@@ -544,6 +544,7 @@ def _execute(config: CompareConfig, out: Path, base, progress: Progress, process
                 md += "\n\n" + budgets_markdown(result)
             write_atomic(out / "compare.md", md + "\n")
             write_json(out / "timing.json", clock.summary(), indent=2)
+            store.drop_earlier(out)  # an earlier job's results kept by --force: replaced now
         for i in range(num_processes if num_processes > 1 else 0):
             (out / f".compare.part-{i:05d}.json").unlink(missing_ok=True)
     result["timing"] = clock.summary()

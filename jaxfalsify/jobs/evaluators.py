@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -215,10 +214,7 @@ def compare(evaluator: str, out: Path | str | None = None, *, strategies=COMPARE
     try:
         lk.claim("compare")
         if force:
-            store.set_aside(out, "compare")
-            if (out / store.EARLIER).is_dir() and (out / "runs").is_dir():
-                (out / "runs").rename(out / store.EARLIER / "runs")  # its runs go with it
-            shutil.rmtree(out / "runs", ignore_errors=True)  # an unfinished one's runs
+            store.set_aside(out, "compare", extra=("runs",))  # its runs go with it
         out.mkdir(parents=True, exist_ok=True)
         first = configs[strategies[0]].resolved()
         doc = {"kind": "compare", "evaluator": sut_lib.recorded_spec(evaluator),

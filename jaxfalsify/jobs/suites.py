@@ -274,6 +274,8 @@ def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = 
             store.check_out(folder, "compare", force=force)
             entries.append((c, name, folder))
         lk.claim("suite")
+        if force:  # the earlier summary waits in .earlier/ until this suite completes
+            store.set_aside(out, "suite")
         out.mkdir(parents=True, exist_ok=True)
         options = {k: dict(v) for k, v in config.strategy_params.items()}
         write_atomic(out / "config.toml", cfg.dumps_toml({
@@ -302,6 +304,7 @@ def execute_suite(config: SuiteConfig, out: Path | str | None, *, force: bool = 
         with clock("writing"):
             write_json(out / "suite.json", summary, indent=2)
             write_atomic(out / "suite.md", suite_markdown(summary) + "\n")
+            store.drop_earlier(out)
         summary["timing"] = clock.summary()
         summary["out"] = str(out)
         return summary

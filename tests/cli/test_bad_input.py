@@ -164,6 +164,7 @@ def world(tmp_path_factory):
                        "sweep_status_list": "[1, 2]"}.items():
         shutil.copytree(w / ("sweep_done" if name.startswith("sweep") else "done"), w / name)
         (w / name / "status.json").write_text(text)
+    (w / "link_to_done").symlink_to(w / "done")
     # a finished run whose config.toml was edited afterwards (its space's values, its seed)
     for name, (old, new) in {"done_edited_values": ("1.237", "1.3"),
                              "done_edited_seed": ("\nseed = 0\n", "\nseed = 1\n"),
@@ -418,6 +419,8 @@ CASES = [
      "--out done/figures/mine is inside done, which holds a run; choose a folder outside it"),
     (["estimate", "--out", "sweep_done/e", "--method", "mc"],
      "--out sweep_done/e is inside sweep_done, which holds a sweep"),
+    (["run", "--out", "link_to_done/mine", "--quiet"],
+     "is inside done, which holds a run; choose a folder outside it"),
     # distributed
     (["sweep", "--distributed", "--coordinator", "nohost", "--num-processes", "2",
       "--process-id", "0"], "expected HOST:PORT"),
@@ -725,9 +728,9 @@ def _files(folder: Path) -> dict[str, bytes]:
     ["estimate", "--method", "mc", "--samples", "512", "--batch", "256", "--out", "fk"]])
 def test_force_then_a_sut_raising_keeps_the_earlier_results(argv, world, capsys, monkeypatch):
     """``--force`` over complete results, then the user's SUT raises at run time: one line,
-    exit 2, and every earlier file back byte for byte (set aside, then put back), nothing
-    else left; the same ``--force`` with a working SUT then replaces them and leaves no
-    set-aside copy."""
+    exit 2, and every earlier file as it was, byte for byte (run, sweep and estimate set them
+    aside and put them back; a comparison writes nothing before its end), nothing else left;
+    ``--force`` with a working SUT then replaces them and leaves no set-aside copy."""
     monkeypatch.chdir(world)
     assert main([*argv, "--quiet"]) == 0
     before = _files(world / "fk")
@@ -741,6 +744,8 @@ def test_force_then_a_sut_raising_keeps_the_earlier_results(argv, world, capsys,
                 [*argv, "--force", "--quiet"]) == 0
     after = _files(world / "fk")
     assert sorted(after) == sorted(before) and not (world / "fk" / ".earlier").exists()
+    changed = "compare.json" if argv[0] == "compare" else "config.toml"  # seed 1, or timings
+    assert after[changed] != before[changed]
     shutil.rmtree(world / "fk")
 
 

@@ -548,6 +548,71 @@ def test_force_sets_complete_results_aside_until_the_new_run_completes(tmp_path,
     assert json.loads((out / "summary.json").read_text()) != json.loads(before["summary.json"])
 
 
+def _estimate_folder(out: Path, text: str, state: str = "complete") -> None:
+    """A folder as an estimate leaves it: config.toml, summary.json, timing.json, status."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.toml").write_text('kind = "estimate"\n')
+    for name in ("summary.json", "timing.json"):
+        (out / name).write_text(f"{text} {name}")
+    (out / "status.json").write_text(json.dumps({"state": state}))
+
+
+def _contents(folder: Path) -> dict[str, str]:
+    return {str(q.relative_to(folder)): q.read_text() for q in sorted(folder.rglob("*"))
+            if q.is_file()}
+
+
+def test_set_aside_keeps_the_last_complete_results(tmp_path):
+    """`.earlier` holds the last complete results: a forced job that did not complete is
+    cleared, not set aside over them; complete results replace an older `.earlier`; a
+    completed job drops it; put_back restores it over a failed job's files."""
+    from jaxfalsify.io import store
+
+    out = tmp_path / "e"
+    _estimate_folder(out, "A")
+    a = _contents(out)
+    store.set_aside(out, "estimate")
+    assert _contents(out) == {f".earlier/{k}": v for k, v in a.items()}
+    _estimate_folder(out, "B", state="interrupted")  # the forced job, interrupted
+    store.set_aside(out, "estimate")  # forced again: B is not complete, A stays
+    assert _contents(out) == {f".earlier/{k}": v for k, v in a.items()}
+    _estimate_folder(out, "C", state="running")
+    store.write_status(out, "estimate", "failed", error="boom")
+    assert json.loads((out / "status.json").read_text())["earlier_results"].startswith(
+        ".earlier/")
+    store.clear(out, "estimate")
+    assert store.put_back(out) and _contents(out) == a  # as discard does
+    _estimate_folder(out, "D")
+    (out / ".earlier").mkdir()
+    (out / ".earlier" / "summary.json").write_text("stale")
+    d = _contents(out)
+    store.set_aside(out, "estimate")  # D is complete: it replaces the stale copy
+    assert _contents(out) == {f".earlier/{k}": v for k, v in d.items()
+                              if not k.startswith(".earlier")}
+    _estimate_folder(out, "E", state="running")
+    store.write_status(out, "estimate", "complete")
+    assert not (out / ".earlier").exists() and "E summary.json" in _contents(out).values()
+
+
+def test_the_folder_check_follows_the_real_path(tmp_path):
+    """An output folder is inside a run folder by where it really is: `done/../x` is not,
+    a link into `done/figures` is; a `.earlier` that is a file is refused with --force."""
+    from jaxfalsify.io import store
+
+    done = tmp_path / "done"
+    (done / "figures").mkdir(parents=True)
+    (done / "config.toml").write_text('kind = "run"\n')
+    (done / "summary.json").write_text("{}")
+    store.check_out(done / ".." / "x", "run")  # no error
+    (tmp_path / "link").symlink_to(done / "figures")
+    with pytest.raises(store.FolderError, match="which holds a run"):
+        store.check_out(tmp_path / "link" / "x", "run")
+    _estimate_folder(tmp_path / "e", "A")
+    (tmp_path / "e" / ".earlier").write_text("mine")
+    with pytest.raises(store.FolderError, match=r"\.earlier is not a folder"):
+        store.check_out(tmp_path / "e", "estimate", force=True)
+
+
 def test_a_run_that_failed_while_writing_resumes(tmp_path, monkeypatch):
     """The search finished, summary.json was written, the figures failed: status.json says
     failed and how to resume, and the resume finishes the outputs (identical results)."""

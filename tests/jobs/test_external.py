@@ -233,6 +233,28 @@ def test_a_scalar_result_fails_every_scenario_with_the_reason():
     np.testing.assert_allclose(ok.outputs["robustness"], pool_batch(3)["ped_speed"] - 1.5)
 
 
+def test_a_forced_comparison_keeps_the_earlier_one_until_it_completes(tmp_path):
+    """compare --evaluator --force: the earlier comparison and its runs wait in `.earlier/`
+    while the forced one is interrupted, byte for byte; forced again it completes and they
+    are gone."""
+    from jaxfalsify.io import store
+
+    out = tmp_path / "c"
+    kw = dict(strategies=("random",), seeds=1, evaluations=8, batch=4, workers=1)
+    evaluators.compare(f"{HOST}:plain", out, **kw)
+    before = {str(q.relative_to(out)): q.read_bytes() for q in out.rglob("*")
+              if q.is_file() and q.name != ".lock"}
+    assert any(k.startswith("runs/") for k in before)
+    for _ in range(2):  # the second time, `.earlier` already holds them
+        with pytest.raises(store.Interrupted):
+            evaluators.compare(f"{HOST}:plain", out, force=True, stop=lambda: True, **kw)
+        kept = {str(q.relative_to(out / ".earlier")): q.read_bytes()
+                for q in (out / ".earlier").rglob("*") if q.is_file() and q.name != ".lock"}
+        assert kept == before
+    evaluators.compare(f"{HOST}:plain", out, force=True, **kw)
+    assert not (out / ".earlier").exists() and (out / "compare.json").exists()
+
+
 def test_cli_run_with_an_evaluator(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     code = main(["run", "--evaluator", f"{HOST}:plain", "--out", "r", "--evaluations", "64",
