@@ -112,3 +112,8 @@ def nan_collision(s):
 def scalar(s):
     """One robustness for the whole batch: a float, not an array of shape (n,)."""
     return float(np.min(plain(s)))
+
+
+def returns_none(s):
+    """A missing return."""
+    plain(s)

@@ -227,6 +227,11 @@ def test_a_scalar_result_fails_every_scenario_with_the_reason():
     assert res.failed.all()
     assert all("returned one robustness value (a scalar) for 1 scenario: return an array of "
                "shape (n,)" in r for r in res.errors.values()), res.errors
+    with evaluators.Pool(f"{HOST}:returns_none", workers=1, retries=0) as pool:
+        res = pool.evaluate(pool_batch(3))
+    assert res.failed.all()
+    assert all("returned robustness None (a missing return?)" in r
+               for r in res.errors.values()), res.errors
     with evaluators.Pool(f"{HOST}:plain", workers=1, retries=0) as pool:
         ok = pool.evaluate(pool_batch(3))
     assert not ok.failed.any()
