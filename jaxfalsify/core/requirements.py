@@ -122,7 +122,7 @@ register(Requirement("ttc", _ttc, TTCParams(), "always time-to-collision >= min_
 register(Requirement("rss", _rss, RSSParams(),
                      "always centre distance >= RSS safe distance + margin (0 m) while the "
                      "pedestrian is ahead"))
-DEFAULT = "clash"
+DEFAULT = "collision"  # what run, sweep, compare and estimate count unless told otherwise
 
 
 def resolve(spec: str | Requirement | Callable) -> Requirement:
