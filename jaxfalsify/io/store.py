@@ -174,6 +174,17 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
                      Path(os.path.relpath(a, Path.cwd().resolve())))
             raise FolderError(f"{flag} is inside {shown}, which holds {with_article(outer)}; "
                               "choose a folder outside it")
+    if kind in ("run", "sweep", "estimate") and not resume and out.is_dir():
+        for child in sorted(out.iterdir()):  # e.g. `--out runs`: its runs would then be inside
+            try:
+                inner = folder_kind(child) if child.is_dir() else None
+            except (FolderError, OSError):
+                continue
+            if inner is not None and ((child / FINISHED[inner]).exists()
+                                      or (child / "status.json").exists()):
+                raise FolderError(f"{flag} holds {with_article(inner)} in {child}; "
+                                  f"{with_article(kind)} takes a folder of its own (choose "
+                                  "another)")
     if resume:
         if have is None:
             raise FolderError(f"--resume {out}: no config.toml there "

@@ -419,6 +419,8 @@ CASES = [
      "--out done/figures/mine is inside done, which holds a run; choose a folder outside it"),
     (["estimate", "--out", "sweep_done/e", "--method", "mc"],
      "--out sweep_done/e is inside sweep_done, which holds a sweep"),
+    (["run", "--out", ".", "--quiet"], "a run takes a folder of its own (choose another)"),
+    (["sweep", "--out", "."], "a sweep takes a folder of its own"),
     (["run", "--out", "link_to_done/mine", "--quiet"],
      "is inside done, which holds a run; choose a folder outside it"),
     # distributed

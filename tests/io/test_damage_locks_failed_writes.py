@@ -596,7 +596,8 @@ def test_set_aside_keeps_the_last_complete_results(tmp_path):
 
 def test_the_folder_check_follows_the_real_path(tmp_path):
     """An output folder is inside a run folder by where it really is: `done/../x` is not,
-    a link into `done/figures` is; a `.earlier` that is a file is refused with --force."""
+    a link into `done/figures` is; the folder holding `done` takes no run itself; a
+    `.earlier` that is a file is refused with --force."""
     from jaxfalsify.io import store
 
     done = tmp_path / "done"
@@ -604,6 +605,9 @@ def test_the_folder_check_follows_the_real_path(tmp_path):
     (done / "config.toml").write_text('kind = "run"\n')
     (done / "summary.json").write_text("{}")
     store.check_out(done / ".." / "x", "run")  # no error
+    with pytest.raises(store.FolderError, match=r"holds a run in .*done; a run takes a folder"):
+        store.check_out(tmp_path, "run")  # the folder holding it: `--out runs`
+    store.check_out(tmp_path, "compare")  # a comparison holds its own runs
     (tmp_path / "link").symlink_to(done / "figures")
     with pytest.raises(store.FolderError, match="which holds a run"):
         store.check_out(tmp_path / "link" / "x", "run")
