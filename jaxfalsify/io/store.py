@@ -146,6 +146,42 @@ def complete(out: Path, kind: str) -> bool:
         return False
 
 
+NESTS_NOTHING = ("run", "sweep", "estimate")  # comparisons and suites hold their own jobs
+
+
+def _holds_results(folder: Path) -> str | None:
+    """The kind of job whose results (its final file or a status) ``folder`` holds; None for
+    a folder without them, or whose ``config.toml`` is another tool's or unreadable."""
+    try:
+        kind = folder_kind(folder) if folder.is_dir() else None
+    except (FolderError, OSError):
+        return None
+    if kind is not None and ((folder / FINISHED[kind]).exists()
+                             or (folder / "status.json").exists()):
+        return kind
+    return None
+
+
+def _check_nesting(out: Path, kind: str, flag: str, resume: bool) -> None:
+    """Refuse ``out`` inside a run's, sweep's or estimate's folder (by its real path: ``..``
+    and links resolved), and a run, sweep or estimate into a folder holding another job's
+    (``--out runs``: its runs would then be inside it)."""
+    for a in Path(os.path.realpath(out)).parents:
+        outer = _holds_results(a)
+        if outer in NESTS_NOTHING:
+            shown = (a if out.is_absolute() or a == Path.cwd().resolve() else
+                     Path(os.path.relpath(a, Path.cwd().resolve())))
+            raise FolderError(f"{flag} is inside {shown}, which holds {with_article(outer)}; "
+                              "choose a folder outside it")
+    if kind in NESTS_NOTHING and not resume and out.is_dir():
+        for child in sorted(out.iterdir()):
+            inner = _holds_results(child)
+            if inner is not None:
+                raise FolderError(f"{flag} holds {with_article(inner)} in {child}; "
+                                  f"{with_article(kind)} takes a folder of its own (choose "
+                                  "another)")
+
+
 def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False) -> None:
     """Refuse an output folder that is a file, holds another kind of result, holds finished
     results (without ``force``) or unfinished ones (without ``resume`` or ``force``), or cannot
@@ -162,29 +198,7 @@ def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False
     if force and (earlier.is_symlink() or (earlier.exists() and not earlier.is_dir())):
         raise FolderError(f"{flag}: {earlier} is not a folder (--force keeps earlier results "
                           "there); move it away")
-    real = Path(os.path.realpath(out))
-    for a in real.parents:  # a run's, sweep's or estimate's folder nests nothing
-        try:
-            outer = folder_kind(a)
-        except FolderError:  # another tool's config.toml up the tree
-            continue
-        if outer in ("run", "sweep", "estimate") and ((a / FINISHED[outer]).exists()
-                                                      or (a / "status.json").exists()):
-            shown = (a if out.is_absolute() or a == Path.cwd().resolve() else
-                     Path(os.path.relpath(a, Path.cwd().resolve())))
-            raise FolderError(f"{flag} is inside {shown}, which holds {with_article(outer)}; "
-                              "choose a folder outside it")
-    if kind in ("run", "sweep", "estimate") and not resume and out.is_dir():
-        for child in sorted(out.iterdir()):  # e.g. `--out runs`: its runs would then be inside
-            try:
-                inner = folder_kind(child) if child.is_dir() else None
-            except (FolderError, OSError):
-                continue
-            if inner is not None and ((child / FINISHED[inner]).exists()
-                                      or (child / "status.json").exists()):
-                raise FolderError(f"{flag} holds {with_article(inner)} in {child}; "
-                                  f"{with_article(kind)} takes a folder of its own (choose "
-                                  "another)")
+    _check_nesting(out, kind, flag, resume)
     if resume:
         if have is None:
             raise FolderError(f"--resume {out}: no config.toml there "
