@@ -94,9 +94,10 @@ def _int(name, minimum=0, maximum=None):
 
 def _float_positive(name):
     def parse(text):
-        try:
-            v = float(text)
-        except ValueError:
+        from jaxfalsify.base.config import parse_number
+
+        v = parse_number(text)
+        if v is None:
             raise argparse.ArgumentTypeError(f"{name} must be a number (got {text!r})")
         if not 0 < v < float("inf"):
             raise argparse.ArgumentTypeError(f"{name} must be > 0 and finite (got {text})")
@@ -578,6 +579,9 @@ def _names(flag: str, value: str | None, what: str, example: str) -> tuple[str, 
     if not all(names):  # 'random,' or 'random,,cem': a name left out by mistake?
         raise UsageError(f"{flag} {value!r}: an empty {what} name between commas "
                          f"(e.g. {flag} {example})")
+    twice = next((n for i, n in enumerate(names) if n in names[:i]), None)
+    if twice is not None:
+        raise UsageError(f"{flag} {value!r}: {twice!r} given twice")
     return names
 
 
@@ -671,6 +675,7 @@ def _compare_suite(args, names, stop, startup) -> int:
 
 
 def cmd_simulate(args, stop, startup) -> int:
+    from jaxfalsify.base.config import parse_number
     from jaxfalsify.core.sim import describe
     from jaxfalsify.scenario.space import KNOWN_PARAMETERS
 
@@ -688,10 +693,10 @@ def cmd_simulate(args, stop, startup) -> int:
             raise UsageError(f"unknown parameter '{name}' (known: {', '.join(KNOWN_PARAMETERS)})")
         if name in scenario:
             raise UsageError(f"{name} given twice")
-        try:
-            scenario[name] = float(value)
-        except ValueError:
-            raise UsageError(f"{name}={value!r} is not a number") from None
+        number = parse_number(value)
+        if number is None:
+            raise UsageError(f"{name}={value!r} is not a number")
+        scenario[name] = float(number)
     flagged = _sut_values(args.sut_param)
     for name in sut_values:
         if name in flagged:

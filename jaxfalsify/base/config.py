@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -169,6 +170,22 @@ def check_keys(doc, allowed, where: str) -> None:
                          f"(allowed: {', '.join(sorted(allowed))})")
 
 
+# a decimal number as a user types it: ASCII digits, no '_' separators (Python's float() and
+# int() also read '1_0' and other scripts' digits, such as '٣'), or inf / nan (refused later
+# by name)
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?"
+                      r"|[+-]?(?:inf|infinity|nan)", re.IGNORECASE)
+
+
+def parse_number(text: str) -> int | float | None:
+    """``text`` (surrounding spaces ignored) as a number, an int when it is whole digits; None
+    when it is not a decimal number written with ASCII digits."""
+    t = text.strip()
+    if not _DECIMAL.fullmatch(t):
+        return None
+    return int(t) if re.fullmatch(r"[+-]?[0-9]+", t) else float(t)
+
+
 def parse_assignments(items: list[str] | None, flag: str, many: bool = False
                       ) -> dict[str, Any]:
     """``["NAME=VALUE", ...]`` -> ``{name: value}``: numbers where they parse (a list of them
@@ -184,11 +201,10 @@ def parse_assignments(items: list[str] | None, flag: str, many: bool = False
         parts = [t.strip() for t in text.split(",")] if many else [text.strip()]
         vals = []
         for t in parts:
-            try:
-                v: Any = int(t) if t.lstrip("+-").isdigit() else float(t)
-            except ValueError:
+            v: Any = parse_number(t)
+            if v is None:
                 if len(parts) > 1:
-                    raise ValueError(f"{flag} {name}={text!r}: {t!r} is not a number") from None
+                    raise ValueError(f"{flag} {name}={text!r}: {t!r} is not a number")
                 v = t
             if isinstance(v, float) and not math.isfinite(v):
                 raise ValueError(f"{flag} {name}={t}: not a finite number")

@@ -8,13 +8,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 
 import jax
 import numpy as np
 
 __all__ = [
-    "dataclass", "static", "replace", "FLOAT32_MAX", "real_number", "field_names", "ranges",
-    "in_range", "check_ranges"
+    "dataclass", "static", "replace", "FLOAT32_MAX", "FLOAT32_TINY", "real_number",
+    "number_problem", "checked_number", "param_items", "check_defaults", "with_overrides",
+    "field_names", "ranges", "in_range", "check_ranges"
 ]
 
 
@@ -33,6 +35,7 @@ def replace(obj, **changes):
 
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)  # larger values become inf in the simulator
+FLOAT32_TINY = float(np.finfo(np.float32).tiny)  # smallest normal float32 (1.2e-38)
 
 
 def real_number(value) -> float | None:
@@ -49,6 +52,74 @@ def real_number(value) -> float | None:
             (np.issubdtype(value.dtype, np.integer) or np.issubdtype(value.dtype, np.floating)):
         return float(value)
     return None
+
+
+def number_problem(number: float) -> str | None:
+    """Why ``number`` cannot be a parameter computed in float32 (it is not finite, beyond
+    float32's range, or so small that float32 makes it 0 or loses its digits); None when it
+    can."""
+    if not math.isfinite(number):
+        return "is not finite"
+    if abs(number) > FLOAT32_MAX:
+        return "is beyond float32's range (computed in float32)"
+    if 0 < abs(number) < FLOAT32_TINY:
+        return (f"is below float32's smallest normal number {FLOAT32_TINY:.3g} (computed in "
+                "float32)")
+    return None
+
+
+def checked_number(name: str, value, where: str) -> float:
+    """``value`` given for the parameter ``name`` as a float: one-line ValueError (``where:
+    name=value ...``) unless it is one real number float32 can hold."""
+    number = real_number(value)
+    if number is None:
+        raise ValueError(f"{where}: {name}={value!r:.40} is not a number")
+    problem = number_problem(number)
+    if problem:
+        raise ValueError(f"{where}: {name}={value!r:.40} {problem}")
+    return number
+
+
+def param_items(params) -> dict:
+    """The named parameters of a dataclass or a mapping of them ``{name: value}``; ``{}`` for
+    None or any other pytree."""
+    if dataclasses.is_dataclass(params) and not isinstance(params, type):
+        return {f: getattr(params, f) for f in field_names(params)}
+    return dict(params) if isinstance(params, Mapping) else {}
+
+
+def check_defaults(params, owner: str) -> None:
+    """One-line ValueError naming ``owner`` (``SUT 'x'``, ``requirement 'y'``) and the first
+    parameter whose default is not a number (a boolean passes) or one float32 cannot hold:
+    named parameters are scalars, traced, recorded in config.toml and set by ``NAME=VALUE``."""
+    for name, v in param_items(params).items():
+        if isinstance(v, (bool, np.bool_)):
+            continue
+        number = real_number(v)
+        if number is None:
+            raise ValueError(f"{owner}: parameter '{name}' has the default {v!r:.40}, not a "
+                             "number (named parameters are scalars)")
+        problem = number_problem(number)
+        if problem:
+            raise ValueError(f"{owner}: parameter '{name}' has the default {v!r:.40}, which "
+                             f"{problem}")
+
+
+def with_overrides(defaults, given: Mapping, where: str, owner: str):
+    """``defaults`` (a dataclass or a mapping of numbers) with ``given {name: number}``
+    applied, each checked (:func:`checked_number`) and within its field's interval
+    (:func:`check_ranges`); one-line ValueError naming ``where``, ``owner`` and the name."""
+    known = tuple(param_items(defaults))
+    values = {}
+    for name, value in dict(given).items():
+        if name not in known:
+            raise ValueError(f"{where}: {owner} has no parameter '{name}' "
+                             f"(known: {', '.join(known) or 'none'})")
+        values[name] = checked_number(name, value, where)
+    if dataclasses.is_dataclass(defaults):
+        check_ranges(defaults, values, f"{where}: {owner}")
+        return dataclasses.replace(defaults, **values)
+    return {**defaults, **values}
 
 
 def field_names(obj_or_cls) -> tuple[str, ...]:

@@ -128,6 +128,7 @@ DEFAULT = "collision"  # what run, sweep, compare and estimate count unless told
 def resolve(spec: str | Requirement | Callable) -> Requirement:
     """A requirement by registry name, import path, object or function (one-line ValueError)."""
     if isinstance(spec, Requirement):
+        pytree.check_defaults(spec.default_params, f"requirement '{spec.name}'")
         return spec
     if callable(spec):
         return Requirement(getattr(spec, "__name__", "requirement"), spec)
@@ -140,6 +141,7 @@ def resolve(spec: str | Requirement | Callable) -> Requirement:
                          "import path module:attr)")
     obj = sut_lib.load_attr(spec, "requirement")
     if isinstance(obj, Requirement):
+        pytree.check_defaults(obj.default_params, f"requirement '{spec}'")
         return dataclasses.replace(obj, name=spec)
     if callable(obj):
         return Requirement(spec, obj)
@@ -148,10 +150,8 @@ def resolve(spec: str | Requirement | Callable) -> Requirement:
 
 
 def param_names(req: Requirement) -> tuple[str, ...]:
-    p = req.default_params
-    if p is None:
-        return ()
-    return pytree.field_names(p) if dataclasses.is_dataclass(p) else tuple(p)
+    """The names of the requirement's parameters (``--requirement-param NAME=VALUE``)."""
+    return tuple(pytree.param_items(req.default_params))
 
 
 def with_params(req: Requirement, given: Mapping[str, float] | None = None,
@@ -162,24 +162,8 @@ def with_params(req: Requirement, given: Mapping[str, float] | None = None,
         return req.default_params
     if not isinstance(given, Mapping):  # a full parameter pytree
         return given
-    known = param_names(req)
-    values = {}
-    for name, value in dict(given).items():
-        if name not in known:
-            raise ValueError(f"{where}: requirement '{req.name}' has no parameter '{name}' "
-                             f"(known: {', '.join(known) or 'none'})")
-        number = pytree.real_number(value)
-        if number is None or not abs(number) < float("inf"):
-            raise ValueError(f"{where}: {name}={value!r:.40} is not a finite number")
-        if abs(number) > pytree.FLOAT32_MAX:
-            raise ValueError(f"{where}: {name}={value!r:.40} is beyond float32's range (the "
-                             "robustness is computed in float32)")
-        values[name] = number
-    p = req.default_params
-    if dataclasses.is_dataclass(p):
-        pytree.check_ranges(p, values, f"{where}: requirement '{req.name}'")
-        return dataclasses.replace(p, **values)
-    return {**p, **values}
+    return pytree.with_overrides(req.default_params, given, where,
+                                 f"requirement '{req.name}'")
 
 
 def cache_key(req: Requirement) -> str | None:
@@ -203,14 +187,18 @@ def robustness(req: Requirement, outcome: Outcome, params: Any) -> jax.Array:
 
 
 def check(req: Requirement, params: Any) -> None:
-    """Trace the requirement once on an example outcome, before anything runs: a function
-    that fails or returns a non-scalar is named in one line."""
-    example = Outcome(**{f.name: jax.ShapeDtypeStruct(
-        (), jnp.bool_ if f.name in ("collision", "nonfinite") else
-        jnp.int32 if f.name in ("high_risk_steps", "steps") else jnp.float32)
-        for f in dataclasses.fields(Outcome)})
+    """Trace the requirement on an example outcome, alone and vmapped over a batch as the
+    jobs call it (:func:`robustness`), before anything runs: a function that fails either
+    way (a ``jax.pure_callback`` without a ``vmap_method`` fails only batched) or returns a
+    non-scalar is named in one line."""
+    def example(shape):
+        return Outcome(**{f.name: jax.ShapeDtypeStruct(
+            shape, jnp.bool_ if f.name in ("collision", "nonfinite") else
+            jnp.int32 if f.name in ("high_risk_steps", "steps") else jnp.float32)
+            for f in dataclasses.fields(Outcome)})
+
     try:
-        out = jax.eval_shape(lambda o: req.robustness(o, params), example)
+        out = jax.eval_shape(lambda o: req.robustness(o, params), example(()))
     except Exception as e:  # noqa: BLE001 - a user's function can raise anything
         raise ValueError(f"requirement '{req.name}' fails on an example outcome: "
                          f"{sut_lib.error_line(e)[:200]}") from None
@@ -218,3 +206,8 @@ def check(req: Requirement, params: Any) -> None:
     if shape != ():
         raise ValueError(f"requirement '{req.name}' must return one number per scenario (got "
                          f"{'shape ' + str(shape) if shape is not None else type(out).__name__})")
+    try:
+        jax.eval_shape(lambda o: robustness(req, o, params), example((2,)))
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f"requirement '{req.name}' fails on a batch of outcomes (vmapped): "
+                         f"{sut_lib.error_line(e)[:200]}") from None

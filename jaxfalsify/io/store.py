@@ -27,7 +27,7 @@ from jaxfalsify.io.files import write_json
 
 __all__ = [
     "FolderError", "FIGURES", "folder_kind", "check_out", "clear", "FolderLock", "discard",
-    "set_aside", "put_back", "drop_earlier", "EARLIER", "complete",
+    "set_aside", "put_back", "drop_earlier", "EARLIER", "complete", "nothing_written",
     "open_folder", "open_new_folder", "shell_path", "write_status", "run_folder_lock",
     "check_out_plain", "Interrupted", "with_article"
 ]
@@ -173,13 +173,51 @@ def _check_nesting(out: Path, kind: str, flag: str, resume: bool) -> None:
                      Path(os.path.relpath(a, Path.cwd().resolve())))
             raise FolderError(f"{flag} is inside {shown}, which holds {with_article(outer)}; "
                               "choose a folder outside it")
-    if kind in NESTS_NOTHING and not resume and out.is_dir():
-        for child in sorted(out.iterdir()):
-            inner = _holds_results(child)
-            if inner is not None:
-                raise FolderError(f"{flag} holds {with_article(inner)} in {child}; "
-                                  f"{with_article(kind)} takes a folder of its own (choose "
-                                  "another)")
+    if kind in NESTS_NOTHING and not resume:
+        real = Path(os.path.realpath(out))
+        with contextlib.suppress(RuntimeError, OSError):  # no home folder known
+            if real == Path.home().resolve():
+                raise FolderError(f"{flag} is your home folder; {with_article(kind)} takes a "
+                                  "folder of its own (every later job below it would be "
+                                  "refused: choose another)")
+        if real == real.parent:
+            raise FolderError(f"{flag} is the filesystem root; {with_article(kind)} takes a "
+                              "folder of its own (choose another)")
+        found = _results_below(out) if out.is_dir() else None
+        if found is not None:
+            inner, child = found
+            raise FolderError(f"{flag} holds {with_article(inner)} in {child}; "
+                              f"{with_article(kind)} takes a folder of its own (choose "
+                              "another)")
+
+
+NESTING_DEPTH = 4  # how deep below a new run's folder another job's folder is looked for
+NESTING_FOLDERS = 5000  # and in how many folders at most (a huge tree is not walked whole)
+
+
+def _results_below(out: Path) -> tuple[str, Path] | None:
+    """The kind and folder of the first job's results found below ``out`` (breadth first, at
+    most :data:`NESTING_DEPTH` levels and :data:`NESTING_FOLDERS` folders; links and
+    ``.earlier`` not entered), or None."""
+    level, seen = [out], 0
+    for _ in range(NESTING_DEPTH):
+        below = []
+        for folder in level:
+            try:
+                children = sorted(c for c in folder.iterdir()
+                                  if c.name != EARLIER and c.is_dir() and not c.is_symlink())
+            except OSError:
+                continue
+            for child in children:
+                kind = _holds_results(child)
+                if kind is not None:
+                    return kind, child
+                seen += 1
+                if seen >= NESTING_FOLDERS:
+                    return None
+                below.append(child)
+        level = below
+    return None
 
 
 def check_out(out: Path, kind: str, *, force: bool = False, resume: bool = False) -> None:
@@ -423,6 +461,14 @@ def discard(out: Path, kind: str, lk: "FolderLock", existed: bool) -> None:
     if not existed:
         with contextlib.suppress(OSError):
             out.rmdir()
+
+
+def nothing_written(out: Path) -> bool:
+    """Whether a job holding ``out``'s lock has written none of its own files yet (neither
+    ``config.toml`` nor ``status.json``): a failure then undoes the lock (:func:`discard`),
+    leaving the folder as the job found it."""
+    out = Path(out)
+    return not (out / "config.toml").exists() and not (out / "status.json").exists()
 
 
 def open_folder(out: Path, kind: str, *, force: bool = False, resume: bool = False,

@@ -453,7 +453,7 @@ def execute(config: CompareConfig, out: Path | str | None, *, force: bool = Fals
         lk.claim("compare")
         return _execute(config, out, base, progress, process_id, num_processes, clock, stop)
     except BaseException as e:
-        if num_processes == 1 and sut_raised(e) and not earlier:
+        if num_processes == 1 and not earlier and (sut_raised(e) or store.nothing_written(out)):
             store.discard(out, "compare", lk, existed)  # the SUT raised: nothing to keep
         raise
     finally:

@@ -525,7 +525,7 @@ def estimate(config: EstimateConfig, progress: Progress | None = None, stop=None
                 "target_rel_error": c.target_rel_error, "reached_target": True,
                 "interrupted": False, "seconds": time.perf_counter() - t0}
     run = _program(sp, sut, req, c.batch)
-    key = jax.random.key(c.seed)
+    key = sim.seed_key(c.seed)
     ce = {"levels": 0, "samples": 0}
     t = Tally(c.method, c.confidence)
     if c.method == "is":
@@ -603,7 +603,7 @@ def execute(config: EstimateConfig, out: Path | str, *, force: bool = False,
             status.complete()
         return summary
     except BaseException as e:
-        if sut_raised(e):
+        if sut_raised(e) or store.nothing_written(out):
             store.discard(out, "estimate", lk, existed)
         elif (out / "config.toml").exists():
             Status(out, "estimate").failed(e)

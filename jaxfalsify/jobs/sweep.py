@@ -242,12 +242,11 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
         return _execute(config, out, space, calib, lk, resume=resume, force=force,
                         progress=progress, stop=stop, process_id=process_id,
                         num_processes=num_processes, world=world, clock=clock)
-    except (store.Interrupted, ValueError):
-        raise
     except BaseException as e:
-        if num_processes == 1 and not resume and sut_raised(e):
+        if num_processes == 1 and not resume and (sut_raised(e) or store.nothing_written(out)):
             store.discard(out, "sweep", lk, existed)  # the SUT raised: nothing worth keeping
-        elif process_id == 0 and (out / "config.toml").exists():
+        elif process_id == 0 and (out / "config.toml").exists() and \
+                not isinstance(e, (store.Interrupted, ValueError)):
             Status(out, "sweep").failed(e)
         raise
     finally:

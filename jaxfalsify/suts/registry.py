@@ -29,13 +29,11 @@ Built-ins:
 from __future__ import annotations
 
 import dataclasses
-import math
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxfalsify.base import pytree
 from jaxfalsify.base.worker import import_module
@@ -206,7 +204,7 @@ def resolve(spec: str | SUT | Callable) -> SUT:
                 raise ValueError(f"SUT '{spec}' could not be built (called with no "
                                  f"arguments): {error_line(e)}") from None
         if isinstance(obj, SUT):
-            _check_defaults(obj, spec)
+            pytree.check_defaults(obj.default_params, f"SUT '{spec}'")
             return dataclasses.replace(obj, name=spec) if obj.name != spec else obj
         builtin = next((s for s in REGISTRY.values() if s.act is obj or s.init is obj), None)
         if builtin is not None:  # a built-in's own function needs its state and parameters
@@ -221,21 +219,6 @@ def resolve(spec: str | SUT | Callable) -> SUT:
         return SUT(getattr(spec, "__name__", "custom"), spec, no_state, None)
     raise ValueError(f"sut must be a name, an import path, a SUT or a function "
                      f"(got {type(spec).__name__})")
-
-
-def _check_defaults(sut: SUT, spec: str) -> None:
-    """One-line ValueError naming the SUT and the parameter whose default is neither a real
-    number nor a boolean, in a dataclass or mapping of parameters: a SUT's named parameters
-    are scalars (traced, recorded in config.toml, set by ``--sut-param NAME=VALUE``)."""
-    p = sut.default_params
-    if p is None:
-        return
-    items = ({f: getattr(p, f) for f in pytree.field_names(p)} if dataclasses.is_dataclass(p)
-             else dict(p) if isinstance(p, Mapping) else {})  # (another pytree: as it is)
-    for name, v in items.items():
-        if pytree.real_number(v) is None and not isinstance(v, (bool, np.bool_)):
-            raise ValueError(f"SUT '{spec}': parameter '{name}' has the default {v!r:.40}, not "
-                             f"a number (a SUT's parameters are scalars)")
 
 
 def cache_key(sut: SUT) -> str | None:
@@ -254,18 +237,9 @@ def cache_key(sut: SUT) -> str | None:
     return None if code is None else f"{sut.name}:{code}"
 
 
-FLOAT32_TINY = float(np.finfo(np.float32).tiny)  # smallest normal float32 (1.2e-38)
-
-
 def param_names(sut: SUT) -> tuple[str, ...]:
-    p = sut.default_params
-    if p is None:
-        return ()
-    if dataclasses.is_dataclass(p):
-        return pytree.field_names(p)
-    if isinstance(p, Mapping):
-        return tuple(p)
-    return ()
+    """The names of the SUT's parameters (``--sut-param NAME=VALUE``)."""
+    return tuple(pytree.param_items(sut.default_params))
 
 
 def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
@@ -286,30 +260,7 @@ def with_params(sut: SUT, params: Any = None, where: str = "sut_params") -> Any:
         return params
     if not params:
         return sut.default_params
-    known = param_names(sut)
-    params = dict(params)
-    for name, value in params.items():
-        if name not in known:
-            raise ValueError(f"{where}: SUT '{sut.name}' has no parameter '{name}' "
-                             f"(known: {', '.join(known) or 'none'})")
-        number = pytree.real_number(value)
-        if number is None:
-            raise ValueError(f"{where}: {name}={value!r:.40} is not a number")
-        if not math.isfinite(number):
-            raise ValueError(f"{where}: {name}={value!r:.40} is not finite")
-        if abs(number) > pytree.FLOAT32_MAX:
-            raise ValueError(f"{where}: {name}={value!r:.40} is beyond float32's range (the "
-                             "simulator computes in float32)")
-        if 0 < abs(number) < FLOAT32_TINY:  # would be 0 or lose its digits in float32
-            raise ValueError(f"{where}: {name}={value!r:.40} is below float32's smallest "
-                             f"normal number {FLOAT32_TINY:.3g} (the simulator computes in "
-                             "float32)")
-        params[name] = number
-    p = sut.default_params
-    if dataclasses.is_dataclass(p):
-        pytree.check_ranges(p, params, f"{where}: SUT '{sut.name}'")
-        return dataclasses.replace(p, **{k: float(v) for k, v in params.items()})
-    return {**p, **{k: float(v) for k, v in params.items()}}
+    return pytree.with_overrides(sut.default_params, params, where, f"SUT '{sut.name}'")
 
 
 def override(params: Any, values: dict) -> Any:

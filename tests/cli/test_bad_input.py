@@ -117,6 +117,18 @@ def world(tmp_path_factory):
         "def act(obs, state, p, key):\n    return 0.0, state\n\n\n"
         "ARR = SUT('arr', act, default_params=P())\n"
         "WORD = SUT('word', act, default_params={'gain': 1.0, 'mode': 'fast'})\n")
+    (w / "odd_numbers.py").write_text(  # defaults float32 cannot hold
+        "import dataclasses\nfrom jaxfalsify.core.requirements import Requirement\n"
+        "from jaxfalsify.suts.registry import SUT\n\n\n"
+        "def act(obs, state, p, key):\n    return 0.0, state\n\n\n"
+        "NAN = SUT('nan', act, default_params={'gain': float('nan')})\n"
+        "HUGE = SUT('huge', act, default_params={'gain': 1e39})\n"
+        "NAN_REQ = Requirement('nan_req', lambda o, p: o.min_ttc - p['ttc'], "
+        "{'ttc': float('inf')})\n")
+    (w / "callback_req.py").write_text(  # traces alone, fails under vmap
+        "import jax\nimport jax.numpy as jnp\n\n\n"
+        "def gap(o, p):\n    return jax.pure_callback(lambda x: x, "
+        "jax.ShapeDtypeStruct((), jnp.float32), o.min_distance)\n")
     (w / "clash.py").write_text(  # a SUT parameter named like a sweep.parquet column
         "from jaxfalsify.base import pytree\nfrom jaxfalsify.suts.registry import SUT\n\n\n"
         "@pytree.dataclass\nclass P:\n    steps: float = 1.0\n\n\n"
@@ -165,6 +177,7 @@ def world(tmp_path_factory):
         shutil.copytree(w / ("sweep_done" if name.startswith("sweep") else "done"), w / name)
         (w / name / "status.json").write_text(text)
     (w / "link_to_done").symlink_to(w / "done")
+    shutil.copytree(w / "done", w / "deep_top" / "runs" / "A")  # a run two levels down
     # a finished run whose config.toml was edited afterwards (its space's values, its seed)
     for name, (old, new) in {"done_edited_values": ("1.237", "1.3"),
                              "done_edited_seed": ("\nseed = 0\n", "\nseed = 1\n"),
@@ -508,6 +521,25 @@ CASES = [
     (["sweep", "--space", "tiny.toml", "--requirement", "clash", "--requirement-param",
       "epsilon=1,2"], "epsilon='1,2' is not a number (one number: only sweep's --sut-param "
      "takes a list of values)"),
+    # defaults a user's SUT or requirement gives that float32 cannot hold, found on loading
+    (["run", "--sut", "odd_numbers.py:NAN", "--out", "run_new"],
+     "SUT 'odd_numbers.py:NAN': parameter 'gain' has the default nan, which is not finite"),
+    (["sweep", "--sut", "odd_numbers.py:HUGE", "--out", "run_new"],
+     "parameter 'gain' has the default 1e+39, which is beyond float32's range"),
+    (["estimate", "--requirement", "odd_numbers.py:NAN_REQ", "--out", "run_new"],
+     "requirement 'odd_numbers.py:NAN_REQ': parameter 'ttc' has the default inf"),
+    (["sweep", "--space", "tiny.toml", "--requirement", "callback_req.py:gap", "--out",
+      "run_new"], "requirement 'callback_req.py:gap' fails on a batch of outcomes (vmapped)"),
+    # numbers as a user types them: ASCII digits, no '_' separators
+    (["run", "--sut-param", "speed_limit=3_0"], "--sut-param speed_limit='3_0' is not a number"),
+    (["simulate", "ego_offset=\u0669"], "ego_offset='\u0669' is not a number"),
+    (["estimate", "--confidence", "0.9_5"], "--confidence must be a number (got '0.9_5')"),
+    (["compare", "--suite", "suite_twice.toml", "--entries", "tiny,tiny"],
+     "--entries 'tiny,tiny': 'tiny' given twice"),
+    # a run, sweep or estimate never takes a folder that holds another job's, at any depth
+    (["estimate", "--out", "deep_top"], "--out deep_top holds a run in deep_top/runs/A"),
+    (["run", "--out", "deep_top/runs"], "holds a run in deep_top/runs/A"),
+    (["run", "--out", "/"], "--out / is the filesystem root"),
     (["simulate", "--sut-param", "speed_limit=1e-50"],
      "speed_limit=1e-50 is below float32's smallest normal number 1.18e-38"),
     (["run", "--checkpoint-every", "99999999999999999999999"],
