@@ -14,7 +14,7 @@ import numpy as np
 
 __all__ = [
     "versions", "plain", "jsonable", "dumps_toml", "read_toml", "check_keys",
-    "parse_assignments", "check_memory", "check_type", "number_text"
+    "parse_number", "parse_assignments", "check_memory", "check_type", "number_text"
 ]
 
 
