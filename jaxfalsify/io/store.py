@@ -166,7 +166,8 @@ def _check_nesting(out: Path, kind: str, flag: str, resume: bool) -> None:
     """Refuse ``out`` inside a run's, sweep's or estimate's folder (by its real path: ``..``
     and links resolved), and a run, sweep or estimate into a folder holding another job's
     (``--out runs``: its runs would then be inside it)."""
-    for a in Path(os.path.realpath(out)).parents:
+    real = Path(os.path.realpath(out))
+    for a in real.parents:
         outer = _holds_results(a)
         if outer in NESTS_NOTHING:
             shown = (a if out.is_absolute() or a == Path.cwd().resolve() else
@@ -174,7 +175,6 @@ def _check_nesting(out: Path, kind: str, flag: str, resume: bool) -> None:
             raise FolderError(f"{flag} is inside {shown}, which holds {with_article(outer)}; "
                               "choose a folder outside it")
     if kind in NESTS_NOTHING and not resume:
-        real = Path(os.path.realpath(out))
         with contextlib.suppress(RuntimeError, OSError):  # no home folder known
             if real == Path.home().resolve():
                 raise FolderError(f"{flag} is your home folder; {with_article(kind)} takes a "

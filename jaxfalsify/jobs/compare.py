@@ -454,7 +454,7 @@ def execute(config: CompareConfig, out: Path | str | None, *, force: bool = Fals
         return _execute(config, out, base, progress, process_id, num_processes, clock, stop)
     except BaseException as e:
         if num_processes == 1 and not earlier and (sut_raised(e) or store.nothing_written(out)):
-            store.discard(out, "compare", lk, existed)  # the SUT raised: nothing to keep
+            store.discard(out, "compare", lk, existed)  # SUT raised / nothing written
         raise
     finally:
         lk.release()

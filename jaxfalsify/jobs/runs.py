@@ -325,8 +325,8 @@ def execute(config: RunConfig, out: Path | str | None, *, resume: bool = False,
     try:
         return _execute(b, rc, out, lk, resume, force, progress, stop, figures, rerun, clock)
     except BaseException as e:
-        if not resume and (sut_raised(e) or store.nothing_written(out)):  # the SUT raised
-            store.discard(out, "run", lk, existed)  # (nothing of this run is worth keeping)
+        if not resume and (sut_raised(e) or store.nothing_written(out)):  # the SUT raised,
+            store.discard(out, "run", lk, existed)  # or nothing written: nothing to keep
         raise
     finally:
         lk.release()

@@ -244,7 +244,7 @@ def execute(config: SweepConfig, out: Path | str | None = None, *, resume: bool 
                         num_processes=num_processes, world=world, clock=clock)
     except BaseException as e:
         if num_processes == 1 and not resume and (sut_raised(e) or store.nothing_written(out)):
-            store.discard(out, "sweep", lk, existed)  # the SUT raised: nothing worth keeping
+            store.discard(out, "sweep", lk, existed)  # SUT raised / nothing written
         elif process_id == 0 and (out / "config.toml").exists() and \
                 not isinstance(e, (store.Interrupted, ValueError)):
             Status(out, "sweep").failed(e)
